@@ -1,0 +1,151 @@
+"""Raw captures (``.dat``, ``.npy``, ``.npz`` at any URL) read as a stream of packed blocks.
+
+Each reader checks everything it can from sizes and headers before the first frame is
+read, then yields ``(first_frame, packed_block)`` pairs of bounded size, so a capture larger
+than memory goes through in constant memory.
+"""
+
+import zipfile
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.storage import resolve
+from stages.arrays import binary_to_packed, check_spike_array_header
+from stages.dat import DatLayout, dat_to_packed
+from stages.errors import InputError
+
+KINDS = (".dat", ".npy", ".npz")
+DEFAULT_NPZ_KEY = "spk"
+
+
+def _open(url: str):
+    fs, path = resolve(url)
+    if not fs.exists(path):
+        raise InputError(f"cannot read {url}: no such file")
+    if fs.isdir(path):
+        raise InputError(f"cannot read {url}: it is a directory, not a capture file")
+    return fs, path
+
+
+@dataclass
+class DatCapture:
+    """A headerless ``.dat`` capture; its frame count follows from its size."""
+
+    url: str
+    layout: DatLayout
+
+    def __post_init__(self):
+        self.fs, self.path = _open(self.url)
+        self.n_frames = self.layout.frame_count(self.fs.size(self.path))
+
+    @property
+    def height(self) -> int:
+        return self.layout.height
+
+    @property
+    def width(self) -> int:
+        return self.layout.width
+
+    def blocks(self, frames_per_block: int) -> Iterator[tuple[int, np.ndarray]]:
+        frame_bytes = self.layout.frame_bytes
+        with self.fs.open(self.path, "rb", block_size=frames_per_block * frame_bytes) as stream:
+            for start in range(0, self.n_frames, frames_per_block):
+                count = min(frames_per_block, self.n_frames - start)
+                data = stream.read(count * frame_bytes)
+                if len(data) != count * frame_bytes:
+                    raise InputError(f"{self.url} ended early at frame {start}: it changed while being read")
+                raw = np.frombuffer(data, np.uint8).reshape(count, frame_bytes)
+                yield start, dat_to_packed(raw, self.layout)
+
+
+class ArrayCapture:
+    """A (T, H, W) array of 0/1 in ``.npy`` or inside ``.npz``, streamed without loading it."""
+
+    def __init__(self, url: str, *, key: str | None = None, flip: bool = False):
+        self.url, self.flip = url, flip
+        self.fs, self.path = _open(url)
+        self.key = self._choose_key(key) if url.endswith(".npz") else None
+        with self._stream() as stream:
+            shape, self.dtype = self._read_header(stream)
+        self.n_frames, self.height, self.width = shape
+
+    def _choose_key(self, key: str | None) -> str:
+        with self.fs.open(self.path, "rb") as raw:
+            try:
+                names = [n[:-4] for n in zipfile.ZipFile(raw).namelist() if n.endswith(".npy")]
+            except zipfile.BadZipFile:
+                raise InputError(f"{self.url} is not a valid .npz archive") from None
+        if key is None:
+            key = DEFAULT_NPZ_KEY if DEFAULT_NPZ_KEY in names or len(names) != 1 else names[0]
+        if key not in names:
+            raise InputError(f"{self.url} has no array {key!r} (it holds {', '.join(names) or 'nothing'}); choose one with --key")
+        return key
+
+    def _stream(self):
+        raw = self.fs.open(self.path, "rb")
+        if self.key is None:
+            return raw
+        return _ClosingMember(raw, zipfile.ZipFile(raw).open(f"{self.key}.npy"))
+
+    def _read_header(self, stream) -> tuple[tuple, np.dtype]:
+        try:
+            version = np.lib.format.read_magic(stream)
+            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape, fortran, dtype = read_header(stream)
+        except ValueError as error:
+            raise InputError(f"{self.url} is not a valid .npy array: {error}") from None
+        check_spike_array_header(shape, dtype)
+        if fortran:
+            raise InputError(f"{self.url} holds a Fortran-ordered array; save it C-ordered (np.ascontiguousarray)")
+        return shape, dtype
+
+    def blocks(self, frames_per_block: int) -> Iterator[tuple[int, np.ndarray]]:
+        frame_items = self.height * self.width
+        with self._stream() as stream:
+            self._read_header(stream)
+            for start in range(0, self.n_frames, frames_per_block):
+                count = min(frames_per_block, self.n_frames - start)
+                nbytes = count * frame_items * self.dtype.itemsize
+                data = stream.read(nbytes)
+                if len(data) != nbytes:
+                    raise InputError(f"{self.url} is truncated: frame {start + len(data) // (frame_items * self.dtype.itemsize)} of {self.n_frames} is incomplete")
+                frames = np.frombuffer(data, self.dtype).reshape(count, self.height, self.width)
+                packed = binary_to_packed(frames, first_frame=start)
+                yield start, np.ascontiguousarray(packed[:, ::-1]) if self.flip else packed
+
+
+class _ClosingMember:
+    """A zip member stream that also closes the archive's underlying file."""
+
+    def __init__(self, raw, member):
+        self.raw, self.member = raw, member
+
+    def read(self, n: int = -1) -> bytes:
+        return self.member.read(n)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.member.close()
+        self.raw.close()
+
+
+def open_capture(url: str, *, height: int | None, width: int | None, flip: bool = False, head_columns: int = 0, key: str | None = None):
+    """The reader for a capture, chosen by its extension, with the declared sizes checked."""
+    suffix = "." + str(url).rsplit(".", 1)[-1].lower() if "." in str(url) else ""
+    if suffix == ".dat":
+        if height is None or width is None:
+            raise InputError("a .dat capture has no header: give both --height and --width")
+        return DatCapture(url, DatLayout(height, width, head_columns, flip))
+    if suffix in (".npy", ".npz"):
+        if head_columns:
+            raise InputError("--head-columns applies to .dat captures only")
+        capture = ArrayCapture(url, key=key, flip=flip)
+        for label, given, actual in (("height", height, capture.height), ("width", width, capture.width)):
+            if given is not None and given != actual:
+                raise InputError(f"--{label} {given} is inconsistent with the array's {label} {actual} in {url}")
+        return capture
+    raise InputError(f"unknown capture type {suffix or '(no extension)'} for {url}: expected one of {', '.join(KINDS)}")

@@ -1,0 +1,133 @@
+"""The ``cscsr`` command line (Typer): thin wrappers that parse, call the pipeline, report.
+
+Every failure is one line on standard error and a non-zero exit; set ``CSCSR_DEBUG=1`` for
+the full traceback.
+"""
+
+import functools
+import json
+import os
+import sys
+from typing import Annotated, Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+app = typer.Typer(no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False,
+                  help="Reconstruction pipeline for colour spike cameras: ingest, inspect, export, reconstruct.")
+err = Console(stderr=True)
+out = Console()
+
+
+def one_line_errors(command):
+    """Turn any exception into ``error: <one line>`` and exit status 1."""
+
+    @functools.wraps(command)
+    def wrapper(*args, **kwargs):
+        try:
+            return command(*args, **kwargs)
+        except (typer.Exit, typer.Abort):
+            raise
+        except KeyboardInterrupt:
+            err.print("error: interrupted", markup=False)
+            raise typer.Exit(130) from None
+        except Exception as error:
+            if os.environ.get("CSCSR_DEBUG"):
+                raise
+            message = " ".join(str(error).split()) or type(error).__name__
+            if isinstance(error, FileNotFoundError):
+                message = f"cannot read {error.filename or message}: no such file or object"
+            elif not isinstance(error, ValueError):
+                message = f"{type(error).__name__}: {message}"
+            err.print(f"error: {message}", markup=False, highlight=False, soft_wrap=True)
+            raise typer.Exit(1) from None
+
+    return wrapper
+
+
+def command(*args, **kwargs):
+    return lambda fn: app.command(*args, **kwargs)(one_line_errors(fn))
+
+
+def show_table(title: str, rows: dict) -> None:
+    table = Table(title=title, show_header=False)
+    for key, value in rows.items():
+        table.add_row(key, f"{value:.6g}" if isinstance(value, float) else str(value))
+    out.print(table)
+
+
+@command()
+def info(store: Annotated[str, typer.Argument(help="Spike store URL.")],
+         as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of a table.")] = False):
+    """Shape, duration, CFA, firing rate, chunks, size on disk and bits per pixel of a spike store."""
+    from pipeline.info import summarize
+
+    summary = summarize(store)
+    if as_json:
+        print(json.dumps(summary))
+    else:
+        show_table(f"spike store {store}", summary)
+
+
+@command()
+def ingest(src: Annotated[str, typer.Argument(help="Capture: .dat, .npy or .npz (any URL).")],
+           store: Annotated[str, typer.Argument(help="Spike store to create (any URL).")],
+           height: Annotated[Optional[int], typer.Option(help="Frame height (required for .dat).")] = None,
+           width: Annotated[Optional[int], typer.Option(help="Frame width without header columns (required for .dat).")] = None,
+           flip: Annotated[bool, typer.Option("--flip", help="Frames are stored upside down (real cameras).")] = False,
+           cfa: Annotated[str, typer.Option(help="Sensor CFA as recorded: rggb, bggr, grbg, gbrg or mono.")] = "mono",
+           fps: Annotated[float, typer.Option(help="Spike frames per second.")] = 20000.0,
+           head_columns: Annotated[int, typer.Option(help="Extra header columns at the start of each .dat row.")] = 0,
+           key: Annotated[Optional[str], typer.Option(help="Array name inside a .npz (default: spk).")] = None,
+           reset: Annotated[str, typer.Option(help="Integrator reset of the sensor: subtract or zero.")] = "subtract",
+           overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace STORE if it exists.")] = False):
+    """Copy a raw capture into a new spike store, streaming in bounded memory."""
+    from pipeline.ingest import IngestOptions, ingest as run
+
+    attrs = run(src, store, IngestOptions(height, width, cfa, fps, flip, head_columns, key, reset, overwrite))
+    out.print(f"{store}: {attrs['spike_count']} spikes, {attrs['height']}x{attrs['width']}, cfa {attrs['cfa']}")
+
+
+@command()
+def export(store: Annotated[str, typer.Argument(help="Spike store URL.")],
+           dest: Annotated[str, typer.Argument(help="Destination .dat (any URL).")],
+           overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace DEST if it exists.")] = False):
+    """Write a spike store back out as a raw .dat capture (original orientation)."""
+    from pipeline.export import export as run
+
+    run(store, dest, overwrite=overwrite)
+    out.print(f"wrote {dest}")
+
+
+@command()
+def preview(store: Annotated[str, typer.Argument(help="Spike store URL.")],
+            image: Annotated[str, typer.Argument(help="PNG to write (any URL).")],
+            centre: Annotated[Optional[int], typer.Option(help="Centre spike frame (default: the middle).")] = None,
+            window: Annotated[int, typer.Option(help="Frames in the window (odd).")] = 41,
+            gain: Annotated[Optional[float], typer.Option(help="Rate-to-intensity gain (default: store's, else auto).")] = None,
+            scale: Annotated[int, typer.Option(help="Upsampling factor.")] = 1,
+            overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace IMAGE if it exists.")] = False):
+    """One TFP picture (window mean, demosaicked, upsampled) from a spike store."""
+    from pipeline.images import write_image
+    from pipeline.preview import preview as run
+
+    shot = run(store, centre=centre, window=window, gain=gain, scale=scale)
+    write_image(image, shot.image, overwrite=overwrite)
+    out.print(f"wrote {image}: frames {shot.centre - window // 2}..{shot.centre + window // 2}, gain {shot.gain:.4g}")
+
+
+@command()
+def demo(out_dir: Annotated[str, typer.Option("--out", help="Folder for the demo's outputs.")] = "demo-output"):
+    """The main job on the bundled samples, start to finish, with a results table."""
+    from pipeline.demo import run
+
+    run(out_dir, console=out)
+
+
+def main() -> None:
+    app(prog_name="cscsr")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

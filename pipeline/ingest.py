@@ -1,0 +1,53 @@
+"""``cscsr ingest``: a raw capture streamed into a new spike store."""
+
+from dataclasses import dataclass
+
+from pipeline.captures import open_capture
+from pipeline.progress import progress_bar
+from pipeline.spike_store import SpikeMeta, SpikeStoreWriter, chunk_frames_for
+from pipeline.storage import removed_on_failure
+from stages.bits import count_spikes, packed_width
+from stages.cfa import check_cfa, flip_vertically
+
+BLOCK_BYTES = 64 * 2**20  # packed bytes per block read: bounds memory, amortises I/O
+
+
+@dataclass(frozen=True)
+class IngestOptions:
+    height: int | None = None
+    width: int | None = None
+    cfa: str = "mono"
+    fps: float = 20000.0
+    flip: bool = False
+    head_columns: int = 0
+    key: str | None = None
+    reset: str = "subtract"
+    overwrite: bool = False
+
+
+def ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *, progress: bool = True) -> dict:
+    """Copy ``src`` into a spike store at ``dest``; return the store's final attributes.
+
+    ``options.cfa`` is the pattern as recorded by the sensor; with ``flip`` the store
+    records the pattern of the upright image it holds.
+    """
+    capture = open_capture(src, height=options.height, width=options.width, flip=options.flip,
+                           head_columns=options.head_columns, key=options.key)
+    sensor_cfa = check_cfa(options.cfa, capture.height, capture.width)
+    meta = SpikeMeta(
+        height=capture.height, width=capture.width,
+        cfa=flip_vertically(sensor_cfa, capture.height) if options.flip else sensor_cfa,
+        fps=options.fps, source=str(src), flipped=options.flip, head_columns=options.head_columns, reset=options.reset,
+    )
+    chunk = chunk_frames_for(meta, capture.n_frames)
+    frames_per_block = chunk * max(1, BLOCK_BYTES // (chunk * capture.height * packed_width(capture.width)))
+    with removed_on_failure(dest):
+        writer = SpikeStoreWriter(dest, meta, capture.n_frames, overwrite=options.overwrite, chunk_frames=chunk)
+        spikes = 0
+        with progress_bar(f"ingest {src}", capture.n_frames, enabled=progress) as advance:
+            for start, packed in capture.blocks(frames_per_block):
+                writer.write(start, packed)
+                spikes += count_spikes(packed)
+                advance(packed.shape[0])
+        writer.finish(spike_count=spikes)
+    return dict(writer.group.attrs)

@@ -1,0 +1,20 @@
+"""Progress bars (rich) on standard error, for anything longer than a few seconds."""
+
+import contextlib
+import sys
+from collections.abc import Iterator
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn, TransferSpeedColumn
+
+
+@contextlib.contextmanager
+def progress_bar(description: str, total: int, *, unit: str = "frames", enabled: bool = True) -> Iterator:
+    """Yield ``advance(n)``; draws a bar with count, rate and time left while enabled."""
+    columns = [TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn(unit)]
+    columns += [TransferSpeedColumn()] if unit == "bytes" else []
+    columns += [TimeRemainingColumn()]
+    console = Console(stderr=True)
+    with Progress(*columns, console=console, disable=not enabled, transient=not sys.stderr.isatty()) as bar:
+        task = bar.add_task(description, total=total)
+        yield lambda n: bar.advance(task, n)

@@ -1,0 +1,151 @@
+"""The spike store: a Zarr v3 group holding bit-packed spike frames and their metadata.
+
+Layout (see ``PRODUCT.md``): ``spikes`` uint8 ``(T, H, ceil(W/8))``, chunked by whole frames
+along time, compressed with zstd level 1 (measured: within 1-8 % of the entropy bound at
+firing rates >= 0.1 and the fastest codec tried; ``benchmarks/size_at_rest.py``).
+
+Writing follows xarray's habit: the group, the array metadata and every attribute are
+written first with ``state = "writing"``; regions are filled next (each a whole number of
+chunks, so parallel writers never share a chunk); ``state`` becomes ``"complete"`` last.
+Readers refuse a store that is not complete, so an interrupted ingest never passes for
+a finished one.
+"""
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import zarr
+from zarr.codecs import ZstdCodec
+
+import cscsr
+from pipeline.storage import claim_output, zarr_store
+from stages.bits import packed_width
+from stages.cfa import check_cfa
+from stages.errors import InputError
+
+FORMAT_VERSION = 1
+SPIKES = "spikes"
+CODEC_LEVEL = 1
+TARGET_CHUNK_BYTES = 4 * 2**20
+RESET_MODES = ("subtract", "zero")
+
+
+@dataclass(frozen=True)
+class SpikeMeta:
+    """What a spike store says about its recording (the group's attributes)."""
+
+    height: int
+    width: int
+    cfa: str = "mono"
+    fps: float = 20000.0
+    source: str = ""
+    flipped: bool = False
+    head_columns: int = 0
+    reset: str = "subtract"
+    gain: float | None = None
+    threshold: float | None = None
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        object.__setattr__(self, "cfa", check_cfa(self.cfa, self.height, self.width))
+        if not self.fps > 0:
+            raise InputError(f"fps must be > 0, got {self.fps}")
+        if self.reset not in RESET_MODES:
+            raise InputError(f"unknown reset mode {self.reset!r}: expected one of {', '.join(RESET_MODES)}")
+
+    def attrs(self) -> dict:
+        attrs = {k: v for k, v in asdict(self).items() if k != "extra" and v is not None}
+        attrs.update(self.extra, format_version=FORMAT_VERSION, cscsr_version=cscsr.__version__)
+        return attrs
+
+    @classmethod
+    def from_attrs(cls, attrs: dict) -> "SpikeMeta":
+        missing = [k for k in ("height", "width", "cfa") if k not in attrs]
+        if missing:
+            raise InputError(f"spike store attributes lack {', '.join(missing)}")
+        known = {f for f in cls.__dataclass_fields__ if f != "extra"}
+        extra = {k: v for k, v in attrs.items() if k not in known | {"format_version", "cscsr_version", "state", "spike_count"}}
+        return cls(**{k: attrs[k] for k in known if k in attrs}, extra=extra)
+
+
+def chunk_frames_for(meta: SpikeMeta, n_frames: int) -> int:
+    """Frames per chunk: about 4 MiB of packed frames, at most the whole recording."""
+    frame_bytes = meta.height * packed_width(meta.width)
+    return max(1, min(n_frames, TARGET_CHUNK_BYTES // frame_bytes))
+
+
+class SpikeStore:
+    """A spike store opened for reading: metadata plus block reads of packed frames."""
+
+    def __init__(self, url: str, group: zarr.Group):
+        self.url = url
+        self.group = group
+        self.attrs = dict(group.attrs)
+        self.meta = SpikeMeta.from_attrs(self.attrs)
+        if SPIKES not in group:
+            raise InputError(f"{url} is not a spike store: it has no '{SPIKES}' array")
+        self.spikes: zarr.Array = group[SPIKES]
+        expected = (self.meta.height, packed_width(self.meta.width))
+        if self.spikes.dtype != np.uint8 or self.spikes.ndim != 3 or self.spikes.shape[1:] != expected:
+            raise InputError(
+                f"{url}: '{SPIKES}' is {self.spikes.dtype} {self.spikes.shape}, expected uint8 (T, {expected[0]}, {expected[1]})"
+            )
+
+    @property
+    def n_frames(self) -> int:
+        return self.spikes.shape[0]
+
+    @property
+    def complete(self) -> bool:
+        return self.attrs.get("state") == "complete"
+
+    @property
+    def spike_count(self) -> int | None:
+        return self.attrs.get("spike_count")
+
+    def read(self, start: int, stop: int) -> np.ndarray:
+        """Packed frames ``[start, stop)`` as a numpy array."""
+        return self.spikes[start:stop]
+
+
+def open_spike_store(url: str, *, allow_incomplete: bool = False) -> SpikeStore:
+    """Open and check a spike store; an error if it is missing, malformed or unfinished."""
+    try:
+        group = zarr.open_group(zarr_store(url, read_only=True), mode="r")
+    except FileNotFoundError:
+        raise InputError(f"cannot read spike store {url}: no Zarr group there") from None
+    store = SpikeStore(url, group)
+    if not (allow_incomplete or store.complete):
+        raise InputError(f"spike store {url} is incomplete (state {store.attrs.get('state')!r}): its writer did not finish")
+    return store
+
+
+class SpikeStoreWriter:
+    """Creates a spike store (metadata first), fills it by regions, then marks it complete."""
+
+    def __init__(self, url: str, meta: SpikeMeta, n_frames: int, *, overwrite: bool, chunk_frames: int | None = None):
+        claim_output(url, overwrite=overwrite)
+        self.url = url
+        self.chunk_frames = chunk_frames or chunk_frames_for(meta, n_frames)
+        self.group = zarr.open_group(zarr_store(url, read_only=False), mode="w", attributes={**meta.attrs(), "state": "writing"})
+        self.spikes = self.group.create_array(
+            SPIKES,
+            shape=(n_frames, meta.height, packed_width(meta.width)),
+            chunks=(self.chunk_frames, meta.height, packed_width(meta.width)),
+            dtype=np.uint8,
+            fill_value=0,
+            compressors=ZstdCodec(level=CODEC_LEVEL),
+            dimension_names=("t", "y", "xbyte"),
+        )
+
+    def write(self, start: int, packed: np.ndarray) -> None:
+        """Write frames ``[start, start + len(packed))``; ``start`` must begin a chunk."""
+        if start % self.chunk_frames:
+            raise ValueError(f"region start {start} is not on a chunk boundary ({self.chunk_frames} frames)")
+        self.spikes[start : start + packed.shape[0]] = packed
+
+    def finish(self, **attrs) -> None:
+        """Record final attributes and mark the store complete (the last write)."""
+        self.group.attrs.update({**attrs, "state": "complete"})
+
+

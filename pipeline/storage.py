@@ -1,0 +1,73 @@
+"""fsspec URLs -> filesystems and Zarr stores, and removal of outputs that did not finish.
+
+Any location is a URL: a plain path, ``file://``, ``memory://`` (shared within one process),
+``s3://`` (s3fs; endpoint and credentials from the usual AWS variables or fsspec's
+``FSSPEC_S3_*`` settings). Local paths map to Zarr's ``LocalStore`` (which creates
+directories as needed), everything else to ``FsspecStore``.
+"""
+
+import contextlib
+from collections.abc import Iterator
+
+import fsspec
+import zarr
+from fsspec.implementations.local import LocalFileSystem
+
+from stages.errors import InputError
+
+
+def resolve(url: str) -> tuple[fsspec.AbstractFileSystem, str]:
+    """(filesystem, path inside it) for a URL or plain path."""
+    try:
+        return fsspec.core.url_to_fs(str(url))
+    except (ValueError, ImportError) as error:
+        raise InputError(f"cannot use URL {url!r}: {error}") from None
+
+
+def is_local(url: str) -> bool:
+    return isinstance(resolve(url)[0], LocalFileSystem)
+
+
+def exists(url: str) -> bool:
+    fs, path = resolve(url)
+    return fs.exists(path)
+
+
+def remove(url: str) -> None:
+    """Delete a file or directory tree if it exists."""
+    fs, path = resolve(url)
+    if fs.exists(path):
+        fs.rm(path, recursive=True)
+
+
+def zarr_store(url: str, *, read_only: bool) -> zarr.abc.store.Store:
+    """A Zarr v3 store for the URL."""
+    fs, path = resolve(url)
+    if isinstance(fs, LocalFileSystem):
+        return zarr.storage.LocalStore(path, read_only=read_only)
+    return zarr.storage.FsspecStore.from_url(str(url), read_only=read_only)
+
+
+def size_of(url: str) -> int:
+    """Bytes stored under a URL (a file, or every file of a directory tree)."""
+    fs, path = resolve(url)
+    return int(fs.du(path, total=True)) if fs.isdir(path) else int(fs.size(path))
+
+
+def claim_output(url: str, *, overwrite: bool, flag: str = "--overwrite") -> None:
+    """Refuse an existing output unless ``overwrite``; with it, clear the old output."""
+    if exists(url):
+        if not overwrite:
+            raise InputError(f"output {url} already exists (pass {flag} to replace it)")
+        remove(url)
+
+
+@contextlib.contextmanager
+def removed_on_failure(url: str) -> Iterator[None]:
+    """Delete ``url`` if the block raises (or is interrupted): no half-written output stays."""
+    try:
+        yield
+    except BaseException:
+        with contextlib.suppress(Exception):
+            remove(url)
+        raise

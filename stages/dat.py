@@ -1,0 +1,98 @@
+"""Raw ``.dat`` capture frames <-> packed store frames.
+
+A ``.dat`` file has no header: frames back to back, each ``ceil(H*W_stored/8)`` bytes, pixel
+``p = y*W_stored + x`` in bit ``p % 8`` (LSB first) of byte ``p // 8``. Some cameras store
+``head_columns`` extra columns at the start of each row, which ingest drops. Real cameras
+store frames upside down (``flip``).
+
+When ``W_stored`` and ``head_columns`` are multiples of 8 a .dat frame already *is* the
+store layout (bytes are whole columns of 8 pixels), so conversion is slicing and row
+reversal of bytes, never a bit decode. Other widths go through an unpack/repack.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from stages.bits import pack_rows, packed_width, unpack_rows
+from stages.errors import InputError
+
+
+@dataclass(frozen=True)
+class DatLayout:
+    """Geometry of one raw capture: the real image size plus how it sits in the file."""
+
+    height: int
+    width: int
+    head_columns: int = 0
+    flip: bool = False
+
+    def __post_init__(self):
+        for label, value in (("height", self.height), ("width", self.width)):
+            if not isinstance(value, (int, np.integer)) or value <= 0:
+                raise InputError(f"{label} must be a positive integer, got {value!r}")
+        if self.head_columns < 0:
+            raise InputError(f"head columns must be >= 0, got {self.head_columns}")
+
+    @property
+    def stored_width(self) -> int:
+        return self.width + self.head_columns
+
+    @property
+    def frame_bytes(self) -> int:
+        """Bytes per frame in the .dat file."""
+        return -(-self.height * self.stored_width // 8)
+
+    @property
+    def byte_aligned(self) -> bool:
+        """True when conversion needs no bit decode (whole bytes map to whole bytes)."""
+        return self.stored_width % 8 == 0 and self.head_columns % 8 == 0
+
+    def frame_count(self, nbytes: int) -> int:
+        """Frames in a file of ``nbytes``; an error naming the surplus if it does not divide."""
+        frames, surplus = divmod(nbytes, self.frame_bytes)
+        if surplus:
+            raise InputError(
+                f"capture size {nbytes} bytes is not a multiple of the frame size "
+                f"{self.frame_bytes} bytes ({self.height}x{self.stored_width} pixels): "
+                f"{surplus} bytes too many, or {self.frame_bytes - surplus} missing"
+            )
+        if frames == 0:
+            raise InputError("capture is empty: no complete frame")
+        return frames
+
+
+def dat_to_packed(raw: np.ndarray, layout: DatLayout) -> np.ndarray:
+    """(n, frame_bytes) uint8 .dat frames -> (n, H, ceil(W/8)) packed frames, upright."""
+    n = raw.shape[0]
+    if layout.byte_aligned:
+        rows = raw.reshape(n, layout.height, layout.stored_width // 8)
+        packed = rows[:, :, layout.head_columns // 8 :]
+    else:
+        bits = np.unpackbits(raw, axis=-1, count=layout.height * layout.stored_width, bitorder="little")
+        bits = bits.reshape(n, layout.height, layout.stored_width)[:, :, layout.head_columns :]
+        packed = pack_rows(bits)
+    if layout.flip:
+        packed = packed[:, ::-1]
+    return np.ascontiguousarray(packed)
+
+
+def packed_to_dat(packed: np.ndarray, layout: DatLayout) -> np.ndarray:
+    """(n, H, ceil(W/8)) packed frames -> (n, frame_bytes) .dat frames (head columns zero)."""
+    n = packed.shape[0]
+    if layout.flip:
+        packed = packed[:, ::-1]
+    if layout.byte_aligned:
+        head = np.zeros((n, layout.height, layout.head_columns // 8), np.uint8)
+        rows = np.concatenate([head, packed], axis=-1) if layout.head_columns else packed
+        return np.ascontiguousarray(rows).reshape(n, layout.frame_bytes)
+    bits = np.zeros((n, layout.height, layout.stored_width), np.uint8)
+    bits[:, :, layout.head_columns :] = unpack_rows(packed, layout.width)
+    return np.packbits(bits.reshape(n, -1), axis=-1, bitorder="little")
+
+
+def check_packed_shape(packed: np.ndarray, height: int, width: int) -> None:
+    """Reject packed frames whose shape does not match the declared image size."""
+    expected = (height, packed_width(width))
+    if packed.ndim != 3 or packed.shape[1:] != expected:
+        raise InputError(f"packed frames have shape {packed.shape}, expected (T, {expected[0]}, {expected[1]})")
