@@ -7,7 +7,7 @@ ingested and exported again is byte-identical to the original (header columns as
 
 from pipeline.progress import progress_bar
 from pipeline.spike_store import open_spike_store
-from pipeline.storage import claim_output, removed_on_failure, resolve
+from pipeline.storage import claim_output, new_output, resolve
 from stages.dat import DatLayout, packed_to_dat
 from stages.errors import InputError
 
@@ -30,7 +30,7 @@ def export_dat(store_url: str, dest: str, *, overwrite: bool = False, progress: 
     claim_output(dest, overwrite=overwrite)
     partial = f"{dest}.partial"
     fs, path = resolve(partial)
-    with removed_on_failure(partial):
+    with new_output(partial, overwrite=True):
         with fs.open(path, "wb") as out, progress_bar(f"export {dest}", store.n_frames, enabled=progress) as advance:
             for start in range(0, store.n_frames, frames_per_read):
                 packed = store.read(start, min(start + frames_per_read, store.n_frames))

@@ -3,7 +3,7 @@
 import imageio.v3 as iio
 import numpy as np
 
-from pipeline.storage import claim_output, removed_on_failure, resolve
+from pipeline.storage import new_output, resolve
 
 
 def read_image(url: str) -> np.ndarray:
@@ -13,10 +13,9 @@ def read_image(url: str) -> np.ndarray:
 
 
 def write_image(url: str, image: np.ndarray, *, overwrite: bool = True) -> None:
-    claim_output(url, overwrite=overwrite)
     fs, path = resolve(url)
     encoded = iio.imwrite("<bytes>", image, extension="." + path.rsplit(".", 1)[-1])
-    with removed_on_failure(url):
+    with new_output(url, overwrite=overwrite):
         fs.makedirs(fs._parent(path), exist_ok=True)
         with fs.open(path, "wb") as handle:
             handle.write(encoded)

@@ -5,7 +5,7 @@ from dataclasses import dataclass
 from pipeline.captures import open_capture
 from pipeline.progress import progress_bar
 from pipeline.spike_store import SpikeMeta, SpikeStoreWriter, chunk_frames_for
-from pipeline.storage import removed_on_failure
+from pipeline.storage import new_output
 from stages.bits import count_spikes, packed_width
 from stages.cfa import check_cfa, flip_vertically
 
@@ -41,8 +41,8 @@ def ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *, pro
     )
     chunk = chunk_frames_for(meta, capture.n_frames)
     frames_per_block = chunk * max(1, BLOCK_BYTES // (chunk * capture.height * packed_width(capture.width)))
-    with removed_on_failure(dest):
-        writer = SpikeStoreWriter(dest, meta, capture.n_frames, overwrite=options.overwrite, chunk_frames=chunk)
+    with new_output(dest, overwrite=options.overwrite):
+        writer = SpikeStoreWriter(dest, meta, capture.n_frames, chunk_frames=chunk)
         spikes = 0
         with progress_bar(f"ingest {src}", capture.n_frames, enabled=progress) as advance:
             for start, packed in capture.blocks(frames_per_block):

@@ -18,7 +18,7 @@ import zarr
 from zarr.codecs import ZstdCodec
 
 import cscsr
-from pipeline.storage import claim_output, zarr_store
+from pipeline.storage import zarr_store
 from stages.bits import packed_width
 from stages.cfa import check_cfa
 from stages.errors import InputError
@@ -123,8 +123,8 @@ def open_spike_store(url: str, *, allow_incomplete: bool = False) -> SpikeStore:
 class SpikeStoreWriter:
     """Creates a spike store (metadata first), fills it by regions, then marks it complete."""
 
-    def __init__(self, url: str, meta: SpikeMeta, n_frames: int, *, overwrite: bool, chunk_frames: int | None = None):
-        claim_output(url, overwrite=overwrite)
+    def __init__(self, url: str, meta: SpikeMeta, n_frames: int, *, chunk_frames: int | None = None):
+        """Write the group and array metadata at ``url``, which the caller has claimed."""
         self.url = url
         self.chunk_frames = chunk_frames or chunk_frames_for(meta, n_frames)
         self.group = zarr.open_group(zarr_store(url, read_only=False), mode="w", attributes={**meta.attrs(), "state": "writing"})

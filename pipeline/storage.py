@@ -71,3 +71,11 @@ def removed_on_failure(url: str) -> Iterator[None]:
         with contextlib.suppress(Exception):
             remove(url)
         raise
+
+
+@contextlib.contextmanager
+def new_output(url: str, *, overwrite: bool, flag: str = "--overwrite") -> Iterator[None]:
+    """Claim ``url`` for a new output (refusing an existing one first), removed if the block fails."""
+    claim_output(url, overwrite=overwrite, flag=flag)
+    with removed_on_failure(url):
+        yield

@@ -23,7 +23,7 @@ def binary_to_packed(frames: np.ndarray, first_frame: int = 0) -> np.ndarray:
         if bad.any():
             t, y, x = np.argwhere(bad)[0]
             raise InputError(
-                f"spike values must be 0 or 1: found {frames[t, y, x]!r} at frame {first_frame + t}, "
+                f"spike values must be 0 or 1: found {frames[t, y, x].item()!r} at frame {first_frame + t}, "
                 f"row {y}, column {x}"
             )
     return pack_rows(frames.astype(np.uint8, copy=False))

@@ -1,0 +1,46 @@
+"""Helpers shared by the benchmark scripts: paths, medians, markdown tables, JSON results.
+
+Not a benchmark itself (``run_all.py`` skips files whose name starts with ``_``).
+"""
+
+import json
+import os
+import platform
+import statistics
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+median = statistics.median
+
+
+def entropy_bits(p: float) -> float:
+    """Entropy of an i.i.d. Bernoulli(p) pixel, bits: the size bound for memoryless spikes."""
+    import math
+
+    return 0.0 if p <= 0 or p >= 1 else -p * math.log2(p) - (1 - p) * math.log2(1 - p)
+
+
+def load_average() -> str:
+    one, five, fifteen = os.getloadavg()
+    return f"{one:.2f} / {five:.2f} / {fifteen:.2f} (1 / 5 / 15 min, {os.cpu_count()} CPUs)"
+
+
+def markdown_table(headers: list[str], rows: list[list]) -> str:
+    lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
+    lines += ["| " + " | ".join(str(cell) for cell in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def save_results(name: str, data: dict) -> Path:
+    """Write ``benchmarks/results/NAME.json`` with the machine's description beside the data."""
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    machine = {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform(),
+               "load_average_at_end": os.getloadavg()}
+    path = RESULTS / f"{name}.json"
+    path.write_text(json.dumps({"benchmark": name, "machine": machine, **data}, indent=2) + "\n")
+    return path

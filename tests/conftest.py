@@ -1,0 +1,86 @@
+"""Shared fixtures: the bundled samples, a CLI runner, and small synthetic captures."""
+
+import os
+import subprocess
+import sys
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from cscsr import samples
+from pipeline.cli import app
+
+
+@dataclass
+class CliResult:
+    exit_code: int
+    stdout: str
+    stderr: str
+
+
+@pytest.fixture
+def cli():
+    """Run ``cscsr ARGS`` in-process (Typer's runner) and return exit code and both streams."""
+    runner = CliRunner()
+
+    def run(*args) -> CliResult:
+        result = runner.invoke(app, [str(a) for a in args])
+        if result.exception and not isinstance(result.exception, SystemExit):
+            raise result.exception
+        return CliResult(result.exit_code, result.stdout, result.stderr)
+
+    return run
+
+
+@pytest.fixture
+def cli_process():
+    """Run the installed ``cscsr`` console command as a real process."""
+
+    def run(*args, env=None) -> subprocess.CompletedProcess:
+        command = [os.path.join(os.path.dirname(sys.executable), "cscsr"), *map(str, args)]
+        return subprocess.run(command, capture_output=True, text=True, env={**os.environ, **(env or {})}, timeout=300)
+
+    return run
+
+
+@pytest.fixture
+def reds_dat() -> str:
+    return samples.path(samples.REDS_DAT)
+
+
+@pytest.fixture
+def helicopter_npz() -> str:
+    return samples.path(samples.HELICOPTER_NPZ)
+
+
+def integrate_and_fire(rate: np.ndarray, frames: int, seed: int = 0) -> np.ndarray:
+    """(frames, H, W) uint8 0/1 spikes of a static scene firing at ``rate`` (subtract reset)."""
+    rng = np.random.default_rng(seed)
+    accumulator = rng.random(rate.shape)
+    spikes = np.empty((frames, *rate.shape), np.uint8)
+    for t in range(frames):
+        accumulator += rate
+        spikes[t] = accumulator >= 1
+        accumulator -= spikes[t]
+    return spikes
+
+
+def smooth_rate(height: int, width: int, low: float = 0.05, high: float = 0.3, seed: int = 0) -> np.ndarray:
+    """A smooth random intensity pattern mapped to firing rates in [low, high]."""
+    import cv2
+
+    noise = np.random.default_rng(seed).random((max(height // 16, 2), max(width // 16, 2)))
+    pattern = cv2.resize(noise, (width, height), interpolation=cv2.INTER_CUBIC)
+    pattern = (pattern - pattern.min()) / (np.ptp(pattern) or 1)
+    return low + (high - low) * pattern
+
+
+def write_dat(path, bits: np.ndarray, *, flip: bool = False) -> bytes:
+    """Write (T, H, W) 0/1 spikes as a raw .dat (row-major bits, LSB first); return its bytes."""
+    frames = bits[:, ::-1] if flip else bits
+    data = np.packbits(frames.reshape(frames.shape[0], -1), axis=-1, bitorder="little").tobytes()
+    with open(path, "wb") as handle:
+        handle.write(data)
+    return data

@@ -1,0 +1,138 @@
+"""Bad input: a one-line error naming the problem, a non-zero exit, and no output left."""
+
+import os
+
+import numpy as np
+import pytest
+
+from tests.conftest import write_dat
+
+
+def assert_refused(result, *fragments):
+    assert result.exit_code != 0
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    assert lines[0].startswith("error: ")
+    for fragment in fragments:
+        assert fragment in lines[0], lines[0]
+
+
+@pytest.fixture
+def small_dat(tmp_path):
+    path = tmp_path / "ok.dat"
+    write_dat(path, (np.random.default_rng(0).random((41, 8, 16)) < 0.2).astype(np.uint8))
+    return path
+
+
+def test_dat_size_not_a_multiple_of_the_frame(cli, small_dat, tmp_path):
+    truncated = tmp_path / "cut.dat"
+    truncated.write_bytes(small_dat.read_bytes()[:-5])  # 16 bytes/frame
+    out = tmp_path / "s.zarr"
+    assert_refused(cli("ingest", truncated, out, "--height", 8, "--width", 16), "not a multiple of the frame size 16", "11 bytes too many")
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("args,fragment", [
+    ([], "give both --height and --width"),
+    (["--height", 8], "give both --height and --width"),
+    (["--height", 0, "--width", 16], "height must be a positive integer"),
+])
+def test_dat_geometry_missing_or_nonsense(cli, small_dat, tmp_path, args, fragment):
+    out = tmp_path / "s.zarr"
+    assert_refused(cli("ingest", small_dat, out, *args), fragment)
+    assert not out.exists()
+
+
+def test_array_size_inconsistent_with_options(cli, tmp_path):
+    np.save(tmp_path / "a.npy", np.zeros((41, 8, 16), np.uint8))
+    out = tmp_path / "s.zarr"
+    assert_refused(cli("ingest", tmp_path / "a.npy", out, "--height", 10), "--height 10 is inconsistent with the array's height 8")
+    assert not out.exists()
+
+
+def test_npz_values_not_binary(cli, tmp_path):
+    spikes = np.zeros((300, 8, 16), np.uint8)
+    spikes[250, 3, 5] = 2  # late in the stream: earlier blocks are already written
+    np.savez(tmp_path / "bad.npz", spk=spikes)
+    out = tmp_path / "s.zarr"
+    from pipeline import ingest as module
+
+    module.BLOCK_BYTES, saved = 16 * 64, module.BLOCK_BYTES
+    try:
+        assert_refused(cli("ingest", tmp_path / "bad.npz", out), "must be 0 or 1", "found 2 at frame 250, row 3, column 5")
+    finally:
+        module.BLOCK_BYTES = saved
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("array,fragment", [
+    (np.zeros((8, 16), np.uint8), "rank 2"),
+    (np.zeros((2, 41, 8, 16), np.uint8), "rank 4"),
+    (np.array([["a"]] * 3), "rank 2"),
+    (np.zeros((41, 8, 16), "U1"), "dtype <U1"),
+])
+def test_npz_wrong_rank_or_dtype(cli, tmp_path, array, fragment):
+    np.savez(tmp_path / "bad.npz", spk=array)
+    out = tmp_path / "s.zarr"
+    assert_refused(cli("ingest", tmp_path / "bad.npz", out), fragment)
+    assert not out.exists()
+
+
+def test_npz_missing_key_lists_what_is_there(cli, tmp_path):
+    np.savez(tmp_path / "two.npz", a=np.zeros((41, 8, 16), np.uint8), b=np.zeros(3))
+    assert_refused(cli("ingest", tmp_path / "two.npz", tmp_path / "s.zarr"), "no array 'spk'", "a, b")
+
+
+def test_unknown_cfa(cli, small_dat, tmp_path):
+    assert_refused(cli("ingest", small_dat, tmp_path / "s.zarr", "--height", 8, "--width", 16, "--cfa", "rgbw"), "unknown CFA 'rgbw'")
+    assert not (tmp_path / "s.zarr").exists()
+
+
+def test_odd_size_with_bayer_cfa(cli, tmp_path):
+    np.save(tmp_path / "odd.npy", np.zeros((41, 7, 16), np.uint8))
+    assert_refused(cli("ingest", tmp_path / "odd.npy", tmp_path / "s.zarr", "--cfa", "rggb"), "height 7 is odd")
+    assert not (tmp_path / "s.zarr").exists()
+
+
+def test_output_exists_without_overwrite(cli, small_dat, tmp_path):
+    out = tmp_path / "s.zarr"
+    assert cli("ingest", small_dat, out, "--height", 8, "--width", 16).exit_code == 0
+    before = sorted(os.listdir(out))
+    assert_refused(cli("ingest", small_dat, out, "--height", 8, "--width", 16), "already exists", "--overwrite")
+    assert sorted(os.listdir(out)) == before  # the existing store is untouched
+    assert cli("ingest", small_dat, out, "--height", 8, "--width", 16, "--overwrite").exit_code == 0
+    (tmp_path / "x.dat").write_bytes(b"old")
+    assert_refused(cli("export", out, tmp_path / "x.dat"), "already exists")
+    assert (tmp_path / "x.dat").read_bytes() == b"old"
+
+
+@pytest.mark.parametrize("source", ["/no/such/capture.dat", "memory://nowhere/capture.dat", "nosuchproto://x/capture.dat"])
+def test_unreadable_url(cli, tmp_path, source):
+    out = tmp_path / "s.zarr"
+    assert_refused(cli("ingest", source, out, "--height", 8, "--width", 16), "capture.dat")
+    assert not out.exists()
+
+
+def test_unknown_extension_and_missing_store(cli, tmp_path):
+    (tmp_path / "c.avi").write_bytes(b"x")
+    assert_refused(cli("ingest", tmp_path / "c.avi", tmp_path / "s.zarr"), "unknown capture type .avi")
+    assert_refused(cli("info", tmp_path / "none.zarr"), "cannot read spike store")
+    assert_refused(cli("export", tmp_path / "none.zarr", tmp_path / "o.dat"), "cannot read spike store")
+    assert not (tmp_path / "o.dat").exists()
+
+
+def test_incomplete_store_is_refused(cli, small_dat, tmp_path):
+    import zarr
+
+    out = tmp_path / "s.zarr"
+    assert cli("ingest", small_dat, out, "--height", 8, "--width", 16).exit_code == 0
+    zarr.open_group(str(out), mode="r+").attrs["state"] = "writing"  # as if the writer died
+    assert_refused(cli("export", out, tmp_path / "o.dat"), "incomplete")
+    assert "writing" in cli("info", out).stdout
+
+
+def test_real_process_exit_status(cli_process, tmp_path):
+    result = cli_process("ingest", tmp_path / "missing.dat", tmp_path / "s.zarr", "--height", 8, "--width", 16)
+    assert result.returncode == 1
+    assert result.stderr.strip().count("\n") == 0 and "missing.dat" in result.stderr
+    assert "Usage" in cli_process("--help").stdout

@@ -1,0 +1,66 @@
+"""Streaming: bounded memory whatever the capture size, and no output left by a failed ingest."""
+
+import tracemalloc
+
+import numpy as np
+import pytest
+
+from pipeline import ingest as ingest_module
+from pipeline import spike_store
+from pipeline.captures import open_capture
+from pipeline.ingest import IngestOptions, ingest
+from pipeline.spike_store import open_spike_store
+from stages.bits import unpack_rows
+from tests.conftest import write_dat
+
+
+def _ingest_peak_bytes(tmp_path, frames: int) -> int:
+    """Peak traced allocation while ingesting a 1000x1000 capture of ``frames`` frames."""
+    height = width = 1000
+    bits = np.zeros((frames, height, width), np.uint8)
+    bits[:, ::7, ::3] = 1
+    write_dat(tmp_path / f"{frames}.dat", bits)
+    del bits
+    tracemalloc.start()
+    ingest(str(tmp_path / f"{frames}.dat"), str(tmp_path / f"{frames}.zarr"), IngestOptions(height, width), progress=False)
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    assert open_spike_store(str(tmp_path / f"{frames}.zarr")).spike_count == frames * 143 * 334
+    return peak
+
+
+def test_ingest_memory_does_not_grow_with_the_capture(tmp_path, monkeypatch):
+    """4x the frames, same peak: memory is set by the block size, not the capture size."""
+    monkeypatch.setattr(ingest_module, "BLOCK_BYTES", 2 * 2**20)
+    short, long = _ingest_peak_bytes(tmp_path, 132), _ingest_peak_bytes(tmp_path, 528)  # 16.5 MB and 66 MB
+    assert long < 1.15 * short + 2**20, f"peak {short / 2**20:.1f} MiB -> {long / 2**20:.1f} MiB"
+    assert long < 0.6 * 528 * 125_000
+
+
+def test_blocks_cover_the_capture_exactly(tmp_path):
+    bits = (np.random.default_rng(3).random((100, 6, 24)) < 0.3).astype(np.uint8)
+    write_dat(tmp_path / "c.dat", bits)
+    capture = open_capture(str(tmp_path / "c.dat"), height=6, width=24)
+    starts, parts = zip(*capture.blocks(frames_per_block=32))
+    assert starts == (0, 32, 64, 96)
+    np.testing.assert_array_equal(unpack_rows(np.concatenate(parts), 24), bits)
+
+
+def test_interrupted_ingest_leaves_nothing(tmp_path, monkeypatch):
+    bits = (np.random.default_rng(4).random((200, 8, 16)) < 0.3).astype(np.uint8)
+    write_dat(tmp_path / "c.dat", bits)
+    monkeypatch.setattr(spike_store, "TARGET_CHUNK_BYTES", 20 * 8 * 2)  # 20-frame chunks
+    monkeypatch.setattr(ingest_module, "BLOCK_BYTES", 64)  # one chunk per block: 10 blocks
+    calls = []
+
+    def fail_on_third(packed):
+        calls.append(packed.shape[0])
+        if len(calls) == 3:
+            assert (tmp_path / "s.zarr" / "spikes" / "c" / "1").exists()  # two blocks are on disk
+            raise KeyboardInterrupt
+        return 0
+
+    monkeypatch.setattr(ingest_module, "count_spikes", fail_on_third)
+    with pytest.raises(KeyboardInterrupt):
+        ingest(str(tmp_path / "c.dat"), str(tmp_path / "s.zarr"), IngestOptions(8, 16), progress=False)
+    assert calls == [20, 20, 20] and not (tmp_path / "s.zarr").exists()
