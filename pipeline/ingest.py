@@ -3,6 +3,7 @@
 from dataclasses import dataclass
 
 from pipeline.captures import open_capture
+from pipeline.prefetch import prefetched
 from pipeline.progress import progress_bar
 from pipeline.spike_store import SpikeMeta, SpikeStoreWriter, chunk_frames_for
 from pipeline.storage import new_output
@@ -45,7 +46,7 @@ def ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *, pro
         writer = SpikeStoreWriter(dest, meta, capture.n_frames, chunk_frames=chunk)
         spikes = 0
         with progress_bar(f"ingest {src}", capture.n_frames, enabled=progress) as advance:
-            for start, packed in capture.blocks(frames_per_block):
+            for start, packed in prefetched(capture.blocks(frames_per_block)):
                 writer.write(start, packed)
                 spikes += count_spikes(packed)
                 advance(packed.shape[0])

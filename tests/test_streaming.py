@@ -64,3 +64,19 @@ def test_interrupted_ingest_leaves_nothing(tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         ingest(str(tmp_path / "c.dat"), str(tmp_path / "s.zarr"), IngestOptions(8, 16), progress=False)
     assert calls == [20, 20, 20] and not (tmp_path / "s.zarr").exists()
+
+
+def test_prefetched_keeps_order_and_passes_errors_on():
+    from pipeline.prefetch import prefetched
+
+    assert list(prefetched(iter(range(50)), depth=3)) == list(range(50))
+
+    def failing():
+        yield 1
+        raise ValueError("bad block")
+
+    seen = []
+    with pytest.raises(ValueError, match="bad block"):
+        for item in prefetched(failing()):
+            seen.append(item)
+    assert seen == [1]
