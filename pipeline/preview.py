@@ -31,5 +31,5 @@ def preview(url: str, *, centre: int | None = None, window: int = 41, gain: floa
         raise InputError(f"centre frame {centre} needs frames {centre - half}..{centre + half}; the recording has 0..{n - 1}")
     gain = gain if gain is not None else store.meta.gain
     image, used = tfp_image(store.read(centre - half, centre + half + 1), width=store.meta.width,
-                            cfa=store.meta.cfa, gain=gain, scale=scale)
+                            cfa=store.meta.cfa, gain=gain, scale=scale, reset=store.meta.reset)
     return Preview(image, centre, window, used)

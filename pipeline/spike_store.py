@@ -145,6 +145,12 @@ class SpikeStoreWriter:
             config={"write_empty_chunks": True},
         )
 
+    def add_array(self, name: str, shape: tuple, chunks: tuple, dtype, dimension_names: tuple) -> None:
+        """Declare another array of the store (``truth``, ``flow``, ...) before regions are filled."""
+        self.group.create_array(name, shape=shape, chunks=chunks, dtype=dtype, fill_value=0,
+                                compressors=ZstdCodec(level=CODEC_LEVEL), dimension_names=dimension_names,
+                                config={"write_empty_chunks": True})
+
     def write(self, start: int, packed: np.ndarray) -> None:
         """Write frames ``[start, start + len(packed))``; ``start`` must begin a chunk."""
         if start % self.chunk_frames:
@@ -157,3 +163,18 @@ class SpikeStoreWriter:
         self.group.attrs.update({**attrs, "state": "complete"})
 
 
+
+
+def write_region(url: str, name: str, start: int, data: np.ndarray) -> None:
+    """Fill ``name[start : start + len(data)]`` of the store at ``url`` (run by workers).
+
+    The region must cover whole chunks along the first axis (or end the array), so that
+    no two writers ever touch the same chunk.
+    """
+    array = zarr.open_array(zarr_store(url, read_only=False), path=name, mode="r+")
+    chunk = array.chunks[0]
+    stop = start + data.shape[0]
+    if start % chunk or (stop % chunk and stop != array.shape[0]):
+        raise ValueError(f"region {start}:{stop} of {name} does not cover whole chunks of {chunk}")
+    with zarr.config.set(WRITE_CONFIG):
+        array[start:stop] = data

@@ -42,8 +42,8 @@ def colour_index(cfa: str, height: int, width: int) -> np.ndarray:
     return np.tile(cell, (height // 2, width // 2))
 
 
-def opencv_bayer_code(cfa: str, suffix: str = "_EA") -> int:
-    """The OpenCV ``cvtColor`` code that demosaics this pattern to RGB (edge-aware by default)."""
+def opencv_bayer_code(cfa: str, suffix: str = "_VNG") -> int:
+    """The OpenCV ``cvtColor`` code that demosaics this pattern to RGB (VNG by default)."""
     import cv2
 
     return getattr(cv2, f"COLOR_Bayer{_OPENCV_BAYER[cfa]}2RGB{suffix}")

@@ -1,0 +1,50 @@
+"""Where Dask work runs: an in-process ``LocalCluster`` (the default) or an existing scheduler.
+
+Workers are processes with one task thread each; the numerical libraries inside a task
+(numba, OpenCV, torch) get ``cores // workers`` threads so that a 2-core laptop with two
+workers is not oversubscribed. An address comes from ``--scheduler`` or
+``DASK_SCHEDULER_ADDRESS``; an unreachable one is a one-line error within seconds.
+"""
+
+import contextlib
+import logging
+import os
+from collections.abc import Iterator
+
+from distributed import Client, LocalCluster
+
+from stages.errors import InputError
+
+CONNECT_TIMEOUT = "10s"
+
+
+def _thread_env(workers: int) -> dict:
+    threads = str(max(1, (os.cpu_count() or 1) // workers))
+    return {name: threads for name in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
+
+
+@contextlib.contextmanager
+def dask_client(*, workers: int | None = None, scheduler: str | None = None) -> Iterator[Client]:
+    """A connected client; a local cluster of ``workers`` processes unless a scheduler is named."""
+    address = scheduler or os.environ.get("DASK_SCHEDULER_ADDRESS")
+    if address:
+        try:
+            client = Client(address, timeout=CONNECT_TIMEOUT)
+        except (OSError, TimeoutError) as error:
+            raise InputError(f"cannot reach Dask scheduler {address}: {' '.join(str(error).split())}") from None
+        with client:
+            yield client
+        return
+    workers = workers if workers is not None else os.cpu_count() or 1
+    if workers < 1:
+        raise InputError(f"--workers must be >= 1, got {workers}")
+    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
+                      silence_logs=logging.ERROR, env=_thread_env(workers)) as cluster, Client(cluster) as client:
+        yield client
+
+
+def dashboard_link(client: Client) -> str | None:
+    """The dashboard URL when the scheduler serves one (it needs bokeh)."""
+    with contextlib.suppress(Exception):
+        return client.dashboard_link if "dashboard" in client.scheduler_info().get("services", {}) else None
+    return None

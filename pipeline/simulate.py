@@ -1,0 +1,256 @@
+"""``cscsr simulate``: an LR Bayer spike recording with HR ground truth (Algorithm 2), on Dask.
+
+The graph, per time chunk of the output:
+
+    mosaics + increments (parallel over chunks: the costly part, interpolation/warping)
+      -> fire (a chain: the integer accumulator passes from chunk to chunk, exactly)
+      -> write (one task per chunk region of ``spikes``: no two writers share a chunk)
+
+plus one task per ground-truth frame (and per flow field for synthetic motion). Chunks are
+submitted in a bounded window, so memory and graph size stay bounded however long the
+recording is. The accumulator is an integer (``stages.sensor.UNITS`` per threshold) and all
+noise is keyed by frame index, so the bytes written do not depend on the chunking or on the
+number of workers.
+"""
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from distributed import Client, wait
+
+from pipeline.cluster import dask_client
+from pipeline.frame_sources import FrameSource, open_frame_source
+from pipeline.progress import progress_bar
+from pipeline.spike_store import SpikeMeta, SpikeStoreWriter, chunk_frames_for, write_region
+from pipeline.storage import new_output
+from stages import sensor
+from stages.bits import packed_width
+from stages.cfa import check_cfa
+from stages.errors import InputError
+from stages.frames import to_unit_rgb
+from stages.interpolate import INTERPOLATIONS, estimate_flows
+from stages.latent import bracket, source_position, still_mosaics, truth_image, upscale_flow, video_mosaics, between
+from stages.motion import CameraPath, render
+
+WINDOW = 41
+SCALES = (1, 2, 4)
+MOTIONS = ("static", "random")
+
+
+@dataclass(frozen=True)
+class SimulateOptions:
+    scale: int = 4
+    cfa: str = "rggb"
+    brightness: float = 0.6
+    threshold: float = 1.0
+    frames: int = WINDOW
+    motion: str | None = None  # for a still image: "static" or "random"
+    seed: int = 0
+    noise: str = "none"
+    reset: str = "zero"
+    interp: str = "flow"
+    truth_every: int = WINDOW
+    speed: float = 0.5  # random motion: typical HR pixels per spike frame
+    deform: float = 0.0  # random motion: local deformation amplitude, HR pixels
+    fps: float = 20000.0
+    chunk_frames: int | None = None
+    overwrite: bool = False
+
+    def sensor_model(self) -> sensor.SensorModel:
+        return sensor.SensorModel(self.brightness, self.threshold, self.reset, self.noise, self.seed)
+
+
+@dataclass(frozen=True)
+class Scene:
+    """What the latent frames come from: a video-like source, or a still and its camera path."""
+
+    source: FrameSource
+    path: CameraPath | None  # None for a video, or a static still
+
+    @property
+    def is_still(self) -> bool:
+        return self.source.n_frames == 1
+
+
+def check_options(options: SimulateOptions, source: FrameSource) -> tuple[int, int]:
+    """Validate everything before any output exists; return the LR (height, width)."""
+    options.sensor_model()  # alpha, theta, reset, noise
+    cfa = check_cfa(options.cfa)
+    if options.interp not in INTERPOLATIONS:
+        raise InputError(f"unknown interpolation {options.interp!r}: expected one of {', '.join(INTERPOLATIONS)}")
+    if options.scale not in SCALES:
+        raise InputError(f"scale must be one of {', '.join(map(str, SCALES))}, got {options.scale}")
+    if options.frames < WINDOW:
+        raise InputError(f"--frames {options.frames} is too few: a reconstruction window needs {WINDOW}")
+    if options.motion is not None and options.motion not in MOTIONS:
+        raise InputError(f"unknown motion {options.motion!r}: expected one of {', '.join(MOTIONS)}")
+    if source.n_frames < 2 and options.motion is None:
+        raise InputError(f"{source.url} has {source.n_frames} frame: give --motion static|random to move a still image")
+    if options.motion is not None and source.n_frames != 1:
+        raise InputError("--motion applies to a single image; a video or folder brings its own motion")
+    if options.truth_every < 1:
+        raise InputError(f"--truth-every must be >= 1, got {options.truth_every}")
+    multiple = 2 * options.scale
+    if source.height % multiple or source.width % multiple:
+        raise InputError(f"frame size {source.height}x{source.width} is not divisible by 2*scale = {multiple} "
+                         f"({cfa} Bayer cells of {options.scale}x{options.scale} HR pixels)")
+    return source.height // options.scale, source.width // options.scale
+
+
+def truth_frames(n_frames: int, every: int) -> list[int]:
+    """Spike frames that get ground truth: window centres 20, 20 + K, ... with a full window."""
+    half = WINDOW // 2
+    return list(range(half, n_frames - half, every))
+
+
+# ---- tasks (run on workers; module-level so they pickle by reference) ----
+
+def _lr_frame(source: FrameSource, index: int, scale: int) -> np.ndarray:
+    return sensor.area_downsample(to_unit_rgb(source.read(index)), scale)
+
+
+def _hr_frame(source: FrameSource, index: int) -> np.ndarray:
+    return to_unit_rgb(source.read(index))
+
+
+def _increments(scene: Scene, pairs: dict | None, frames: range, options: SimulateOptions, dark) -> np.ndarray:
+    if scene.is_still:
+        image = _hr_frame(scene.source, 0)
+        if scene.path is None:  # static: one mosaic, repeated
+            mosaic = sensor.cfa_sample(sensor.area_downsample(image, options.scale), options.cfa)
+            mosaics = np.broadcast_to(mosaic, (len(frames), *mosaic.shape))
+        else:
+            mosaics = still_mosaics(image, scene.path, list(frames), options.scale, options.cfa)
+    else:
+        positions = [source_position(t, options.frames, scene.source.n_frames) for t in frames]
+        mosaics = video_mosaics(pairs, positions, scene.source.n_frames, options.cfa)
+    return sensor.increments(options.sensor_model(), np.ascontiguousarray(mosaics), frames.start, dark=dark)
+
+
+def _fire(increments: np.ndarray, state: np.ndarray, reset: str, thresholds) -> sensor.Fired:
+    return sensor.fire(increments, state, reset=reset, thresholds=thresholds)
+
+
+def _state(fired: sensor.Fired) -> np.ndarray:
+    return fired.state
+
+
+def _write_spikes(url: str, start: int, fired: sensor.Fired) -> tuple[int, int]:
+    write_region(url, "spikes", start, fired.packed)
+    return fired.packed.shape[0], fired.spikes
+
+
+def _write_truth(url: str, index: int, scene: Scene, frame: int, options: SimulateOptions, lr_flows) -> None:
+    if scene.is_still:
+        image = _hr_frame(scene.source, 0)
+        rgb = image if scene.path is None else render(image, scene.path, frame)
+    else:
+        i, w = bracket(source_position(frame, options.frames, scene.source.n_frames), scene.source.n_frames)
+        frame0 = _hr_frame(scene.source, i)
+        frame1 = frame0 if w == 0 else _hr_frame(scene.source, i + 1)
+        flows = None if lr_flows is None else tuple(upscale_flow(f, options.scale) for f in lr_flows)
+        rgb = between(frame0, frame1, w, flows)
+    write_region(url, "truth", index, truth_image(rgb, options.cfa)[None])
+
+
+def _write_flow(url: str, index: int, path: CameraPath, frame0: int, frame1: int) -> None:
+    write_region(url, "flow", index, path.flow(frame0, frame1)[None])
+
+
+# ---- the graph ----
+
+class _SourcePairs:
+    """Futures of LR source frames and their flows, made once each and dropped when passed."""
+
+    def __init__(self, client: Client, source: FrameSource, options: SimulateOptions):
+        self.client, self.source, self.options = client, source, options
+        self.frames, self.flows = {}, {}
+
+    def frame(self, i: int):
+        if i not in self.frames:
+            self.frames[i] = self.client.submit(_lr_frame, self.source, i, self.options.scale)
+        return self.frames[i]
+
+    def flow(self, i: int):
+        if self.options.interp != "flow":
+            return None
+        if i not in self.flows:
+            self.flows[i] = self.client.submit(estimate_flows, self.frame(i), self.frame(i + 1))
+        return self.flows[i]
+
+    def for_frames(self, frames: range) -> dict:
+        n = self.source.n_frames
+        needed = sorted({bracket(source_position(t, self.options.frames, n), n)[0] for t in frames})
+        for old in [i for i in self.frames if i < needed[0]]:
+            del self.frames[old]
+            self.flows.pop(old, None)
+        return {i: (self.frame(i), self.frame(i + 1), self.flow(i)) for i in needed}
+
+
+def simulate(src: str, dest: str, options: SimulateOptions = SimulateOptions(), *, workers: int | None = None,
+             scheduler: str | None = None, progress: bool = True) -> dict:
+    """Simulate ``options.frames`` spike frames from ``src`` into a new spike store at ``dest``."""
+    source = open_frame_source(src)
+    height, width = check_options(options, source)
+    model = options.sensor_model()
+    path = None
+    if options.motion == "random":
+        path = CameraPath.random(options.frames, source.height, source.width, seed=options.seed,
+                                 speed=options.speed, deform=options.deform)
+    scene = Scene(source, path)
+    truth_at = truth_frames(options.frames, options.truth_every)
+    meta = SpikeMeta(height=height, width=width, cfa=options.cfa, fps=options.fps, source=str(src),
+                     reset=options.reset, gain=model.gain, threshold=options.threshold,
+                     extra={"brightness": options.brightness, "scale": options.scale, "seed": options.seed,
+                            "noise": options.noise, "interp": options.interp, "motion": options.motion or "video",
+                            "truth_every": options.truth_every, "simulated": True})
+    chunk = options.chunk_frames or chunk_frames_for(meta, options.frames)
+
+    with new_output(dest, overwrite=options.overwrite), dask_client(workers=workers, scheduler=scheduler) as client:
+        writer = SpikeStoreWriter(dest, meta, options.frames, chunk_frames=chunk)
+        hr = (options.scale * height, options.scale * width)
+        writer.add_array("truth", (len(truth_at), *hr, 3), (1, *hr, 3), np.uint8, ("k", "y", "x", "c"))
+        writer.add_array("truth_frames", (len(truth_at),), (max(len(truth_at), 1),), np.int64, ("k",))
+        writer.group["truth_frames"][:] = np.asarray(truth_at, np.int64)
+        if path is not None and len(truth_at) > 1:
+            writer.add_array("flow", (len(truth_at) - 1, *hr, 2), (1, *hr, 2), np.float32, ("k", "y", "x", "d"))
+            writer.group.attrs["flow_convention"] = "flow[k] (dx, dy) HR pixels: truth[k] at x is truth[k+1] at x + flow"
+
+        pairs = None if scene.is_still else _SourcePairs(client, source, options)
+        dark = client.submit(sensor.dark_increments, model, height, width)
+        thresholds = client.submit(sensor.pixel_thresholds, model, height, width)
+        state = client.submit(sensor.initial_state, model, height, width)
+        window = deque()
+        spikes = 0
+        with progress_bar(f"simulate {src}", options.frames, enabled=progress) as advance:
+            for start in range(0, options.frames, chunk):
+                frames = range(start, min(start + chunk, options.frames))
+                increments = client.submit(_increments, scene, pairs and pairs.for_frames(frames), frames, options, dark)
+                fired = client.submit(_fire, increments, state, options.reset, thresholds)
+                state = client.submit(_state, fired)
+                window.append(client.submit(_write_spikes, dest, start, fired))
+                for k, frame in enumerate(truth_at):
+                    if frame in frames:
+                        flows = pairs.flow(bracket(source_position(frame, options.frames, source.n_frames), source.n_frames)[0]) \
+                            if pairs and options.interp == "flow" else None
+                        window.append(client.submit(_write_truth, dest, k, scene, frame, options, flows))
+                        if path is not None and k + 1 < len(truth_at):
+                            window.append(client.submit(_write_flow, dest, k, path, frame, truth_at[k + 1]))
+                while len(window) > 4 * len(client.scheduler_info()["workers"]) + 4:
+                    spikes += _collect(window.popleft(), advance)
+            while window:
+                spikes += _collect(window.popleft(), advance)
+        writer.finish(spike_count=spikes)
+        return dict(writer.group.attrs)
+
+
+def _collect(future, advance) -> int:
+    """Wait for a write task; advance the bar by the frames it wrote; return its spikes."""
+    wait(future)
+    result = future.result()
+    if result is None:
+        return 0
+    frames, spikes = result
+    advance(frames)
+    return spikes

@@ -1,0 +1,179 @@
+"""The simulator end to end on a real two-worker LocalCluster, real Zarr stores, real files."""
+
+import os
+
+import cv2
+import imageio.v3 as iio
+import numpy as np
+import pytest
+import zarr
+from skimage import data
+
+from pipeline.preview import preview
+from pipeline.simulate import SimulateOptions, simulate
+from pipeline.spike_store import open_spike_store
+from stages.bits import unpack_rows
+from stages.cfa import colour_index
+from stages.metrics import psnr
+from stages.motion import backward_warp
+from stages.sensor import area_downsample
+from tests.test_bad_input import assert_refused
+
+
+def picture(name: str, size: int) -> np.ndarray:
+    """A bundled scikit-image picture, centre-cropped square and resized to ``size``."""
+    image = getattr(data, name)()
+    side = min(image.shape[:2])
+    top, left = (image.shape[0] - side) // 2, (image.shape[1] - side) // 2
+    return cv2.resize(image[top:top + side, left:left + side], (size, size), interpolation=cv2.INTER_AREA)
+
+
+@pytest.fixture(scope="module")
+def still(tmp_path_factory) -> str:
+    path = tmp_path_factory.mktemp("src") / "astronaut.png"
+    iio.imwrite(path, picture("astronaut", 64))
+    return str(path)
+
+
+def read_arrays(url: str) -> dict:
+    group = zarr.open_group(url, mode="r")
+    return {name: group[name][:] for name in ("spikes", "truth", "truth_frames", "flow") if name in group}
+
+
+def chunk_files(url: str) -> dict:
+    files = {}
+    for root, _, names in os.walk(url):
+        for name in names:
+            path = os.path.join(root, name)
+            files[os.path.relpath(path, url)] = open(path, "rb").read()
+    return files
+
+
+def test_bit_identical_whatever_workers_and_chunking(still, tmp_path):
+    options = dict(scale=2, frames=120, motion="random", deform=1.5, noise="realistic", reset="zero", truth_every=30, seed=7)
+    one = str(tmp_path / "one.zarr")
+    two = str(tmp_path / "two.zarr")
+    other = str(tmp_path / "other_chunks.zarr")
+    simulate(still, one, SimulateOptions(**options, chunk_frames=16), workers=1, progress=False)
+    simulate(still, two, SimulateOptions(**options, chunk_frames=16), workers=2, progress=False)
+    simulate(still, other, SimulateOptions(**options, chunk_frames=50), workers=2, progress=False)
+    assert chunk_files(one) == chunk_files(two)  # every byte, metadata included
+    first, last = read_arrays(one), read_arrays(other)
+    assert first.keys() == last.keys() == {"spikes", "truth", "truth_frames", "flow"}
+    for name in first:
+        np.testing.assert_array_equal(first[name], last[name])
+    assert first["spikes"].any()
+    # A different seed changes the recording (the comparison above can fail).
+    simulate(still, str(tmp_path / "seed.zarr"), SimulateOptions(**{**options, "seed": 8}, chunk_frames=16), workers=2, progress=False)
+    assert not np.array_equal(read_arrays(str(tmp_path / "seed.zarr"))["spikes"], first["spikes"])
+
+
+def test_static_subtract_fires_at_alpha_i_over_theta(still, tmp_path):
+    alpha, theta, frames = 0.7, 1.3, 1000
+    store = str(tmp_path / "static.zarr")
+    simulate(still, store, SimulateOptions(scale=2, cfa="grbg", brightness=alpha, threshold=theta, frames=frames,
+                                           motion="static", reset="subtract", chunk_frames=300), workers=2, progress=False)
+    spikes = open_spike_store(store)
+    rate = unpack_rows(spikes.read(0, frames), 32).mean(axis=0)
+    hr = iio.imread(still).astype(np.float32) / 255
+    lr = area_downsample(hr, 2)
+    mosaic = np.take_along_axis(lr, colour_index("grbg", 32, 32)[:, :, None].astype(np.int64), axis=2)[:, :, 0]
+    np.testing.assert_allclose(rate, np.clip(alpha * mosaic / theta, 0, 1), atol=1 / frames)
+    attrs = spikes.attrs
+    assert attrs["reset"] == "subtract" and attrs["gain"] == pytest.approx(theta / alpha)
+    np.testing.assert_array_equal(read_arrays(store)["truth"][0], iio.imread(still))
+
+
+@pytest.mark.parametrize("cfa,floor", [("mono", 30.0), ("rggb", 30.0)])
+def test_round_trip_tfp_psnr_static_scale_1(tmp_path, cfa, floor):
+    source = tmp_path / "coffee.png"
+    iio.imwrite(source, picture("coffee", 96))
+    store = str(tmp_path / "s.zarr")
+    simulate(str(source), store, SimulateOptions(scale=1, cfa=cfa, frames=41, motion="static", reset="subtract"),
+             workers=2, progress=False)
+    truth = read_arrays(store)["truth"][0]
+    shot = preview(store, centre=20)  # gain from the store: theta / alpha
+    assert psnr(shot.image, truth) > floor
+
+
+def test_zero_reset_bias_is_undone_by_the_classic_method(tmp_path):
+    """Held-out pictures, reset zero: naive TFP is several dB worse than the inverted one."""
+    from stages.tfp import tfp_rate
+
+    gains = []
+    for name in ("chelsea", "rocket", "immunohistochemistry"):
+        source = tmp_path / f"{name}.png"
+        iio.imwrite(source, picture(name, 64))
+        store = str(tmp_path / f"{name}.zarr")
+        simulate(str(source), store, SimulateOptions(scale=1, cfa="mono", brightness=0.8, frames=401, motion="static",
+                                                     reset="zero", truth_every=400), workers=2, progress=False)
+        opened = open_spike_store(store)
+        assert opened.attrs["reset"] == "zero"
+        truth = read_arrays(store)["truth"][0, :, :, 0].astype(np.float64)
+        window = opened.read(0, 401)
+        to_grey = lambda rate: np.round(np.clip(rate * opened.meta.gain, 0, 1) * 255)
+        naive = psnr(to_grey(tfp_rate(window, 64, "subtract")), truth)
+        undone = psnr(to_grey(tfp_rate(window, 64, "zero")), truth)
+        gains.append(undone - naive)
+    assert 3 <= np.mean(gains) <= 12, gains
+
+
+def test_random_motion_flow_is_true(tmp_path):
+    # A smooth picture: on a very sharp 64 px one, resampling blur alone gives ~0.02 error.
+    source = tmp_path / "smooth.png"
+    iio.imwrite(source, cv2.GaussianBlur(picture("astronaut", 64), (0, 0), 1.0))
+    store = str(tmp_path / "moving.zarr")
+    simulate(str(source), store, SimulateOptions(scale=2, frames=80, motion="random", speed=0.3, truth_every=6),
+             workers=2, progress=False)
+    arrays = read_arrays(store)
+    truth, flow = arrays["truth"].astype(np.float32) / 255, arrays["flow"]
+    assert flow.shape == (len(truth) - 1, 64, 64, 2)
+    assert np.abs(flow).max() > 1  # it really moves
+    inner = (slice(8, -8), slice(8, -8))
+    for k in range(len(flow)):
+        warped = backward_warp(truth[k + 1], flow[k])
+        assert np.abs(warped - truth[k])[inner].mean() < 0.02
+        assert np.abs(truth[k + 1] - truth[k])[inner].mean() > 2 * np.abs(warped - truth[k])[inner].mean()
+
+
+@pytest.mark.parametrize("interp", ["flow", "linear"])
+def test_video_and_folder_sources(tmp_path, interp):
+    base = picture("astronaut", 96)
+    frames = [np.roll(base, 3 * i, axis=1)[:64, :64] for i in range(4)]
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i, frame in enumerate(frames):
+        iio.imwrite(folder / f"{i:03d}.png", frame)
+    iio.imwrite(tmp_path / "clip.mp4", np.stack(frames), fps=10, codec="libx264", quality=9)
+    for src in (folder, tmp_path / "clip.mp4"):
+        store = str(tmp_path / f"{src.name}-{interp}.zarr")
+        simulate(str(src), store, SimulateOptions(scale=4, frames=82, interp=interp, truth_every=41), workers=2, progress=False)
+        arrays = read_arrays(store)
+        assert arrays["spikes"].shape == (82, 16, 2) and arrays["truth"].shape == (2, 64, 64, 3)
+        assert list(arrays["truth_frames"]) == [20, 61]
+        rate = unpack_rows(arrays["spikes"], 16).mean()
+        assert 0.05 < rate < 0.6
+
+
+@pytest.mark.parametrize("args,fragment", [
+    (["--threshold", 0], "threshold"),
+    (["--brightness", -1], "brightness"),
+    (["--cfa", "rgbw"], "unknown CFA 'rgbw'"),
+    (["--interp", "cubic"], "unknown interpolation 'cubic'"),
+    (["--frames", 40], "--frames 40 is too few"),
+    (["--scale", 3], "scale must be one of"),
+])
+def test_bad_options(cli, still, tmp_path, args, fragment):
+    out = tmp_path / "s.zarr"
+    assert_refused(cli("simulate", still, out, "--motion", "static", "--workers", 1, *args), fragment)
+    assert not out.exists()
+
+
+def test_bad_sources(cli, tmp_path):
+    iio.imwrite(tmp_path / "one.png", picture("camera", 64))
+    iio.imwrite(tmp_path / "odd.png", picture("camera", 60))
+    out = tmp_path / "s.zarr"
+    assert_refused(cli("simulate", tmp_path / "one.png", out, "--workers", 1), "give --motion")
+    assert_refused(cli("simulate", tmp_path / "odd.png", out, "--motion", "static", "--workers", 1), "not divisible by 2*scale = 8")
+    assert_refused(cli("simulate", tmp_path / "none.mp4", out, "--workers", 1), "none.mp4")
+    assert not out.exists()
