@@ -15,7 +15,7 @@ from distributed import Client, LocalCluster
 
 from stages.errors import InputError
 
-CONNECT_TIMEOUT = "10s"
+CONNECT_TIMEOUT = "5s"
 
 
 def _thread_env(workers: int) -> dict:

@@ -1,9 +1,14 @@
-"""``cscsr export``: a spike store streamed back out to a raw ``.dat`` capture.
+"""``cscsr export``: a spike store to a raw ``.dat``; an HR video store to ``.mp4`` or PNGs.
 
 The ``.dat`` file gets the geometry the capture came with: flipped back if ingest flipped
 it, and with zero-filled header columns where ingest dropped some, so that a capture
 ingested and exported again is byte-identical to the original (header columns aside).
+A video goes out frame by frame (H.264 through imageio-ffmpeg, or one PNG per frame named
+by its centre spike frame), so memory stays at one frame.
 """
+
+import os
+import tempfile
 
 from pipeline.progress import progress_bar
 from pipeline.spike_store import open_spike_store
@@ -14,11 +19,69 @@ from stages.errors import InputError
 FRAMES_PER_READ_BYTES = 64 * 2**20
 
 
+VIDEO_FPS = 10
+
+
 def export(store_url: str, dest: str, *, overwrite: bool = False, progress: bool = True) -> None:
-    """Write the store at ``store_url`` to ``dest``, chosen by the destination's extension."""
-    if not str(dest).lower().endswith(".dat"):
+    """Write the store at ``store_url`` to ``dest``: the kind of store and ``dest``'s extension decide how."""
+    import zarr
+
+    from pipeline.storage import zarr_store
+
+    try:
+        is_video = "video" in zarr.open_group(zarr_store(store_url, read_only=True), mode="r")
+    except FileNotFoundError:
+        raise InputError(f"cannot read store {store_url}: no Zarr group there") from None
+    suffix = str(dest).lower().rsplit(".", 1)[-1] if "." in str(dest).rsplit("/", 1)[-1] else ""
+    if is_video:
+        if suffix not in ("mp4", ""):
+            raise InputError(f"cannot export a video store to {dest}: expected a .mp4 file or a folder")
+        (export_mp4 if suffix == "mp4" else export_pngs)(store_url, dest, overwrite=overwrite, progress=progress)
+    elif suffix == "dat":
+        export_dat(store_url, dest, overwrite=overwrite, progress=progress)
+    else:
         raise InputError(f"cannot export a spike store to {dest}: expected a .dat destination")
-    export_dat(store_url, dest, overwrite=overwrite, progress=progress)
+
+
+def _complete_video(store_url: str):
+    from pipeline.video_store import open_video_store
+
+    group = open_video_store(store_url)
+    if group.attrs.get("state") != "complete":
+        raise InputError(f"video store {store_url} is incomplete: finish it with cscsr reconstruct --resume")
+    return group
+
+
+def export_mp4(store_url: str, dest: str, *, overwrite: bool = False, progress: bool = True) -> None:
+    """H.264 at 10 frames per second (libx264, yuv420p), written locally then moved to ``dest``."""
+    import imageio.v2 as iio2
+
+    group = _complete_video(store_url)
+    video = group["video"]
+    claim_output(dest, overwrite=overwrite)
+    fs, path = resolve(dest)
+    with tempfile.TemporaryDirectory() as scratch:  # ffmpeg writes files, not streams
+        local = os.path.join(scratch, "video.mp4")
+        with iio2.get_writer(local, format="FFMPEG", mode="I", fps=VIDEO_FPS, codec="libx264", quality=8,
+                             macro_block_size=16, ffmpeg_log_level="error") as writer, \
+                progress_bar(f"export {dest}", video.shape[0], enabled=progress) as advance:
+            for index in range(video.shape[0]):
+                writer.append_data(video[index])
+                advance(1)
+        with new_output(dest, overwrite=True):
+            fs.put_file(local, path)
+
+
+def export_pngs(store_url: str, dest: str, *, overwrite: bool = False, progress: bool = True) -> None:
+    """One PNG per output frame, ``frame_<centre spike frame>.png``."""
+    from pipeline.images import write_image
+
+    group = _complete_video(store_url)
+    video, frames = group["video"], group["frames"][:]
+    with new_output(dest, overwrite=overwrite), progress_bar(f"export {dest}", video.shape[0], enabled=progress) as advance:
+        for index, centre in enumerate(frames):
+            write_image(f"{str(dest).rstrip('/')}/frame_{centre:08d}.png", video[index])
+            advance(1)
 
 
 def export_dat(store_url: str, dest: str, *, overwrite: bool = False, progress: bool = True) -> None:

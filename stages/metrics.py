@@ -1,4 +1,4 @@
-"""Image agreement measures (scikit-image's PSNR; Pearson correlation from numpy)."""
+"""Image agreement measures: PSNR and SSIM (scikit-image), Pearson correlation (numpy)."""
 
 import numpy as np
 
@@ -21,9 +21,11 @@ def psnr(estimate: np.ndarray, truth: np.ndarray) -> float:
     return float(peak_signal_noise_ratio(np.asarray(truth), np.asarray(estimate), data_range=255))
 
 
-def side_by_side(*images: np.ndarray) -> np.ndarray:
-    """Equal-height uint8 images (grey or RGB) joined left to right as RGB, 4-pixel gaps."""
-    rgb = [np.repeat(i[:, :, None], 3, 2) if i.ndim == 2 else i for i in images]
-    gap = np.full((rgb[0].shape[0], 4, 3), 255, np.uint8)
-    parts = [p for image in rgb for p in (image, gap)][:-1]
-    return np.concatenate(parts, axis=1)
+def ssim(estimate: np.ndarray, truth: np.ndarray) -> float:
+    """SSIM of uint8 images (scikit-image, Gaussian-weighted as in Wang et al. 2004)."""
+    from skimage.metrics import structural_similarity
+
+    channel_axis = 2 if np.ndim(truth) == 3 else None
+    return float(structural_similarity(np.asarray(truth), np.asarray(estimate), data_range=255,
+                                       channel_axis=channel_axis, gaussian_weights=True, sigma=1.5,
+                                       use_sample_covariance=False))

@@ -1,0 +1,195 @@
+"""``cscsr reconstruct``: spike store -> HR video store, over a Dask cluster.
+
+Output frame j is centred on spike frame ``c_j = W//2 + j*K`` and made from frames
+``[c_j - W//2, c_j + W//2]``. Each (frame, tile) is one task that reads its own window and
+halo straight from Zarr (no overlap graph), reconstructs, crops the halo and writes its own
+chunk, then records itself in ``committed``. Tasks are submitted in a bounded window. The
+reconstructor (a model, for ``cscsr``) is built once per worker process and reused.
+
+The gain is fixed for the whole recording before any task runs (``--gain``, else the store's,
+else automatic exposure of the middle window), so tiles and frames agree with each other.
+"""
+
+import contextlib
+import functools
+import uuid
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.batches import in_bounded_window, window_size
+from pipeline.cluster import dashboard_link, dask_client
+from pipeline.progress import progress_bar
+from pipeline.spike_store import open_spike_store
+from pipeline.storage import claim_output, exists
+from pipeline.video_store import TileWriter, committed_mask, create_video_store, open_video_store
+from stages.colour import auto_gain
+from stages.errors import InputError
+from stages.reconstruct import METHODS, Window, classic
+from stages.tfp import tfp_rate
+from stages.tiles import Tile, tile_grid
+
+DEFAULT_TILE = 256  # LR pixels: a 1000x1000 frame becomes 16 tasks of 1024x1024 HR
+
+
+@dataclass(frozen=True)
+class ReconstructOptions:
+    method: str = "tfp"
+    every: int = 41
+    window: int = 41
+    gain: float | None = None
+    scale: int | None = None  # default: the store's scale, else 4
+    tile: int = DEFAULT_TILE
+    weights: str | None = None
+    resume: bool = False
+    overwrite: bool = False
+
+
+@dataclass(frozen=True)
+class Plan:
+    """Everything a task needs: where to read and write, and how to reconstruct."""
+
+    spikes: str
+    out: str
+    method: str
+    weights: str | None
+    window: int
+    every: int
+    gain: float
+    scale: int
+    cfa: str
+    reset: str
+    centres: tuple[int, ...]
+    tiles: tuple[tuple[Tile, ...], ...]
+    run: str  # unique per call: worker-side caches of opened stores never outlive their run
+
+    def attrs(self) -> dict:
+        """What the output store records (and ``--resume`` checks)."""
+        return {"method": self.method, "weights": self.weights, "window": self.window, "every": self.every,
+                "gain": self.gain, "scale": self.scale, "source": self.spikes, "cfa": self.cfa, "reset": self.reset,
+                "tile_lr": [self.tiles[0][0].y1 - self.tiles[0][0].y0, self.tiles[0][0].x1 - self.tiles[0][0].x0]}
+
+
+def output_centres(n_frames: int, window: int, every: int) -> list[int]:
+    """Centre spike frames of the output: W//2, W//2 + K, ... while the window fits."""
+    half = window // 2
+    return list(range(half, n_frames - half, every))
+
+
+@functools.lru_cache(maxsize=4)
+def reconstructor(method: str, weights: str | None):
+    """Built once per worker process (this cache lives in the worker) and reused by its tasks."""
+    if method == "cscsr":
+        raise InputError("--method cscsr needs the CSCSR network, which is not built yet (its own issue)")
+    return classic(method)
+
+
+@functools.lru_cache(maxsize=4)
+def _opened(spikes: str, out: str, run: str):
+    """The input array and output writer, opened once per worker process and run (opening
+    costs several metadata reads; a task's own work can be under a millisecond)."""
+    return open_spike_store(spikes).spikes, TileWriter(out)
+
+
+def _reconstruct_tile(plan: Plan, index: int, ty: int, tx: int) -> int:
+    """Task: read the window + halo of one tile, reconstruct, crop, write, commit."""
+    tile = plan.tiles[ty][tx]
+    centre, half = plan.centres[index], plan.window // 2
+    spikes, writer = _opened(plan.spikes, plan.out, plan.run)
+    packed = spikes[centre - half : centre + half + 1, tile.ry0 : tile.ry1, tile.rx0 // 8 : -(-tile.rx1 // 8)]
+    method = reconstructor(plan.method, plan.weights)
+    image = method(Window(packed, tile.rx1 - tile.rx0, plan.cfa, plan.reset, plan.gain, plan.scale))
+    ys, xs = tile.crop(plan.scale)
+    writer.write(index, (ty, tx), (tile.y0 * plan.scale, tile.x0 * plan.scale), image[ys, xs])
+    return index
+
+
+def _auto_gain(spikes: str, centre: int, window: int, reset: str) -> float:
+    """Task: the automatic exposure of the window around ``centre``, whole frame."""
+    store = open_spike_store(spikes)
+    half = window // 2
+    return auto_gain(tfp_rate(store.read(centre - half, centre + half + 1), store.meta.width, reset))
+
+
+def check_options(options: ReconstructOptions, n_frames: int) -> None:
+    if options.method not in METHODS:
+        raise InputError(f"unknown method {options.method!r}: expected one of {', '.join(METHODS)}")
+    if options.window <= 0 or options.window % 2 == 0:
+        raise InputError(f"--window must be a positive odd number of frames, got {options.window}")
+    if options.window > n_frames:
+        raise InputError(f"--window {options.window} is longer than the recording ({n_frames} frames)")
+    if options.every <= 0:
+        raise InputError(f"--every must be >= 1, got {options.every}")
+    if options.gain is not None and not options.gain > 0:
+        raise InputError(f"--gain must be > 0, got {options.gain}")
+    if options.tile <= 0 or options.tile % 8:
+        raise InputError(f"--tile must be a positive multiple of 8 LR pixels, got {options.tile}")
+    if options.resume and options.overwrite:
+        raise InputError("--resume and --overwrite contradict each other: choose one")
+
+
+def reconstruct(store_url: str, out: str, options: ReconstructOptions = ReconstructOptions(), *,
+                workers: int | None = None, scheduler: str | None = None, client=None, progress: bool = True) -> dict:
+    """Reconstruct the recording at ``store_url`` into an HR video store at ``out``.
+
+    Runs on ``client`` if given, else on a cluster from ``workers``/``scheduler``. Returns
+    counts: output frames, tasks run now, tasks found already committed.
+    """
+    store = open_spike_store(store_url)
+    meta = store.meta
+    check_options(options, store.n_frames)
+    scale = options.scale or int(store.attrs.get("scale", 4))
+    if options.resume and not exists(out):
+        raise InputError(f"cannot resume: {out} does not exist")
+    if not options.resume:
+        claim_output(out, overwrite=options.overwrite, flag="--resume or --overwrite")
+    centres = output_centres(store.n_frames, options.window, options.every)
+    method = classic(options.method) if options.method != "cscsr" else reconstructor("cscsr", options.weights)
+    grid = tile_grid(meta.height, meta.width, options.tile, method.halo)
+
+    with contextlib.nullcontext(client) if client else dask_client(workers=workers, scheduler=scheduler) as client:
+        if progress and (link := dashboard_link(client)):
+            print(f"dashboard: {link}")
+        gain = options.gain or meta.gain
+        if gain is None:
+            gain = client.submit(_auto_gain, store_url, centres[len(centres) // 2], options.window, meta.reset).result()
+        plan = Plan(store_url, out, options.method, options.weights, options.window, options.every, float(gain), scale,
+                    meta.cfa, meta.reset, tuple(centres), tuple(tuple(row) for row in grid), uuid.uuid4().hex)
+        done = _prepare_output(plan, options.resume, meta.height * scale, meta.width * scale)
+        todo = [(i, ty, tx) for i in range(len(centres)) for ty in range(len(grid)) for tx in range(len(grid[0]))
+                if not done[i, ty, tx]]
+        tiles_per_frame = len(grid) * len(grid[0])
+        remaining = {i: tiles_per_frame - int(done[i].sum()) for i in range(len(centres))}
+        submissions = (client.submit(_reconstruct_tile, plan, i, ty, tx, pure=False) for i, ty, tx in todo)
+        with progress_bar(f"reconstruct {options.method}", len(centres), enabled=progress) as advance:
+            advance(sum(1 for left in remaining.values() if left == 0))
+            for future in in_bounded_window(submissions, window_size(client)):
+                index = future.result()
+                remaining[index] -= 1
+                if remaining[index] == 0:
+                    advance(1)
+        open_video_store(out, writable=True).attrs["state"] = "complete"
+    return {"frames": len(centres), "tasks_run": len(todo), "tasks_skipped": done.sum().item()}
+
+
+def _prepare_output(plan: Plan, resume: bool, hr_height: int, hr_width: int):
+    """Create the output (metadata first), or check a resumed one matches; return the commit mask."""
+    tiles = (len(plan.tiles), len(plan.tiles[0]))
+    first = plan.tiles[0][0]
+    tile_hr = ((first.y1 - first.y0) * plan.scale, (first.x1 - first.x0) * plan.scale)
+    if resume:
+        group = open_video_store(plan.out, writable=True)
+        recorded = {k: group.attrs.get(k) for k in plan.attrs()}
+        expected = plan.attrs()
+        changed = [k for k in expected if _normal(recorded[k]) != _normal(expected[k])]
+        if changed or group["video"].shape[0] != len(plan.centres):
+            what = ", ".join(f"{k} {recorded[k]!r} -> {expected[k]!r}" for k in changed) or "frame count"
+            raise InputError(f"cannot resume {plan.out}: it was made with other parameters ({what})")
+        return committed_mask(group)
+    create_video_store(plan.out, centres=list(plan.centres), hr_size=(hr_height, hr_width), tile_hr=tile_hr,
+                       tiles=tiles, attrs=plan.attrs())
+    return np.zeros((len(plan.centres), *tiles), bool)
+
+
+def _normal(value):
+    return list(value) if isinstance(value, tuple) else value

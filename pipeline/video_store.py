@@ -1,0 +1,63 @@
+"""The HR video store: reconstructed frames, their spike-frame centres, and a commit record.
+
+Layout (``PRODUCT.md``): ``video`` uint8 ``(T_out, s*H, s*W, 3)`` with dimension names
+``t, y, x, c``, one chunk per (frame, tile), so each reconstruction task owns exactly one
+chunk; ``frames`` int64 ``(T_out,)``, the centre spike frame of each output frame;
+``committed`` uint8 ``(T_out, tiles_y, tiles_x)``, one single-element chunk per task, set to 1
+after that task's tile is written. ``committed`` is the record ``--resume`` trusts (an
+absent chunk of ``video`` could be an empty tile or a lost one; a missing 1 can only mean
+not done). Attributes say how the video was made and ``state`` says whether it is complete.
+"""
+
+import numpy as np
+import zarr
+from zarr.codecs import ZstdCodec
+
+from pipeline.storage import zarr_store
+from stages.errors import InputError
+
+VIDEO, FRAMES, COMMITTED = "video", "frames", "committed"
+
+
+def create_video_store(url: str, *, centres: list[int], hr_size: tuple[int, int], tile_hr: tuple[int, int],
+                       tiles: tuple[int, int], attrs: dict) -> zarr.Group:
+    """Write every array's metadata, ``frames`` and the attributes (state "writing")."""
+    group = zarr.open_group(zarr_store(url, read_only=False), mode="w", attributes={**attrs, "state": "writing"})
+    n = len(centres)
+    group.create_array(VIDEO, shape=(n, *hr_size, 3), chunks=(1, *tile_hr, 3), dtype=np.uint8, fill_value=0,
+                       compressors=ZstdCodec(level=3), dimension_names=("t", "y", "x", "c"),
+                       config={"write_empty_chunks": True})
+    group.create_array(FRAMES, shape=(n,), chunks=(max(n, 1),), dtype=np.int64, fill_value=0, dimension_names=("t",))
+    group.create_array(COMMITTED, shape=(n, *tiles), chunks=(1, 1, 1), dtype=np.uint8, fill_value=0,
+                       dimension_names=("t", "tile_y", "tile_x"))
+    group[FRAMES][:] = np.asarray(centres, np.int64)
+    return group
+
+
+def open_video_store(url: str, *, writable: bool = False) -> zarr.Group:
+    try:
+        group = zarr.open_group(zarr_store(url, read_only=not writable), mode="r+" if writable else "r")
+    except FileNotFoundError:
+        raise InputError(f"cannot read video store {url}: no Zarr group there") from None
+    if VIDEO not in group or FRAMES not in group:
+        raise InputError(f"{url} is not an HR video store: it needs '{VIDEO}' and '{FRAMES}'")
+    return group
+
+
+def committed_mask(group: zarr.Group) -> np.ndarray:
+    """(T_out, tiles_y, tiles_x) bool: which tasks have committed their tile."""
+    return group[COMMITTED][:].astype(bool)
+
+
+class TileWriter:
+    """The output store opened once (per worker process and run) for many tile writes."""
+
+    def __init__(self, url: str):
+        group = zarr.open_group(zarr_store(url, read_only=False), mode="r+")
+        self.video, self.committed = group[VIDEO], group[COMMITTED]
+
+    def write(self, index: int, tile_index: tuple[int, int], origin: tuple[int, int], image: np.ndarray) -> None:
+        """Write one HR tile of output frame ``index`` (its own chunk), then record it committed."""
+        y, x = origin
+        self.video[index, y : y + image.shape[0], x : x + image.shape[1]] = image
+        self.committed[index, tile_index[0], tile_index[1]] = 1

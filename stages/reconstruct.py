@@ -1,0 +1,65 @@
+"""The reconstructor interface: a window of packed spikes (a tile with its halo) -> HR RGB.
+
+Every method, classic or learned, is a :class:`Reconstructor`: it declares how many LR
+pixels of context (``halo``) it needs around a tile for the tile's interior to come out
+exactly as in a whole-frame reconstruction, and maps a window to an HR tile. The pipeline
+cuts tiles, adds halos, crops them off and never needs to know which method ran.
+"""
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from stages.colour import rate_to_rgb
+from stages.errors import InputError
+from stages.tfi import tfi_rate
+from stages.tfp import tfp_rate
+
+
+@dataclass(frozen=True)
+class Window:
+    """One reconstruction input: packed spikes of a (tile of a) window, and how to read them."""
+
+    packed: np.ndarray  # (N, h, ceil(w/8)) uint8, the centre frame is N // 2
+    width: int  # w: real pixels per row of the tile
+    cfa: str  # pattern as seen at the tile's top-left corner (tiles start on even rows/columns)
+    reset: str
+    gain: float
+    scale: int
+
+
+class Reconstructor(Protocol):
+    name: str
+    halo: int  # LR pixels of context needed on every side (even: keeps the Bayer phase)
+
+    def __call__(self, window: Window) -> np.ndarray:
+        """-> (s*h, s*w, 3) uint8 RGB."""
+
+
+@dataclass(frozen=True)
+class RateReconstructor:
+    """A classic method: a per-pixel rate estimate, then exposure, demosaicking (VNG), bicubic x s.
+
+    The halo covers VNG's 5x5 neighbourhood and bicubic's 4x4 support with margin, so tiled
+    output equals whole-frame output exactly.
+    """
+
+    name: str
+    estimate: callable
+    halo: int = 8
+
+    def __call__(self, window: Window) -> np.ndarray:
+        rate = self.estimate(window.packed, window.width, window.reset)
+        return rate_to_rgb(rate, window.cfa, window.gain, window.scale)
+
+
+CLASSIC = {"tfp": RateReconstructor("tfp", tfp_rate), "tfi": RateReconstructor("tfi", tfi_rate)}
+METHODS = ("tfp", "tfi", "cscsr")
+
+
+def classic(method: str) -> Reconstructor:
+    """The classic reconstructor called ``method``; an error naming the known ones otherwise."""
+    if method not in CLASSIC:
+        raise InputError(f"unknown method {method!r}: expected one of {', '.join(METHODS)}")
+    return CLASSIC[method]

@@ -1,0 +1,171 @@
+"""Distributed reconstruction on a real LocalCluster(n_workers=2), real Zarr stores, real processes."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+import zarr
+from distributed import Client, LocalCluster
+
+from pipeline.reconstruct import ReconstructOptions, output_centres, reconstruct
+from pipeline.simulate import SimulateOptions, simulate
+from tests.test_bad_input import assert_refused
+from tests.test_simulate import chunk_files, picture
+
+
+@pytest.fixture(scope="module")
+def client():
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
+            Client(cluster) as connected:
+        yield connected
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory, client) -> str:
+    """150 frames of a moving colour picture, LR 32x32 (HR 128x128), ground truth every 10 frames."""
+    folder = tmp_path_factory.mktemp("recording")
+    iio.imwrite(folder / "astronaut.png", picture("astronaut", 128))
+    store = str(folder / "sim.zarr")
+    simulate(str(folder / "astronaut.png"), store, SimulateOptions(scale=4, frames=150, motion="random", speed=0.2,
+                                                                   reset="subtract", truth_every=10), workers=2, progress=False)
+    return store
+
+
+def video(url: str) -> tuple[np.ndarray, np.ndarray, dict]:
+    group = zarr.open_group(url, mode="r")
+    return group["video"][:], group["frames"][:], dict(group.attrs)
+
+
+@pytest.mark.parametrize("every,expected", [(41, [20, 61, 102]), (10, list(range(20, 130, 10))), (1, list(range(20, 130)))])
+def test_frames_at_the_recording_ends(recording, client, tmp_path, every, expected):
+    assert output_centres(150, 41, every) == expected  # the last centre leaves 20 frames after it: 129 + 20 = 149
+    out = str(tmp_path / "out.zarr")
+    counts = reconstruct(recording, out, ReconstructOptions(every=every), client=client, progress=False)
+    frames, centres, attrs = video(out)
+    assert frames.shape == (len(expected), 128, 128, 3)
+    assert list(centres) == expected and counts["frames"] == len(expected)
+    assert attrs["state"] == "complete" and attrs["method"] == "tfp" and attrs["every"] == every
+    assert output_centres(41, 41, 5) == [20] and output_centres(40, 41, 1) == []
+
+
+def test_one_and_two_workers_give_identical_bytes(recording, client, tmp_path):
+    options = ReconstructOptions(method="tfi", every=10, tile=16)
+    reconstruct(recording, str(tmp_path / "two.zarr"), options, client=client, progress=False)
+    reconstruct(recording, str(tmp_path / "one.zarr"), options, workers=1, progress=False)
+    assert chunk_files(str(tmp_path / "one.zarr")) == chunk_files(str(tmp_path / "two.zarr"))
+
+
+@pytest.mark.parametrize("method", ["tfp", "tfi"])
+def test_tiled_equals_untiled_exactly(recording, client, tmp_path, method):
+    """Halos cover the demosaicking and upsampling supports: tiles leave no seam at all."""
+    whole, tiled = str(tmp_path / "whole.zarr"), str(tmp_path / "tiled.zarr")
+    reconstruct(recording, whole, ReconstructOptions(method=method, every=41, tile=256), client=client, progress=False)
+    reconstruct(recording, tiled, ReconstructOptions(method=method, every=41, tile=8), client=client, progress=False)
+    whole_video, tiled_video = video(whole)[0], video(tiled)[0]
+    assert zarr.open_group(tiled)["committed"].shape == (3, 4, 4)
+    np.testing.assert_array_equal(tiled_video, whole_video)
+
+
+def test_reconstruction_agrees_with_the_truth(recording, client, tmp_path):
+    out = str(tmp_path / "out.zarr")
+    reconstruct(recording, out, ReconstructOptions(every=10), client=client, progress=False)
+    truth = zarr.open_group(recording)["truth"][:].astype(np.float64)
+    frames = video(out)[0].astype(np.float64)
+    psnr = lambda a, b: 10 * np.log10(255**2 / ((a - b) ** 2).mean())
+    # Blurred by motion and a x4 bicubic from 32x32 (measured 17.6 dB), but the same pictures:
+    assert psnr(frames, truth) > 15
+    assert psnr(frames, truth) > psnr(frames, truth[:, :, ::-1]) + 3  # a mirrored truth agrees far less
+    assert np.corrcoef(frames.ravel(), truth.ravel())[0, 1] > 0.85
+
+
+def _committed(url: str) -> int:
+    """Tasks committed so far: each writes one chunk file of ``committed`` (cheap to count)."""
+    return sum(len(files) for _, _, files in os.walk(os.path.join(url, "committed", "c")))
+
+
+def test_resume_after_a_killed_run(recording, client, tmp_path):
+    clean, killed = str(tmp_path / "clean.zarr"), str(tmp_path / "killed.zarr")
+    options = ReconstructOptions(method="tfi", every=2, tile=16)  # 55 frames x 4 tiles
+    reconstruct(recording, clean, options, client=client, progress=False)
+    total = 55 * 4
+
+    command = [os.path.join(os.path.dirname(sys.executable), "cscsr"), "reconstruct", recording, killed,
+               "--method", "tfi", "--every", "2", "--tile", "16", "--workers", "1"]
+    process = subprocess.Popen(command, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    while _committed(killed) < 30 and time.time() < deadline and process.poll() is None:
+        time.sleep(0.005)
+    os.killpg(process.pid, signal.SIGKILL)  # the client and its cluster, mid-job
+    process.wait()
+    done_before = _committed(killed)
+    assert 30 <= done_before < total, done_before
+    assert zarr.open_group(killed, mode="r").attrs["state"] == "writing"  # not passing for complete
+
+    counts = reconstruct(recording, killed, ReconstructOptions(**{**options.__dict__, "resume": True}),
+                         client=client, progress=False)
+    assert counts["tasks_skipped"] == done_before and counts["tasks_run"] == total - done_before
+    resumed, clean_video = video(killed), video(clean)
+    np.testing.assert_array_equal(resumed[0], clean_video[0])
+    assert resumed[2]["state"] == "complete"
+    assert chunk_files(killed).keys() == chunk_files(clean).keys()
+    for name, content in chunk_files(clean).items():
+        if name.startswith(("video/", "committed/", "frames/")):
+            assert chunk_files(killed)[name] == content, name
+
+
+def test_resume_refuses_other_parameters(recording, client, tmp_path):
+    out = str(tmp_path / "out.zarr")
+    reconstruct(recording, out, ReconstructOptions(every=41), client=client, progress=False)
+    with pytest.raises(ValueError, match="other parameters.*every 41 -> 10"):
+        reconstruct(recording, out, ReconstructOptions(every=10, resume=True), client=client, progress=False)
+
+
+def test_export_mp4_and_pngs(recording, client, cli, tmp_path):
+    out = str(tmp_path / "out.zarr")
+    reconstruct(recording, out, ReconstructOptions(every=41), client=client, progress=False)
+    assert cli("export", out, tmp_path / "video.mp4").exit_code == 0
+    decoded = iio.imread(tmp_path / "video.mp4")
+    assert decoded.shape == (3, 128, 128, 3)
+    assert np.abs(decoded.astype(float) - video(out)[0]).mean() < 6  # H.264 is lossy, but close
+    assert cli("export", out, tmp_path / "frames").exit_code == 0
+    assert sorted(os.listdir(tmp_path / "frames")) == ["frame_00000020.png", "frame_00000061.png", "frame_00000102.png"]
+    np.testing.assert_array_equal(iio.imread(tmp_path / "frames" / "frame_00000061.png"), video(out)[0][1])
+
+
+def test_evaluate_writes_table_csv_and_picture(recording, cli, tmp_path):
+    result = cli("evaluate", recording, "--methods", "tfp,tfi", "--out", tmp_path / "ev", "--workers", 2)
+    assert result.exit_code == 0, result.stderr
+    assert "tfp" in result.stdout and "tfi" in result.stdout and "PSNR" in result.stdout
+    summary = (tmp_path / "ev" / "summary.csv").read_text().splitlines()
+    assert summary[0].startswith("method,psnr,ssim") and len(summary) == 3
+    psnrs = [float(line.split(",")[1]) for line in summary[1:]]
+    assert all(15 < value < 50 for value in psnrs)
+    assert len((tmp_path / "ev" / "metrics.csv").read_text().splitlines()) == 1 + 2 * 11
+    picture_ = iio.imread(tmp_path / "ev" / "comparison.png")
+    assert picture_.shape == (128 + 22, 3 * 128 + 2 * 4, 3)
+
+
+def test_bad_input(cli, recording, tmp_path):
+    out = tmp_path / "out.zarr"
+    zarr.open_group(str(tmp_path / "empty.zarr"), mode="w", attributes={"height": 8, "width": 8, "cfa": "mono"})
+    assert_refused(cli("reconstruct", tmp_path / "empty.zarr", out, "--workers", 1), "no 'spikes' array")
+    np.save(tmp_path / "short.npy", np.zeros((30, 8, 8), np.uint8))
+    assert cli("ingest", tmp_path / "short.npy", tmp_path / "short.zarr").exit_code == 0
+    assert_refused(cli("reconstruct", tmp_path / "short.zarr", out, "--workers", 1), "longer than the recording (30 frames)")
+    assert_refused(cli("reconstruct", recording, out, "--window", 40, "--workers", 1), "positive odd number")
+    assert_refused(cli("reconstruct", recording, out, "--window", 151, "--workers", 1), "longer than the recording")
+    assert_refused(cli("reconstruct", recording, out, "--every", 0, "--workers", 1), "--every must be >= 1")
+    assert_refused(cli("reconstruct", recording, out, "--method", "magic", "--workers", 1), "unknown method 'magic'")
+    assert_refused(cli("evaluate", tmp_path / "short.zarr", "--out", tmp_path / "ev", "--workers", 1), "no ground truth")
+    assert not out.exists()
+    start = time.time()
+    assert_refused(cli("reconstruct", recording, out, "--scheduler", "tcp://127.0.0.1:9"), "cannot reach Dask scheduler")
+    assert time.time() - start < 15 and not out.exists()
+    out.mkdir()
+    assert_refused(cli("reconstruct", recording, out, "--workers", 1), "already exists", "--resume or --overwrite")
+    assert_refused(cli("reconstruct", recording, tmp_path / "none.zarr", "--resume", "--workers", 1), "does not exist")
