@@ -10,8 +10,8 @@ the 10x longer recording within 10 % of the shorter one's (memory must not grow 
 recording: tasks are submitted in a bounded window and each reads only its own window).
 
 Each run is a fresh interpreter (so the client's peak is that run's alone) with a fresh
-cluster: peaks are the kernel's high-water marks (``ru_maxrss``, read in each worker and in
-the client when the run ends, so nothing between samples is missed); a background thread
+cluster: peaks are the kernel's high-water marks (``VmHWM`` of each process, read when the
+run ends, so nothing between samples is missed); a background thread
 also samples every process's RSS every 50 ms (psutil, by pid) to record the RSS after start-up
 and warm-up (imports), at the end of the run, and the sampled peak. Repetitions alternate
 the order of the two lengths; figures are medians over repetitions.
@@ -44,11 +44,17 @@ SAMPLE_S = 0.05
 MiB = 2**20
 
 
-def peak_rss() -> int:
-    """This process's high-water RSS, bytes (Linux reports KiB)."""
-    import resource
+def high_water(pid: int) -> int:
+    """A process's high-water RSS, bytes: ``VmHWM`` of its memory map (Linux).
 
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    Not ``ru_maxrss``: Linux carries that across fork + exec, so a fresh interpreter would
+    report the peak of the process that started it.
+    """
+    with open(f"/proc/{pid}/status") as status:
+        for line in status:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) * 1024
+    raise RuntimeError(f"no VmHWM in /proc/{pid}/status")
 
 
 class Sampler(threading.Thread):
@@ -92,12 +98,9 @@ def child(store: str, out: str, gain: float, tile: int) -> dict:
         counts = reconstruct(store, out, options(EVERY, gain, tile), client=client, progress=False)
         seconds = time.perf_counter() - start
         sampler.stop()
-        by_pid = {pid: rss for pid, rss in ((p, r) for p, r in client.run(lambda: (os.getpid(), peak_rss())).values())}
-    high_water = {name: by_pid[pid] for name, pid in names.items()}
-    high_water["client"] = peak_rss()
+        peaks = {name: high_water(pid) for name, pid in {**names, "client": os.getpid()}.items()}
     return {"seconds": seconds, "frames": counts["frames"], "tasks": counts["tasks_run"], "samples": sampler.samples,
-            "rss_after_warmup": sampler.first, "rss_at_end": sampler.last, "sampled_peak": sampler.peak,
-            "peak": high_water}
+            "rss_after_warmup": sampler.first, "rss_at_end": sampler.last, "sampled_peak": sampler.peak, "peak": peaks}
 
 
 def measure(store: str, out: Path, gain: float, tile: int) -> dict:
@@ -172,7 +175,7 @@ def main() -> None:
     print(markdown_table(["figure", f"{short} frames", f"{long} frames", "ratio", "goal", "result"], summary))
     print()
     print(markdown_table(["process", "frames", "run s", "RSS after start-up + warm-up, MiB", "sampled peak, MiB",
-                          "high-water (ru_maxrss), MiB", "RSS at end, MiB"], detail))
+                          "high-water (VmHWM), MiB", "RSS at end, MiB"], detail))
     print(f"\nMedians of {args.repeats} runs per length, each in a fresh interpreter with a fresh cluster; RSS sampled every "
           f"{1000 * SAMPLE_S:.0f} ms. Worker processes are numbered by pid. Load average at start {load_start}, at end "
           f"{load_average()}.")

@@ -8,7 +8,6 @@ every method side by side at the middle truth frame).
 """
 
 import csv
-import os
 import time
 
 import numpy as np

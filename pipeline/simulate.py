@@ -13,11 +13,12 @@ noise is keyed by frame index, so the bytes written do not depend on the chunkin
 number of workers.
 """
 
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
-from distributed import Client, wait
+from distributed import Client
+
+from pipeline.batches import in_bounded_window, window_size
 
 from pipeline.cluster import dask_client
 from pipeline.frame_sources import FrameSource, open_frame_source
@@ -25,7 +26,6 @@ from pipeline.progress import progress_bar
 from pipeline.spike_store import SpikeMeta, SpikeStoreWriter, chunk_frames_for, write_region
 from pipeline.storage import new_output
 from stages import sensor
-from stages.bits import packed_width
 from stages.cfa import check_cfa
 from stages.errors import InputError
 from stages.frames import to_unit_rgb
@@ -218,39 +218,34 @@ def simulate(src: str, dest: str, options: SimulateOptions = SimulateOptions(), 
             writer.group.attrs["flow_convention"] = "flow[k] (dx, dy) HR pixels: truth[k] at x is truth[k+1] at x + flow"
 
         pairs = None if scene.is_still else _SourcePairs(client, source, options)
-        dark = client.submit(sensor.dark_increments, model, height, width)
-        thresholds = client.submit(sensor.pixel_thresholds, model, height, width)
-        state = client.submit(sensor.initial_state, model, height, width)
-        window = deque()
+        submissions = _submissions(client, scene, pairs, options, model, chunk, truth_at, dest, height, width)
         spikes = 0
         with progress_bar(f"simulate {src}", options.frames, enabled=progress) as advance:
-            for start in range(0, options.frames, chunk):
-                frames = range(start, min(start + chunk, options.frames))
-                increments = client.submit(_increments, scene, pairs and pairs.for_frames(frames), frames, options, dark)
-                fired = client.submit(_fire, increments, state, options.reset, thresholds)
-                state = client.submit(_state, fired)
-                window.append(client.submit(_write_spikes, dest, start, fired))
-                for k, frame in enumerate(truth_at):
-                    if frame in frames:
-                        flows = pairs.flow(bracket(source_position(frame, options.frames, source.n_frames), source.n_frames)[0]) \
-                            if pairs and options.interp == "flow" else None
-                        window.append(client.submit(_write_truth, dest, k, scene, frame, options, flows))
-                        if path is not None and k + 1 < len(truth_at):
-                            window.append(client.submit(_write_flow, dest, k, path, frame, truth_at[k + 1]))
-                while len(window) > 4 * len(client.scheduler_info()["workers"]) + 4:
-                    spikes += _collect(window.popleft(), advance)
-            while window:
-                spikes += _collect(window.popleft(), advance)
+            for future in in_bounded_window(submissions, window_size(client)):
+                if (written := future.result()) is not None:  # a spikes chunk: (frames, spikes)
+                    advance(written[0])
+                    spikes += written[1]
         writer.finish(spike_count=spikes)
         return dict(writer.group.attrs)
 
 
-def _collect(future, advance) -> int:
-    """Wait for a write task; advance the bar by the frames it wrote; return its spikes."""
-    wait(future)
-    result = future.result()
-    if result is None:
-        return 0
-    frames, spikes = result
-    advance(frames)
-    return spikes
+def _submissions(client: Client, scene: Scene, pairs, options: SimulateOptions, model, chunk: int,
+                 truth_at: list[int], dest: str, height: int, width: int):
+    """Submit the graph chunk by chunk, yielding the futures of writes as they are made."""
+    dark = client.submit(sensor.dark_increments, model, height, width)
+    thresholds = client.submit(sensor.pixel_thresholds, model, height, width)
+    state = client.submit(sensor.initial_state, model, height, width)
+    n_source = scene.source.n_frames
+    for start in range(0, options.frames, chunk):
+        frames = range(start, min(start + chunk, options.frames))
+        increments = client.submit(_increments, scene, pairs and pairs.for_frames(frames), frames, options, dark)
+        fired = client.submit(_fire, increments, state, options.reset, thresholds)
+        state = client.submit(_state, fired)
+        yield client.submit(_write_spikes, dest, start, fired)
+        for k, frame in enumerate(truth_at):
+            if frame not in frames:
+                continue
+            flows = pairs.flow(bracket(source_position(frame, options.frames, n_source), n_source)[0]) if pairs else None
+            yield client.submit(_write_truth, dest, k, scene, frame, options, flows)
+            if scene.path is not None and k + 1 < len(truth_at):
+                yield client.submit(_write_flow, dest, k, scene.path, frame, truth_at[k + 1])

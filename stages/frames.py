@@ -9,6 +9,8 @@ import numpy as np
 
 from stages.errors import InputError
 
+LUMA = (0.299, 0.587, 0.114)  # Rec.601 weights of R, G, B: what a mono sensor sees
+
 
 def to_unit_rgb(frame: np.ndarray) -> np.ndarray:
     """(H, W), (H, W, 1|3|4) -> (H, W, 3) float32 in [0, 1]."""
@@ -30,5 +32,5 @@ def to_uint8(image: np.ndarray) -> np.ndarray:
 
 def luma_rgb(rgb: np.ndarray) -> np.ndarray:
     """(..., 3) RGB -> the Rec.601 luma repeated in three channels (what a mono sensor sees)."""
-    luma = rgb @ np.array([0.299, 0.587, 0.114], np.float32)
+    luma = rgb @ np.array(LUMA, np.float32)
     return np.repeat(luma[..., None], 3, axis=-1)

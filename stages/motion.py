@@ -20,7 +20,7 @@ Everything is computed per pixel without reductions, so results do not depend on
 """
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 

@@ -37,13 +37,13 @@ import numpy as np
 from stages.bits import count_spikes, packed_width
 from stages.cfa import check_cfa, colour_index
 from stages.errors import InputError
+from stages.frames import LUMA
 
 UNITS: int = 1 << 24
 RESETS = ("zero", "subtract")
 NOISES = ("none", "realistic")
 _MAX_UNITS = 1 << 30  # state and thresholds below this keep acc + q inside int32
 DARK_SPREAD = 0.5  # log-std of the per-pixel dark current (lognormal, mean dark_rate)
-_LUMA = (0.299, 0.587, 0.114)  # Rec.601
 
 # Random streams, keyed default_rng([seed, stream(, frame)]) so chunking never changes a draw.
 _STATE_STREAM, _THRESHOLD_STREAM, _SHOT_STREAM, _DARK_STREAM = 0, 1, 2, 3
@@ -76,7 +76,7 @@ def cfa_sample(rgb: np.ndarray, cfa: str) -> np.ndarray:
     height, width = rgb.shape[-3:-1]
     cfa = check_cfa(cfa, height, width)
     if cfa == "mono":
-        red, green, blue = (np.float32(weight) * rgb[..., c] for c, weight in enumerate(_LUMA))
+        red, green, blue = (np.float32(weight) * rgb[..., c] for c, weight in enumerate(LUMA))
         return red + green + blue
     index = np.broadcast_to(colour_index(cfa, height, width)[..., None], (*rgb.shape[:-1], 1))  # ([n,] H, W, 1)
     return np.take_along_axis(rgb, index.astype(np.intp), axis=-1)[..., 0]

@@ -117,7 +117,7 @@ def test_unknown_extension_and_missing_store(cli, tmp_path):
     (tmp_path / "c.avi").write_bytes(b"x")
     assert_refused(cli("ingest", tmp_path / "c.avi", tmp_path / "s.zarr"), "unknown capture type .avi")
     assert_refused(cli("info", tmp_path / "none.zarr"), "cannot read spike store")
-    assert_refused(cli("export", tmp_path / "none.zarr", tmp_path / "o.dat"), "cannot read spike store")
+    assert_refused(cli("export", tmp_path / "none.zarr", tmp_path / "o.dat"), "cannot read store")
     assert not (tmp_path / "o.dat").exists()
 
 
