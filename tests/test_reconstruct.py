@@ -169,3 +169,35 @@ def test_bad_input(cli, recording, tmp_path):
     out.mkdir()
     assert_refused(cli("reconstruct", recording, out, "--workers", 1), "already exists", "--resume or --overwrite")
     assert_refused(cli("reconstruct", recording, tmp_path / "none.zarr", "--resume", "--workers", 1), "does not exist")
+
+
+def test_submission_stays_in_a_bounded_window(client):
+    """However many tasks a job has, at most ``limit`` are submitted and unfinished at once."""
+    from pipeline.batches import in_bounded_window
+
+    submitted, finished = [0], [0]
+
+    def submissions():
+        for i in range(200):
+            assert submitted[0] - finished[0] < 6  # never more than the window outstanding
+            submitted[0] += 1
+            yield client.submit(lambda x: x, i, pure=False)
+
+    results = []
+    for future in in_bounded_window(submissions(), limit=6):
+        finished[0] += 1
+        results.append(future.result())
+    assert sorted(results) == list(range(200))
+
+
+def test_a_video_store_is_a_simulation_source(recording, client, tmp_path):
+    """Stages compose through stores: reconstructed HR video -> simulated spikes again."""
+    video_store = str(tmp_path / "video.zarr")
+    reconstruct(recording, video_store, ReconstructOptions(every=41), client=client, progress=False)
+    again = str(tmp_path / "again.zarr")
+    simulate(video_store, again, SimulateOptions(scale=2, frames=41, interp="linear"), workers=1, progress=False)
+    group = zarr.open_group(again, mode="r")
+    assert group["spikes"].shape == (41, 64, 8) and group["truth"].shape == (1, 128, 128, 3)
+    frames = video(video_store)[0]
+    # 3 source frames spread over spike frames 0..40: frame 20 falls exactly on source frame 1.
+    np.testing.assert_array_equal(group["truth"][0], frames[1])
