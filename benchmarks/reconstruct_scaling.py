@@ -32,9 +32,18 @@ import time
 from pathlib import Path
 
 import psutil
-
 from _common import load_average, markdown_table, median, save_results
-from reconstruct_overhead import CACHE, SCALE, WINDOW, fresh, middle_gain, options, outputs_equal, spike_store, warm_worker
+from reconstruct_overhead import (
+    CACHE,
+    SCALE,
+    WINDOW,
+    fresh,
+    middle_gain,
+    options,
+    outputs_equal,
+    spike_store,
+    warm_worker,
+)
 
 GOAL = 1.8
 

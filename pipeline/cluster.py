@@ -11,6 +11,7 @@ import logging
 import os
 from collections.abc import Iterator
 
+import dask
 from distributed import Client, LocalCluster
 
 from stages.errors import InputError
@@ -18,17 +19,18 @@ from stages.errors import InputError
 CONNECT_TIMEOUT = "5s"
 
 
-# Dask's nanny sets MALLOC_TRIM_THRESHOLD_=65536, which fixes glibc's mmap threshold at
-# 128 KiB: every large temporary array (an HR frame is tens of MB) is then a fresh mmap
-# with page faults on every touch, 15-25 % of a reconstruction task. Fixed thresholds
-# of 64 MiB keep such arrays on the reused heap (benchmarks/reconstruct_overhead.py).
-_MALLOC = {"MALLOC_MMAP_THRESHOLD_": str(64 * 2**20), "MALLOC_TRIM_THRESHOLD_": str(256 * 2**20)}
+# Dask's nanny starts workers with MALLOC_TRIM_THRESHOLD_=65536, which pins glibc's mmap
+# threshold at 128 KiB: every large temporary array (an HR frame is tens of MB) is then a
+# fresh mmap with page faults on every touch, 1.44x the time of a reconstruction task.
+# Fixed thresholds of 64 MiB keep such arrays on the reused heap. glibc reads them only at
+# process start, so they go in the nanny's pre-spawn environment, not in ``env``.
+_PRE_SPAWN = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": str(256 * 2**20),
+              "distributed.nanny.pre-spawn-environ.MALLOC_MMAP_THRESHOLD_": str(64 * 2**20)}
 
 
-def _worker_env(workers: int) -> dict:
+def _thread_env(workers: int) -> dict:
     threads = str(max(1, (os.cpu_count() or 1) // workers))
-    names = ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-    return {**{name: threads for name in names}, **_MALLOC}
+    return {name: threads for name in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
 
 
 @contextlib.contextmanager
@@ -46,8 +48,9 @@ def dask_client(*, workers: int | None = None, scheduler: str | None = None) -> 
     workers = workers if workers is not None else os.cpu_count() or 1
     if workers < 1:
         raise InputError(f"--workers must be >= 1, got {workers}")
-    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
-                      silence_logs=logging.ERROR, env=_worker_env(workers)) as cluster, Client(cluster) as client:
+    with dask.config.set(_PRE_SPAWN), \
+            LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
+                         silence_logs=logging.ERROR, env=_thread_env(workers)) as cluster, Client(cluster) as client:
         yield client
 
 

@@ -47,7 +47,11 @@ class ReconstructOptions:
 
 @dataclass(frozen=True)
 class Plan:
-    """Everything a task needs: where to read and write, and how to reconstruct."""
+    """What every task shares: where to read and write, and how to reconstruct.
+
+    Constant in size: a task's own centre and tile travel beside it, so task messages do not
+    grow with the recording (the scheduler keeps recent messages).
+    """
 
     spikes: str
     out: str
@@ -59,15 +63,14 @@ class Plan:
     scale: int
     cfa: str
     reset: str
-    centres: tuple[int, ...]
-    tiles: tuple[tuple[Tile, ...], ...]
+    tile: int  # LR tile side
     run: str  # unique per call: worker-side caches of opened stores never outlive their run
 
     def attrs(self) -> dict:
         """What the output store records (and ``--resume`` checks)."""
         return {"method": self.method, "weights": self.weights, "window": self.window, "every": self.every,
                 "gain": self.gain, "scale": self.scale, "source": self.spikes, "cfa": self.cfa, "reset": self.reset,
-                "tile_lr": [self.tiles[0][0].y1 - self.tiles[0][0].y0, self.tiles[0][0].x1 - self.tiles[0][0].x0]}
+                "tile_lr": self.tile}
 
 
 def output_centres(n_frames: int, window: int, every: int) -> list[int]:
@@ -91,10 +94,9 @@ def _opened(spikes: str, out: str, run: str):
     return open_spike_store(spikes).spikes, TileWriter(out)
 
 
-def _reconstruct_tile(plan: Plan, index: int, ty: int, tx: int) -> int:
+def _reconstruct_tile(plan: Plan, index: int, centre: int, tile: Tile, ty: int, tx: int) -> int:
     """Task: read the window + halo of one tile, reconstruct, crop, write, commit."""
-    tile = plan.tiles[ty][tx]
-    centre, half = plan.centres[index], plan.window // 2
+    half = plan.window // 2
     spikes, writer = _opened(plan.spikes, plan.out, plan.run)
     packed = spikes[centre - half : centre + half + 1, tile.ry0 : tile.ry1, tile.rx0 // 8 : -(-tile.rx1 // 8)]
     method = reconstructor(plan.method, plan.weights)
@@ -154,17 +156,27 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
         if gain is None:
             gain = client.submit(_auto_gain, store_url, centres[len(centres) // 2], options.window, meta.reset).result()
         plan = Plan(store_url, out, options.method, options.weights, options.window, options.every, float(gain), scale,
-                    meta.cfa, meta.reset, tuple(centres), tuple(tuple(row) for row in grid), uuid.uuid4().hex)
-        done = _prepare_output(plan, options.resume, meta.height * scale, meta.width * scale)
+                    meta.cfa, meta.reset, options.tile, uuid.uuid4().hex)
+        done = _prepare_output(plan, options.resume, centres, grid, (meta.height * scale, meta.width * scale))
         todo = [(i, ty, tx) for i in range(len(centres)) for ty in range(len(grid)) for tx in range(len(grid[0]))
                 if not done[i, ty, tx]]
         tiles_per_frame = len(grid) * len(grid[0])
         remaining = {i: tiles_per_frame - int(done[i].sum()) for i in range(len(centres))}
-        submissions = (client.submit(_reconstruct_tile, plan, i, ty, tx, pure=False) for i, ty, tx in todo)
+        plan = client.scatter(plan, broadcast=True)  # sent to each worker once, not with every task
+        index_of = {}  # future key -> output frame (cheaper than fetching each result)
+
+        def submissions():
+            for i, ty, tx in todo:
+                future = client.submit(_reconstruct_tile, plan, i, centres[i], grid[ty][tx], ty, tx, pure=False)
+                index_of[future.key] = i
+                yield future
+
         with progress_bar(f"reconstruct {options.method}", len(centres), enabled=progress) as advance:
             advance(sum(1 for left in remaining.values() if left == 0))
-            for future in in_bounded_window(submissions, window_size(client)):
-                index = future.result()
+            for future in in_bounded_window(submissions(), window_size(client)):
+                if future.status != "finished":
+                    future.result()  # raises the task's error here
+                index = index_of.pop(future.key)
                 remaining[index] -= 1
                 if remaining[index] == 0:
                     advance(1)
@@ -172,24 +184,20 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
     return {"frames": len(centres), "tasks_run": len(todo), "tasks_skipped": done.sum().item()}
 
 
-def _prepare_output(plan: Plan, resume: bool, hr_height: int, hr_width: int):
+def _prepare_output(plan: Plan, resume: bool, centres: list[int], grid: list[list[Tile]], hr_size: tuple[int, int]):
     """Create the output (metadata first), or check a resumed one matches; return the commit mask."""
-    tiles = (len(plan.tiles), len(plan.tiles[0]))
-    first = plan.tiles[0][0]
+    tiles = (len(grid), len(grid[0]))
+    first = grid[0][0]
     tile_hr = ((first.y1 - first.y0) * plan.scale, (first.x1 - first.x0) * plan.scale)
     if resume:
         group = open_video_store(plan.out, writable=True)
         recorded = {k: group.attrs.get(k) for k in plan.attrs()}
         expected = plan.attrs()
-        changed = [k for k in expected if _normal(recorded[k]) != _normal(expected[k])]
-        if changed or group["video"].shape[0] != len(plan.centres):
+        changed = [k for k in expected if recorded[k] != expected[k]]
+        if changed or group["video"].shape[0] != len(centres):
             what = ", ".join(f"{k} {recorded[k]!r} -> {expected[k]!r}" for k in changed) or "frame count"
             raise InputError(f"cannot resume {plan.out}: it was made with other parameters ({what})")
         return committed_mask(group)
-    create_video_store(plan.out, centres=list(plan.centres), hr_size=(hr_height, hr_width), tile_hr=tile_hr,
-                       tiles=tiles, attrs=plan.attrs())
-    return np.zeros((len(plan.centres), *tiles), bool)
+    create_video_store(plan.out, centres=centres, hr_size=hr_size, tile_hr=tile_hr, tiles=tiles, attrs=plan.attrs())
+    return np.zeros((len(centres), *tiles), bool)
 
-
-def _normal(value):
-    return list(value) if isinstance(value, tuple) else value
