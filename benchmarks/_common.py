@@ -44,3 +44,29 @@ def save_results(name: str, data: dict) -> Path:
     path = RESULTS / f"{name}.json"
     path.write_text(json.dumps({"benchmark": name, "machine": machine, **data}, indent=2) + "\n")
     return path
+
+
+def write_integrate_and_fire(path: Path, frames: int, rate_at, *, seed: int = 0, block: int = 64) -> None:
+    """A raw ``.dat`` of integrate-and-fire spikes (subtract reset) in bounded memory.
+
+    ``rate_at(first_frame)`` gives the (H, W) float32 firing rate of a block of frames; each
+    pixel adds it every frame and spikes (subtracting 1) at 1, from a seeded random start.
+    """
+    import numpy as np
+
+    rate = rate_at(0)
+    height, width = rate.shape
+    acc = np.random.default_rng(seed).random((height, width), dtype=np.float32)
+    fire = np.empty((height, width), bool)
+    packed = np.empty((block, height, width // 8), np.uint8)
+    partial = path.with_suffix(".partial")
+    with open(partial, "wb") as out:
+        for start in range(0, frames, block):
+            rate, n = rate_at(start), min(block, frames - start)
+            for i in range(n):
+                acc += rate
+                np.greater_equal(acc, 1, out=fire)
+                np.subtract(acc, fire, out=acc, casting="unsafe")
+                packed[i] = np.packbits(fire, axis=-1, bitorder="little")
+            packed[:n].tofile(out)
+    partial.replace(path)

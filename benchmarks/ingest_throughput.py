@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _common import ROOT, entropy_bits, load_average, markdown_table, median, save_results
+from _common import ROOT, entropy_bits, load_average, markdown_table, median, save_results, write_integrate_and_fire
 from pipeline.info import summarize
 from pipeline.ingest import BLOCK_BYTES
 from pipeline.spike_store import CODEC_LEVEL, SpikeMeta, chunk_frames_for
@@ -61,24 +61,6 @@ def rate_map(t: float) -> np.ndarray:
     return (0.05 + 0.25 * s).astype(np.float32)
 
 
-def generate(path: Path, frames: int, seed: int = 0) -> None:
-    """Integrate and fire: acc += rate each frame; a spike when acc >= 1, which subtracts 1."""
-    acc = np.random.default_rng(seed).random((H, W), dtype=np.float32)
-    fire = np.empty((H, W), bool)
-    block = np.empty((BLOCK, H, W // 8), np.uint8)
-    partial = path.with_suffix(".partial")
-    with open(partial, "wb") as out:
-        for start in range(0, frames, BLOCK):
-            rate, n = rate_map(start), min(BLOCK, frames - start)
-            for i in range(n):
-                acc += rate
-                np.greater_equal(acc, 1, out=fire)
-                np.subtract(acc, fire, out=acc, casting="unsafe")
-                block[i] = np.packbits(fire, axis=-1, bitorder="little")
-            block[:n].tofile(out)
-    partial.replace(path)
-
-
 def cached_capture(frames: int) -> Path:
     path = CACHE / f"if_{H}x{W}_{frames}.dat"
     if path.exists() and path.stat().st_size == frames * FRAME_BYTES:
@@ -86,7 +68,7 @@ def cached_capture(frames: int) -> Path:
         return path
     CACHE.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
-    generate(path, frames)
+    write_integrate_and_fire(path, frames, rate_map, block=BLOCK)
     print(f"generated {path} ({path.stat().st_size / 1e9:.2f} GB) in {time.perf_counter() - start:.0f} s", file=sys.stderr)
     return path
 
@@ -126,7 +108,8 @@ def zstd_alone(src: Path, chunks: int = 16, repeats: int = 3) -> float:
     import numcodecs
 
     frames = chunk_frames_for(SpikeMeta(height=H, width=W), 10**9)
-    data = np.fromfile(src, np.uint8, count=chunks * frames * FRAME_BYTES).reshape(-1, frames, H, W // 8)
+    data = np.fromfile(src, np.uint8, count=chunks * frames * FRAME_BYTES)
+    data = data[: data.size // (frames * FRAME_BYTES) * frames * FRAME_BYTES].reshape(-1, frames, H, W // 8)  # whole chunks
     codec, times = numcodecs.Zstd(level=CODEC_LEVEL), []
     for _ in range(repeats):
         start = time.perf_counter()

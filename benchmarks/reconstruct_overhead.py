@@ -46,7 +46,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import load_average, markdown_table, median, save_results
+from _common import load_average, markdown_table, median, save_results, write_integrate_and_fire
 
 CACHE = Path("/tmp/cscsr_bench")
 BLOCK = 200  # frames generated per block; the rate map drifts block to block
@@ -73,24 +73,6 @@ def rate_map(height: int, width: int, t: float) -> np.ndarray:
     return (0.05 + 0.25 * s).astype(np.float32)
 
 
-def generate(path: Path, frames: int, height: int, width: int, seed: int = 0) -> None:
-    """Integrate and fire (subtract reset): acc += rate each frame; a spike when acc >= 1."""
-    acc = np.random.default_rng(seed).random((height, width), dtype=np.float32)
-    fire = np.empty((height, width), bool)
-    block = np.empty((BLOCK, height, width // 8), np.uint8)
-    partial = path.with_suffix(".partial")
-    with open(partial, "wb") as out:
-        for start in range(0, frames, BLOCK):
-            rate, n = rate_map(height, width, start), min(BLOCK, frames - start)
-            for i in range(n):
-                acc += rate
-                np.greater_equal(acc, 1, out=fire)
-                np.subtract(acc, fire, out=acc, casting="unsafe")
-                block[i] = np.packbits(fire, axis=-1, bitorder="little")
-            block[:n].tofile(out)
-    partial.replace(path)
-
-
 def cached_capture(frames: int, height: int, width: int) -> Path:
     """The raw ``.dat`` recording, generated once and kept under /tmp/cscsr_bench."""
     path = CACHE / f"if_rggb_{height}x{width}_{frames}.dat"
@@ -99,7 +81,7 @@ def cached_capture(frames: int, height: int, width: int) -> Path:
         return path
     CACHE.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
-    generate(path, frames, height, width)
+    write_integrate_and_fire(path, frames, lambda start: rate_map(height, width, start), block=BLOCK)
     print(f"generated {path} ({path.stat().st_size / 1e6:.0f} MB) in {time.perf_counter() - start:.1f} s", file=sys.stderr)
     return path
 
