@@ -13,6 +13,7 @@ noise is keyed by frame index, so the bytes written do not depend on the chunkin
 number of workers.
 """
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -110,8 +111,13 @@ def _lr_frame(source: FrameSource, index: int, scale: int) -> np.ndarray:
     return sensor.area_downsample(to_unit_rgb(source.read(index)), scale)
 
 
+@functools.lru_cache(maxsize=2)
 def _hr_frame(source: FrameSource, index: int) -> np.ndarray:
-    return to_unit_rgb(source.read(index))
+    """Source frame ``index`` as intensities, decoded once per worker process: a still is read by
+    every chunk and truth task, and neighbouring truth frames share their bracketing frames."""
+    frame = to_unit_rgb(source.read(index))
+    frame.flags.writeable = False  # shared between tasks
+    return frame
 
 
 def _increments(scene: Scene, pairs: dict | None, frames: range, options: SimulateOptions, dark) -> np.ndarray:
