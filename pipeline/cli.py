@@ -192,6 +192,16 @@ def evaluate(store: Annotated[str, typer.Argument(help="Simulated spike store (w
     stdout.print(f"wrote {out_dir}/metrics.csv, {out_dir}/summary.csv, {out_dir}/comparison.png")
 
 
+@command("model-info")
+def model_info(config: Annotated[str, typer.Option(help="Named configuration: lite or full.")] = "lite",
+               weights: Annotated[Optional[str], typer.Option(help="Describe this weights file instead.")] = None):
+    """Parameter counts and settings of a CSCSR network configuration (or of a weights file)."""
+    from cscsr.model_info import model_info as describe
+
+    rows = describe(config, weights)
+    show_table(f"CSCSR {rows['configuration']}", rows)
+
+
 @command()
 def demo(out_dir: Annotated[str, typer.Option("--out", help="Folder for the demo's outputs.")] = "demo-output"):
     """The main job on the bundled samples, start to finish, with a results table."""

@@ -81,9 +81,12 @@ def output_centres(n_frames: int, window: int, every: int) -> list[int]:
 
 @functools.lru_cache(maxsize=4)
 def reconstructor(method: str, weights: str | None):
-    """Built once per worker process (this cache lives in the worker) and reused by its tasks."""
+    """Built once per worker process (this cache lives in the worker) and reused by its tasks:
+    for ``cscsr``, the network is loaded from its weights once, onto the worker's GPU if any."""
     if method == "cscsr":
-        raise InputError("--method cscsr needs the CSCSR network, which is not built yet (its own issue)")
+        from cscsr.reconstructor import load_reconstructor
+
+        return load_reconstructor(weights)
     return classic(method)
 
 
@@ -94,16 +97,36 @@ def _opened(spikes: str, out: str, run: str):
     return open_spike_store(spikes).spikes, TileWriter(out)
 
 
-def _reconstruct_tile(plan: Plan, index: int, centre: int, tile: Tile, ty: int, tx: int) -> int:
-    """Task: read the window + halo of one tile, reconstruct, crop, write, commit."""
+def _reconstruct_tile(plan: Plan, frames: tuple[tuple[int, int], ...], tile: Tile, ty: int, tx: int) -> int:
+    """Task: for each (output frame, centre) read the window + halo of one tile; reconstruct the
+    windows as one batch; crop, write and commit each frame's tile."""
     half = plan.window // 2
     spikes, writer = _opened(plan.spikes, plan.out, plan.run)
-    packed = spikes[centre - half : centre + half + 1, tile.ry0 : tile.ry1, tile.rx0 // 8 : -(-tile.rx1 // 8)]
     method = reconstructor(plan.method, plan.weights)
-    image = method(Window(packed, tile.rx1 - tile.rx0, plan.cfa, plan.reset, plan.gain, plan.scale))
+    width = tile.rx1 - tile.rx0
+    windows = [Window(spikes[c - half : c + half + 1, tile.ry0 : tile.ry1, tile.rx0 // 8 : -(-tile.rx1 // 8)],
+                      width, plan.cfa, plan.reset, plan.gain, plan.scale) for _, c in frames]
     ys, xs = tile.crop(plan.scale)
-    writer.write(index, (ty, tx), (tile.y0 * plan.scale, tile.x0 * plan.scale), image[ys, xs])
-    return index
+    for (index, _), image in zip(frames, method.many(windows)):
+        writer.write(index, (ty, tx), (tile.y0 * plan.scale, tile.x0 * plan.scale), image[ys, xs])
+    return len(frames)
+
+
+def task_groups(n_frames: int, batch: int, tiles: tuple[int, int], done: np.ndarray) -> list[tuple[range, int, int]]:
+    """(frames, ty, tx) of every task still to run: a tile of ``batch`` consecutive output frames.
+
+    Groups are fixed by frame number, not by what is left, so a resumed job runs every batch
+    exactly as an uninterrupted one would (a batch's numbers can depend on its size); a group
+    with any frame not committed runs whole.
+    """
+    groups = []
+    for start in range(0, n_frames, batch):
+        frames = range(start, min(start + batch, n_frames))
+        for ty in range(tiles[0]):
+            for tx in range(tiles[1]):
+                if not done[frames.start : frames.stop, ty, tx].all():
+                    groups.append((frames, ty, tx))
+    return groups
 
 
 def _auto_gain(spikes: str, centre: int, window: int, reset: str) -> float:
@@ -141,12 +164,13 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
     meta = store.meta
     check_options(options, store.n_frames)
     scale = options.scale or int(store.attrs.get("scale", 4))
+    method = reconstructor(options.method, options.weights)  # loads and checks the weights here too
+    method.check(options.window, scale, meta.cfa)
     if options.resume and not exists(out):
         raise InputError(f"cannot resume: {out} does not exist")
     if not options.resume:
         claim_output(out, overwrite=options.overwrite, flag="--resume or --overwrite")
     centres = output_centres(store.n_frames, options.window, options.every)
-    method = classic(options.method) if options.method != "cscsr" else reconstructor("cscsr", options.weights)
     grid = tile_grid(meta.height, meta.width, options.tile, method.halo)
 
     with contextlib.nullcontext(client) if client else dask_client(workers=workers, scheduler=scheduler) as client:
@@ -158,17 +182,17 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
         plan = Plan(store_url, out, options.method, options.weights, options.window, options.every, float(gain), scale,
                     meta.cfa, meta.reset, options.tile, uuid.uuid4().hex)
         done = _prepare_output(plan, options.resume, centres, grid, (meta.height * scale, meta.width * scale))
-        todo = [(i, ty, tx) for i in range(len(centres)) for ty in range(len(grid)) for tx in range(len(grid[0]))
-                if not done[i, ty, tx]]
-        tiles_per_frame = len(grid) * len(grid[0])
-        remaining = {i: tiles_per_frame - int(done[i].sum()) for i in range(len(centres))}
+        tiles = (len(grid), len(grid[0]))
+        groups = task_groups(len(centres), getattr(method, "batch", 1), tiles, done)
+        remaining = {i: tiles[0] * tiles[1] - int(done[i].sum()) for i in range(len(centres))}
         plan = client.scatter(plan, broadcast=True)  # sent to each worker once, not with every task
-        index_of = {}  # future key -> output frame (cheaper than fetching each result)
+        group_of = {}  # future key -> (frames, ty, tx) (cheaper than fetching each result)
 
         def submissions():
-            for i, ty, tx in todo:
-                future = client.submit(_reconstruct_tile, plan, i, centres[i], grid[ty][tx], ty, tx, pure=False)
-                index_of[future.key] = i
+            for frames, ty, tx in groups:
+                future = client.submit(_reconstruct_tile, plan, tuple((i, centres[i]) for i in frames), grid[ty][tx],
+                                       ty, tx, pure=False)
+                group_of[future.key] = (frames, ty, tx)
                 yield future
 
         with progress_bar(f"reconstruct {options.method}", len(centres), enabled=progress) as advance:
@@ -176,12 +200,15 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
             for future in in_bounded_window(submissions(), window_size(client)):
                 if future.status != "finished":
                     future.result()  # raises the task's error here
-                index = index_of.pop(future.key)
-                remaining[index] -= 1
-                if remaining[index] == 0:
-                    advance(1)
+                frames, ty, tx = group_of.pop(future.key)
+                for index in frames:
+                    if not done[index, ty, tx]:
+                        remaining[index] -= 1
+                        if remaining[index] == 0:
+                            advance(1)
         open_video_store(out, writable=True).attrs["state"] = "complete"
-    return {"frames": len(centres), "tasks_run": len(todo), "tasks_skipped": done.sum().item()}
+    skipped = int(done.sum())
+    return {"frames": len(centres), "tasks_run": done.size - skipped, "tasks_skipped": skipped}
 
 
 def _prepare_output(plan: Plan, resume: bool, centres: list[int], grid: list[list[Tile]], hr_size: tuple[int, int]):

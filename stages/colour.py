@@ -55,3 +55,10 @@ def rate_to_rgb(rate: np.ndarray, cfa: str, gain: float, scale: int = 1) -> np.n
         raise InputError(f"scale must be one of 1, 2, 3, 4, 8, got {scale}")
     rgb = upsample(demosaic(np.clip(rate * np.float32(gain), 0, 1), cfa), scale)
     return np.round(rgb * 255).astype(np.uint8)
+
+
+def expose(rgb_rate: np.ndarray, gain: float) -> np.ndarray:
+    """(..., 3) RGB firing rates -> uint8 by the contract's rule ``clip(rate * gain, 0, 1) * 255``."""
+    if not gain > 0:
+        raise InputError(f"gain must be > 0, got {gain}")
+    return np.round(np.clip(rgb_rate * np.float32(gain), 0, 1) * 255).astype(np.uint8)

@@ -32,9 +32,16 @@ class Window:
 class Reconstructor(Protocol):
     name: str
     halo: int  # LR pixels of context needed on every side (even: keeps the Bayer phase)
+    batch: int  # windows of one tile worth reconstructing together
 
     def __call__(self, window: Window) -> np.ndarray:
         """-> (s*h, s*w, 3) uint8 RGB."""
+
+    def many(self, windows: list[Window]) -> list[np.ndarray]:
+        """Windows of the same tile geometry -> one image each, as ``__call__`` would give."""
+
+    def check(self, window: int, scale: int, cfa: str) -> None:
+        """Refuse, before any work, a window length, scale or CFA the method cannot serve."""
 
 
 @dataclass(frozen=True)
@@ -48,10 +55,17 @@ class RateReconstructor:
     name: str
     estimate: callable
     halo: int = 8
+    batch: int = 1
 
     def __call__(self, window: Window) -> np.ndarray:
         rate = self.estimate(window.packed, window.width, window.reset)
         return rate_to_rgb(rate, window.cfa, window.gain, window.scale)
+
+    def many(self, windows: list[Window]) -> list[np.ndarray]:
+        return [self(window) for window in windows]
+
+    def check(self, window: int, scale: int, cfa: str) -> None:
+        """Any window, scale and CFA will do (scales are checked where images are made)."""
 
 
 CLASSIC = {"tfp": RateReconstructor("tfp", tfp_rate), "tfi": RateReconstructor("tfi", tfi_rate)}
@@ -60,6 +74,8 @@ METHODS = ("tfp", "tfi", "cscsr")
 
 def classic(method: str) -> Reconstructor:
     """The classic reconstructor called ``method``; an error naming the known ones otherwise."""
+    if method == "cscsr":
+        raise InputError("cscsr is a network, not a classic method: load it with cscsr.reconstructor")
     if method not in CLASSIC:
         raise InputError(f"unknown method {method!r}: expected one of {', '.join(METHODS)}")
     return CLASSIC[method]

@@ -201,3 +201,78 @@ def test_a_video_store_is_a_simulation_source(recording, client, tmp_path):
     frames = video(video_store)[0]
     # 3 source frames spread over spike frames 0..40: frame 20 falls exactly on source frame 1.
     np.testing.assert_array_equal(group["truth"][0], frames[1])
+
+
+@pytest.fixture(scope="module")
+def random_weights(tmp_path_factory) -> str:
+    """A randomly initialised ``lite`` network saved as safetensors (trained weights are another issue)."""
+    import torch
+
+    from cscsr.config import named
+    from cscsr.network import CSCSR
+    from cscsr.weights_io import save_weights
+
+    torch.manual_seed(0)
+    path = tmp_path_factory.mktemp("weights") / "lite-random.safetensors"
+    save_weights(CSCSR(named("lite")), path, steps="0 (random initialisation)")
+    return str(path)
+
+
+def test_cscsr_on_the_cluster_matches_the_network_run_directly(recording, client, random_weights, tmp_path):
+    """16 tiles per frame, batched frames, two worker processes: the same bytes as one process
+    running the network on whole frames (the 32-px halo covers this 32x32 frame from every tile)."""
+    import torch
+
+    from cscsr.weights_io import load_model
+    from pipeline.spike_store import open_spike_store
+    from stages.bits import unpack_rows
+    from stages.colour import expose
+
+    out = str(tmp_path / "cscsr.zarr")
+    options = ReconstructOptions(method="cscsr", weights=random_weights, every=41, tile=8)
+    counts = reconstruct(recording, out, options, client=client, progress=False)
+    frames, centres, attrs = video(out)
+    assert frames.shape == (3, 128, 128, 3) and counts["tasks_run"] == 3 * 16
+    assert attrs["state"] == "complete" and attrs["method"] == "cscsr" and attrs["weights"] == random_weights
+
+    store = open_spike_store(recording)
+    model, _ = load_model(random_weights)
+    clips = np.stack([unpack_rows(store.read(c - 20, c + 21), 32) for c in centres])
+    with torch.inference_mode():
+        rate = model(torch.from_numpy(clips).float(), store.meta.cfa, store.meta.reset == "zero", 4)["image"]
+    expected = np.stack([expose(r, attrs["gain"]) for r in rate.permute(0, 2, 3, 1).numpy()])
+    assert np.array_equal(frames, expected)
+
+    reconstruct(recording, str(tmp_path / "one.zarr"), options, workers=1, progress=False)
+    assert chunk_files(str(tmp_path / "one.zarr")) == chunk_files(out)
+
+
+def test_cscsr_refusals(cli, recording, random_weights, tmp_path):
+    out = tmp_path / "out.zarr"
+    assert_refused(cli("reconstruct", recording, out, "--method", "cscsr", "--weights", tmp_path / "none.safetensors",
+                       "--workers", 1), "weights file", "not found")
+    assert_refused(cli("reconstruct", recording, out, "--method", "cscsr", "--weights", random_weights,
+                       "--window", 21, "--workers", 1), "takes windows of 41 frames")
+    assert_refused(cli("reconstruct", recording, out, "--method", "cscsr", "--weights", random_weights,
+                       "--scale", 3, "--workers", 1), "upsamples by 2 or 4")
+    np.save(tmp_path / "mono.npy", np.zeros((41, 8, 8), np.uint8))
+    assert cli("ingest", tmp_path / "mono.npy", tmp_path / "mono.zarr").exit_code == 0
+    assert_refused(cli("reconstruct", tmp_path / "mono.zarr", out, "--method", "cscsr", "--weights", random_weights,
+                       "--workers", 1), "mono")
+    assert not out.exists()
+    out.mkdir()
+    assert_refused(cli("reconstruct", recording, out, "--method", "cscsr", "--weights", tmp_path / "none.safetensors",
+                       "--overwrite", "--workers", 1), "not found")
+    assert out.exists()  # a refused --overwrite leaves the old output alone
+
+
+def test_task_groups_are_fixed_by_frame_number():
+    from pipeline.reconstruct import task_groups
+
+    done = np.zeros((10, 1, 2), bool)
+    assert [(list(f), ty, tx) for f, ty, tx in task_groups(10, 4, (1, 2), done)][:3] == \
+        [([0, 1, 2, 3], 0, 0), ([0, 1, 2, 3], 0, 1), ([4, 5, 6, 7], 0, 0)]
+    done[0:4, 0, 0] = True
+    done[4, 0, 1] = True  # a partly done group runs whole, exactly as it did the first time
+    groups = [(list(f), ty, tx) for f, ty, tx in task_groups(10, 4, (1, 2), done)]
+    assert ([0, 1, 2, 3], 0, 0) not in groups and ([4, 5, 6, 7], 0, 1) in groups and ([8, 9], 0, 1) in groups

@@ -1,0 +1,40 @@
+"""Integration: the three colours' temporal-pixel features -> HR RGB residual.
+
+Step 4 of Algorithm 1. The colours' features (and the sensor's reset mode, which changes
+what a firing rate means) are fused by a convolution, reconstructed by ResBlocks with a
+long skip, and enlarged by pixel shuffle in x2 steps; a head after each step gives RGB, so
+one set of weights serves x2 and x4.
+"""
+
+import torch
+from torch import nn
+
+from cscsr.blocks import ResBlock
+
+SCALES = (2, 4)
+
+
+class Integration(nn.Module):
+    """(B, 3C, H, W) features, (B,) zero-reset flags -> (B, 3, sH, sW) residual, s in {2, 4}."""
+
+    def __init__(self, colour_features: int, features: int, blocks: int):
+        super().__init__()
+        self.fuse = nn.Conv2d(3 * colour_features + 1, features, 3, 1, 1)
+        self.trunk = nn.Sequential(*[ResBlock(features) for _ in range(blocks)], nn.Conv2d(features, features, 3, 1, 1))
+        self.up = nn.ModuleList([nn.Sequential(nn.Conv2d(features, 4 * features, 3, 1, 1), nn.PixelShuffle(2),
+                                               nn.ReLU(inplace=True)) for _ in SCALES])
+        self.heads = nn.ModuleList([nn.Conv2d(features, 3, 3, 1, 1) for _ in SCALES])
+        for head in self.heads:  # an untrained network returns (almost) its base image: training starts there
+            nn.init.normal_(head.weight, std=1e-3)
+            nn.init.zeros_(head.bias)
+
+    def forward(self, colours: torch.Tensor, zero_reset: torch.Tensor, scale: int) -> torch.Tensor:
+        b, _, h, w = colours.shape
+        reset = zero_reset.to(colours.dtype)[:, None, None, None].expand(b, 1, h, w)
+        x = self.fuse(torch.cat([colours, reset], 1))  # (B, F, H, W)
+        x = x + self.trunk(x)  # long skip
+        for step, factor in enumerate(SCALES):
+            x = self.up[step](x)  # (B, F, 2^(step+1) H, 2^(step+1) W)
+            if factor == scale:
+                return self.heads[step](x)  # (B, 3, sH, sW)
+        raise ValueError(f"scale {scale} is not one of {SCALES}")

@@ -1,0 +1,60 @@
+"""The network behind the pipeline's reconstructor interface (``--method cscsr``).
+
+Loaded once per worker process by the pipeline and reused; windows of the same shape run
+as one batch under ``torch.inference_mode``, on the worker's GPU when it has one.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from cscsr.integration import SCALES
+from cscsr.weights_io import default_weights, load_model
+from stages.bits import unpack_rows
+from stages.colour import expose
+from stages.errors import InputError
+from stages.reconstruct import Window
+
+HALO = 32  # LR pixels: the flow pyramid sees far; tiles agree with the whole frame closely, not exactly
+
+
+@dataclass
+class NetworkReconstructor:
+    model: torch.nn.Module
+    device: torch.device
+    weights: str
+    name: str = "cscsr"
+    halo: int = HALO
+    batch: int = 4  # windows per forward pass (frames of one tile)
+
+    def check(self, window: int, scale: int, cfa: str) -> None:
+        config = self.model.config
+        if cfa == "mono":
+            raise InputError("the CSCSR network is a colour (Bayer) model and this recording is mono: use tfp or tfi")
+        if window != config.frames:
+            raise InputError(f"the CSCSR network ({self.weights}) takes windows of {config.frames} frames, "
+                             f"not --window {window}")
+        if scale not in SCALES:
+            raise InputError(f"the CSCSR network upsamples by {' or '.join(map(str, SCALES))}, not --scale {scale}")
+
+    def __call__(self, window: Window) -> np.ndarray:
+        return self.many([window])[0]
+
+    def many(self, windows: list[Window]) -> list[np.ndarray]:
+        """Windows of one tile (same shape, CFA, reset, gain, scale) -> (s*h, s*w, 3) uint8 each."""
+        first = windows[0]
+        spikes = np.stack([unpack_rows(w.packed, w.width) for w in windows])  # (B, N, h, w) uint8
+        with torch.inference_mode():
+            x = torch.from_numpy(spikes).to(self.device, torch.float32)
+            rate = self.model(x, first.cfa, first.reset == "zero", first.scale)["image"]  # (B, 3, sH, sW)
+            rate = rate.permute(0, 2, 3, 1).float().cpu().numpy()
+        return [expose(r, first.gain) for r in rate]
+
+
+def load_reconstructor(weights: str | None, device: str | None = None) -> NetworkReconstructor:
+    """The network from ``weights`` (default: the shipped ``lite`` weights), on a GPU if there is one."""
+    path = weights or str(default_weights("lite"))
+    device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    model, _ = load_model(path, device)
+    return NetworkReconstructor(model, device, str(path))

@@ -1,0 +1,96 @@
+"""Weights files: safetensors only (no pickle), with the configuration in the metadata.
+
+A file carries everything needed to rebuild its network: the configuration as JSON, the
+conventions of the data it was trained on (CFA naming, output units, scales), and free
+text on how it was made (training command, steps, data). Loading checks all of it and
+says plainly what is wrong with a file that does not fit.
+"""
+
+import json
+import os
+import struct
+from pathlib import Path
+
+import torch
+
+from cscsr.config import CSCSRConfig
+from cscsr.integration import SCALES
+from stages.errors import InputError
+
+FORMAT = "cscsr-weights/1"
+CONVENTIONS = {
+    "format": FORMAT,
+    "cfa": "pattern names the top-left 2x2 cell row by row, row 0 at the top of the frame as stored",
+    "output": "linear firing rate alpha*I/theta per colour (RGB); exposure is applied after",
+    "scales": ",".join(map(str, SCALES)),
+}
+SHIPPED = Path(__file__).parent / "weights"
+
+
+def save_weights(model, path: str | os.PathLike, **about: str) -> None:
+    """Write ``model``'s parameters and configuration; ``about`` adds free-text metadata."""
+    from safetensors.torch import save_file
+
+    metadata = {**CONVENTIONS, "config": model.config.to_json(), **{k: str(v) for k, v in about.items()}}
+    tensors = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
+    save_file(tensors, str(path), metadata=metadata)
+
+
+def read_metadata(path: str | os.PathLike) -> dict[str, str]:
+    """The metadata of a safetensors file, read from its header alone."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"weights file {path} not found")
+    with open(path, "rb") as f:
+        head = f.read(8)
+        if len(head) < 8:
+            raise InputError(f"{path} is not a safetensors file (only {len(head)} bytes)")
+        (length,) = struct.unpack("<Q", head)
+        if length > min(100_000_000, path.stat().st_size - 8):
+            raise InputError(f"{path} is not a safetensors file (bad header length)")
+        try:
+            header = json.loads(f.read(length))
+        except ValueError:
+            raise InputError(f"{path} is not a safetensors file (its header is not JSON)") from None
+    metadata = header.get("__metadata__") or {}
+    if metadata.get("format") != FORMAT:
+        raise InputError(f"{path} is not a cscsr weights file (metadata format {metadata.get('format')!r}, "
+                         f"expected {FORMAT!r})")
+    return metadata
+
+
+def load_model(path: str | os.PathLike, device: str | torch.device = "cpu"):
+    """-> (network in eval mode on ``device``, metadata). Clear errors for missing or mismatching files."""
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    from cscsr.network import CSCSR
+
+    metadata = read_metadata(path)
+    try:
+        config = CSCSRConfig.from_json(metadata["config"])
+    except (KeyError, TypeError, ValueError) as error:
+        raise InputError(f"{path} has no valid network configuration in its metadata ({error})") from None
+    try:
+        tensors = load_file(str(path), device="cpu")
+    except SafetensorError as error:
+        raise InputError(f"{path} is damaged: {error}") from None
+    model = CSCSR(config)
+    expected = model.state_dict()
+    missing = sorted(set(expected) - set(tensors))
+    extra = sorted(set(tensors) - set(expected))
+    wrong = sorted(k for k in set(expected) & set(tensors) if expected[k].shape != tensors[k].shape)
+    if missing or extra or wrong:
+        what = (f"missing {missing[0]}" if missing else f"unexpected {extra[0]}" if extra else
+                f"{wrong[0]} is {tuple(tensors[wrong[0]].shape)}, expected {tuple(expected[wrong[0]].shape)}")
+        raise InputError(f"{path} does not match its configuration {config.name!r}: {what}")
+    model.load_state_dict(tensors)
+    return model.to(device).eval(), metadata
+
+
+def default_weights(config: str = "lite") -> Path:
+    """The weights shipped in the package for ``config``; an error if there are none yet."""
+    path = SHIPPED / f"cscsr-{config}.safetensors"
+    if not path.is_file():
+        raise InputError(f"no shipped weights for CSCSR {config!r} ({path.name}): pass --weights FILE")
+    return path
