@@ -203,6 +203,32 @@ def model_info(config: Annotated[str, typer.Option(help="Named configuration: li
 
 
 @command()
+def train(out: Annotated[str, typer.Argument(help="Folder for checkpoints, log.jsonl and the final weights.")],
+          config: Annotated[str, typer.Option(help="Network configuration: lite or full.")] = "lite",
+          steps: Annotated[int, typer.Option(help="Optimiser steps in all (a resumed run continues to this).")] = 20000,
+          batch: Annotated[int, typer.Option(help="Clips per step.")] = 8,
+          lr_side: Annotated[int, typer.Option(help="LR crop side of a training clip (even).")] = 32,
+          learning_rate: Annotated[float, typer.Option(help="Adam learning rate (x0.9 every 7,500 steps).")] = 2e-4,
+          seed: Annotated[int, typer.Option(help="Seed of the clips and the initial weights.")] = 0,
+          checkpoint_every: Annotated[int, typer.Option(help="Steps between checkpoints.")] = 100,
+          validate_every: Annotated[int, typer.Option(help="Steps between validation PSNR lines.")] = 250,
+          threads: Annotated[Optional[int], typer.Option(help="Torch threads (default: every core).")] = None,
+          resume: Annotated[bool, typer.Option("--resume", help="Continue from OUT/checkpoint.safetensors.")] = False):
+    """Train the CSCSR network on clips simulated on the fly; resumable."""
+    import torch
+
+    from cscsr.train import TrainOptions, train as run
+
+    if threads:
+        torch.set_num_threads(threads)
+    options = TrainOptions(config=config, steps=steps, batch=batch, lr_side=lr_side, learning_rate=learning_rate,
+                           seed=seed, checkpoint_every=checkpoint_every, validate_every=validate_every)
+    final = run(options, out, resume=resume, log=lambda line: stdout.print(line, highlight=False),
+                command="cscsr train " + " ".join(sys.argv[2:]))
+    stdout.print(f"weights: {final}")
+
+
+@command()
 def demo(out_dir: Annotated[str, typer.Option("--out", help="Folder for the demo's outputs.")] = "demo-output"):
     """The main job on the bundled samples, start to finish, with a results table."""
     from pipeline.demo import run

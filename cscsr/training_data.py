@@ -1,0 +1,153 @@
+"""Training, validation and test clips simulated on the fly, with their exact truth.
+
+A clip is what the network sees and what it should give: 41 LR Bayer spike frames of a
+picture moving along a smooth random camera path (``stages.motion``), the HR picture at
+the middle frame in rate units α·I/θ, and the exact LR flows from the middle frame to
+frames 11 and 29 (motion supervision). The sensor is the project's simulator
+(``stages.sensor``, Algorithm 2): brightness α in [0.6, 1.0], random initial integrator
+state, either reset, light realistic noise on half the clips, any of the four CFA phases.
+
+Pictures come from what is installed, nothing downloaded: scikit-image's bundled pictures
+and procedurally generated "dead leaves" images (occluding discs of random colours and
+textures, the classic synthetic set for restoration). Test pictures are kept apart from
+training ones (``TEST_PICTURES``); validation uses dead leaves from their own seeds.
+Everything is a function of the seed, so a clip is reproducible bit for bit.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from stages.cfa import BAYER_PATTERNS
+from stages.frames import to_unit_rgb
+from stages.motion import CameraPath, render
+from stages.sensor import SensorModel, area_downsample, cfa_sample, fire, increments, initial_state
+from stages.bits import unpack_rows
+
+TRAIN_PICTURES = ("rocket", "hubble_deep_field", "immunohistochemistry", "retina", "colorwheel", "logo",
+                  "brick", "grass", "gravel", "camera", "coins", "moon", "page", "text")
+TEST_PICTURES = ("astronaut", "coffee", "chelsea")  # never seen in training
+FRAMES, MIDDLE, SPAN = 41, 20, 9
+MAX_SPEED = 0.25  # LR px per frame (RMS), the fastest training motion
+
+
+@dataclass(frozen=True)
+class Clip:
+    spikes: np.ndarray  # (41, h, w) uint8 0/1
+    truth: np.ndarray  # (3, s*h, s*w) float32 rate alpha*I/theta at frame 20
+    flows: np.ndarray  # (2, 2, h, w) float32 LR flow frame 20 -> 11 and 20 -> 29 (x, y)
+    cfa: str
+    zero_reset: bool
+    alpha: float
+    scale: int
+
+
+def dead_leaves(rng: np.random.Generator, size: int) -> np.ndarray:
+    """(size, size, 3) float32: occluding discs of random colour, radius ~ 1/r^3, some striped.
+
+    Sized for x2 to x4 super-resolution: the smallest discs and stripes span a few LR pixels.
+    """
+    import cv2
+
+    image = np.empty((size, size, 3), np.float32)
+    image[:] = rng.random(3)
+    for _ in range(int(size * size / 150)):
+        radius = int(np.clip(size * 0.025 / np.sqrt(rng.uniform(0.002, 1)), 2, size // 3))
+        cx, cy = (int(v) for v in rng.integers(0, size, 2))
+        colour = rng.random(3)
+        if rng.random() < 0.2:  # a striped disc: fine texture the network must not blur away
+            period, angle = rng.uniform(6, 24), rng.uniform(0, np.pi)
+            y0, y1, x0, x1 = max(cy - radius, 0), min(cy + radius + 1, size), max(cx - radius, 0), min(cx + radius + 1, size)
+            y, x = np.mgrid[y0:y1, x0:x1]
+            stripes = 0.5 + 0.5 * np.sin(2 * np.pi * (x * np.cos(angle) + y * np.sin(angle)) / period)
+            inside = (x - cx) ** 2 + (y - cy) ** 2 <= radius**2
+            image[y0:y1, x0:x1][inside] = (colour * (0.4 + 0.6 * stripes[..., None]))[inside]
+        else:
+            cv2.circle(image, (cx, cy), radius, tuple(float(c) for c in colour), -1)
+    return image
+
+
+def bundled_picture(name: str) -> np.ndarray:
+    """A scikit-image picture as (H, W, 3) float32; grey ones get a random-free fixed tint later."""
+    from skimage import data
+
+    return to_unit_rgb(getattr(data, name)())
+
+
+def tint(rng: np.random.Generator, image: np.ndarray) -> np.ndarray:
+    """Give a grey picture colour: a random mix of two colours by its intensity."""
+    if not np.allclose(image[..., 0], image[..., 1]):
+        return image
+    grey = image[..., :1]
+    low, high = rng.random(3) * 0.5, 0.5 + rng.random(3) * 0.5
+    return (low + (high - low) * grey).astype(np.float32)
+
+
+def source_picture(rng: np.random.Generator, pictures: tuple[str, ...], hr_side: int, cache: dict) -> np.ndarray:
+    """A random HR crop (side ``hr_side``) of a random picture, rescaled, flipped, rotated; or dead leaves."""
+    import cv2
+
+    if not pictures or rng.random() < 0.4:
+        return dead_leaves(rng, hr_side)
+    name = pictures[rng.integers(len(pictures))]
+    if name not in cache:
+        cache[name] = bundled_picture(name)
+    image = tint(rng, cache[name])
+    factor = rng.uniform(0.35, 1.0)
+    factor = max(factor, hr_side / min(image.shape[:2]))
+    if factor != 1:
+        size = (max(hr_side, round(image.shape[1] * factor)), max(hr_side, round(image.shape[0] * factor)))
+        image = cv2.resize(image, size, interpolation=cv2.INTER_AREA if factor < 1 else cv2.INTER_CUBIC)
+    top = rng.integers(0, image.shape[0] - hr_side + 1)
+    left = rng.integers(0, image.shape[1] - hr_side + 1)
+    crop = image[top : top + hr_side, left : left + hr_side]
+    crop = np.rot90(crop, rng.integers(4))
+    return np.ascontiguousarray(crop[:, ::-1] if rng.random() < 0.5 else crop)
+
+
+def simulate_clip(picture: np.ndarray, rng: np.random.Generator, *, lr_side: int, scale: int, alpha: float,
+                  cfa: str, zero_reset: bool, noise: str, speed: float) -> Clip:
+    """A picture (HR side = scale * (lr_side + 2 * margin)) moving on a random path -> one clip.
+
+    The path moves the whole padded picture; the clip is its centre, so the borders never show
+    reflected content and the flows are exact everywhere in the crop.
+    """
+    hr_side = picture.shape[0]
+    big = hr_side // scale
+    margin = (big - lr_side) // 2
+    seed = int(rng.integers(2**31))
+    path = CameraPath.random(FRAMES, hr_side, hr_side, seed=seed, speed=speed * scale,
+                             deform=float(rng.uniform(0, 0.5)) * scale if rng.random() < 0.3 else 0.0)
+    lr_path = path.scaled(1 / scale)
+    crop = slice(margin, margin + lr_side)
+    hr_crop = slice(margin * scale, (margin + lr_side) * scale)
+    mosaics = np.stack([cfa_sample(area_downsample(render(picture, path, t), scale), cfa)[crop, crop]
+                        for t in range(FRAMES)])
+    sensor = SensorModel(brightness=alpha, threshold=1.0, reset="zero" if zero_reset else "subtract",
+                         noise=noise, seed=int(rng.integers(2**31)))
+    fired = fire(increments(sensor, mosaics, 0), initial_state(sensor, lr_side, lr_side), reset=sensor.reset)
+    truth = alpha * render(picture, path, MIDDLE)[hr_crop, hr_crop]
+    flows = [lr_path.flow(MIDDLE, MIDDLE + d)[crop, crop] for d in (-SPAN, SPAN)]
+    return Clip(unpack_rows(fired.packed, lr_side), np.ascontiguousarray(truth.transpose(2, 0, 1), np.float32),
+                np.stack([f.transpose(2, 0, 1) for f in flows]).astype(np.float32), cfa, zero_reset, alpha, scale)
+
+
+def random_clip(seed, *, lr_side: int, scale: int, pictures: tuple[str, ...] = TRAIN_PICTURES,
+                cache: dict | None = None, alpha: float | None = None) -> Clip:
+    """A training clip: everything drawn from ``seed`` (an int or a sequence of ints)."""
+    rng = np.random.default_rng(seed)
+    margin = max(4, lr_side // 4) // 2 * 2
+    picture = source_picture(rng, pictures, scale * (lr_side + 2 * margin), {} if cache is None else cache)
+    return simulate_clip(picture, rng, lr_side=lr_side, scale=scale,
+                         alpha=float(rng.uniform(0.6, 1.0)) if alpha is None else alpha,
+                         cfa=BAYER_PATTERNS[rng.integers(4)], zero_reset=bool(rng.random() < 0.5),
+                         noise="realistic" if rng.random() < 0.5 else "none",
+                         speed=float(rng.uniform(0, MAX_SPEED)))
+
+
+def batch_arrays(clips: list[Clip]) -> dict:
+    """Clips of one scale and size -> stacked arrays for the trainer."""
+    return {"spikes": np.stack([c.spikes for c in clips]), "truth": np.stack([c.truth for c in clips]),
+            "flows": np.stack([c.flows for c in clips]), "cfa": [c.cfa for c in clips],
+            "zero_reset": np.array([c.zero_reset for c in clips]), "alpha": np.array([c.alpha for c in clips]),
+            "scale": clips[0].scale}
