@@ -228,6 +228,36 @@ def train(out: Annotated[str, typer.Argument(help="Folder for checkpoints, log.j
     stdout.print(f"weights: {final}")
 
 
+@command("make-testset")
+def make_testset(out: Annotated[str, typer.Argument(help="Folder for the test set (sources, stores, manifest).")],
+                 workers: Workers = None,
+                 overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace OUT if it exists.")] = False):
+    """Simulate the held-out test set (3 pictures x alpha 0.6/0.8/1.0), bit-identically every time."""
+    from pipeline.testset import make_testset as run
+
+    stores = run(out, workers=workers, overwrite=overwrite)
+    stdout.print(f"{out}: {len(stores)} spike stores with ground truth")
+
+
+@command("evaluate-testset")
+def evaluate_testset(testset: Annotated[str, typer.Argument(help="A folder made by cscsr make-testset.")],
+                     methods: Annotated[str, typer.Option(help="Comma-separated methods.")] = "tfp,tfi",
+                     weights: Annotated[Optional[str], typer.Option(help="Network weights for cscsr.")] = None,
+                     out: Annotated[str, typer.Option(help="Folder for results.")] = "evaluation-testset",
+                     workers: Workers = None, scheduler: Scheduler = None):
+    """PSNR / SSIM per method and alpha on the test set: table, summary.csv, crops.png."""
+    from pipeline.testset import evaluate_testset as run
+
+    rows = run(testset, [m.strip() for m in methods.split(",") if m.strip()], out, weights=weights, workers=workers,
+               scheduler=scheduler)
+    table = Table(title=f"{testset}: x4, mean over pictures and truth frames")
+    for column in ("method", "alpha", "PSNR dB", "SSIM", "s / image"):
+        table.add_column(column)
+    for r in rows:
+        table.add_row(r["method"], str(r["alpha"]), f"{r['psnr']:.2f}", f"{r['ssim']:.4f}", f"{r['seconds_per_image']:.3f}")
+    stdout.print(table)
+
+
 @command()
 def demo(out_dir: Annotated[str, typer.Option("--out", help="Folder for the demo's outputs.")] = "demo-output"):
     """The main job on the bundled samples, start to finish, with a results table."""

@@ -7,6 +7,7 @@ exactly the store's truth frames (window 41, one output every ``truth_every`` fr
 every method side by side at the middle truth frame).
 """
 
+import contextlib
 import csv
 import time
 
@@ -26,7 +27,7 @@ WINDOW = 41
 
 
 def evaluate(store_url: str, methods: list[str], out_dir: str, *, weights: str | None = None,
-             workers: int | None = None, scheduler: str | None = None, progress: bool = True) -> list[dict]:
+             workers: int | None = None, scheduler: str | None = None, client=None, progress: bool = True) -> list[dict]:
     """Reconstruct with every method at the truth frames; return one summary row per method."""
     store = open_spike_store(store_url)
     if "truth" not in store.group or "truth_frames" not in store.group:
@@ -40,7 +41,7 @@ def evaluate(store_url: str, methods: list[str], out_dir: str, *, weights: str |
 
     rows, per_frame, middle = [], [], len(truth_frames) // 2
     pictures = [labelled(truth[middle], f"truth (frame {truth_frames[middle]})")]
-    with dask_client(workers=workers, scheduler=scheduler) as client:
+    with contextlib.nullcontext(client) if client else dask_client(workers=workers, scheduler=scheduler) as client:
         for method in methods:
             out = f"{str(out_dir).rstrip('/')}/{method}.zarr"
             start = time.perf_counter()

@@ -1,0 +1,137 @@
+"""The held-out test set, made reproducibly, and the quality table on it.
+
+``cscsr make-testset OUT`` simulates one spike store per test picture (scikit-image's
+astronaut, coffee, chelsea: never used in training) and brightness α ∈ {0.6, 0.8, 1.0}:
+256x256 HR (LR 64x64, x4), RGGB, zero reset (the paper's simulator), no noise, 123 frames
+on a random camera path with its own seed, truth at frames 20, 61, 102. Every parameter is
+fixed here, and simulation is bit-identical whatever the workers, so the command regenerates
+the same bytes (tested). ``cscsr evaluate-testset OUT`` runs ``cscsr evaluate`` on every
+store and averages per method and α: PSNR, SSIM, seconds per image.
+"""
+
+import csv
+import json
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.cluster import dask_client
+from pipeline.evaluate import evaluate
+from pipeline.images import write_image
+from pipeline.simulate import SimulateOptions, simulate
+from pipeline.storage import claim_output, resolve
+from stages.errors import InputError
+from stages.pictures import labelled, side_by_side
+
+PICTURES = ("astronaut", "coffee", "chelsea")  # cscsr.training_data.TEST_PICTURES
+ALPHAS = (0.6, 0.8, 1.0)
+HR_SIDE, SCALE, FRAMES, TRUTH_EVERY, SPEED = 256, 4, 123, 41, 0.5
+
+
+@dataclass(frozen=True)
+class Item:
+    picture: str
+    alpha: float
+    seed: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.picture}_a{self.alpha:.1f}"
+
+
+def items() -> list[Item]:
+    return [Item(p, a, 1000 + 10 * i + j) for i, p in enumerate(PICTURES) for j, a in enumerate(ALPHAS)]
+
+
+def test_picture(name: str) -> np.ndarray:
+    """A bundled picture, centre-cropped square, resized to 256x256 (area), uint8 RGB."""
+    import cv2
+    from skimage import data
+
+    image = getattr(data, name)()
+    side = min(image.shape[:2])
+    top, left = (image.shape[0] - side) // 2, (image.shape[1] - side) // 2
+    return cv2.resize(image[top : top + side, left : left + side], (HR_SIDE, HR_SIDE), interpolation=cv2.INTER_AREA)
+
+
+def make_testset(out: str, *, workers: int | None = None, overwrite: bool = False, progress: bool = True,
+                 only: list[str] | None = None) -> list[str]:
+    """Write the test set's sources and spike stores under ``out``; returns the store URLs.
+
+    ``only``: item names (``astronaut_a0.6``, ...) to make, for tests; default all nine.
+    """
+    chosen = [item for item in items() if only is None or item.name in only]
+    if not chosen:
+        raise InputError(f"no test-set items named {', '.join(only)}")
+    claim_output(out, overwrite=overwrite, flag="--overwrite")
+    fs, root = resolve(out)
+    fs.makedirs(f"{root}/sources", exist_ok=True)
+    stores = []
+    for item in chosen:
+        source = f"{out.rstrip('/')}/sources/{item.picture}.png"
+        if not fs.exists(f"{root}/sources/{item.picture}.png"):
+            write_image(source, test_picture(item.picture))
+        store = f"{out.rstrip('/')}/{item.name}.zarr"
+        simulate(source, store, SimulateOptions(scale=SCALE, cfa="rggb", brightness=item.alpha, frames=FRAMES,
+                                                motion="random", seed=item.seed, reset="zero", noise="none",
+                                                truth_every=TRUTH_EVERY, speed=SPEED), workers=workers, progress=progress)
+        stores.append(store)
+    with fs.open(f"{root}/manifest.json", "w") as f:
+        json.dump({"items": [item.__dict__ | {"store": f"{item.name}.zarr"} for item in chosen],
+                   "hr_side": HR_SIDE, "scale": SCALE, "frames": FRAMES, "truth_every": TRUTH_EVERY, "speed": SPEED,
+                   "cfa": "rggb", "reset": "zero", "noise": "none"}, f, indent=1)
+    return stores
+
+
+def evaluate_testset(testset: str, methods: list[str], out: str, *, weights: str | None = None,
+                     workers: int | None = None, scheduler: str | None = None, progress: bool = True) -> list[dict]:
+    """Every method on every test store; rows averaged per (method, alpha), plus an 'all' row per method."""
+    fs, root = resolve(testset)
+    if not fs.exists(f"{root}/manifest.json"):
+        raise InputError(f"{testset} is not a test set (no manifest.json): make one with cscsr make-testset")
+    with fs.open(f"{root}/manifest.json") as f:
+        chosen = [Item(i["picture"], i["alpha"], i["seed"]) for i in json.load(f)["items"]]
+    claim_output(out, overwrite=True, flag="")
+    out_fs, out_root = resolve(out)
+    out_fs.makedirs(out_root, exist_ok=True)
+    per_item, crops = [], {}
+    with dask_client(workers=workers, scheduler=scheduler) as client:
+        for item in chosen:
+            rows = evaluate(f"{testset.rstrip('/')}/{item.name}.zarr", methods, f"{out.rstrip('/')}/{item.name}",
+                            weights=weights, client=client, progress=progress)
+            per_item += [row | {"picture": item.picture, "alpha": item.alpha} for row in rows]
+    summary = []
+    alphas = sorted({item.alpha for item in chosen})
+    for method in methods:
+        for alpha in (*alphas, "all"):
+            rows = [r for r in per_item if r["method"] == method and (alpha == "all" or r["alpha"] == alpha)]
+            summary.append({"method": method, "alpha": alpha, "psnr": float(np.mean([r["psnr"] for r in rows])),
+                            "ssim": float(np.mean([r["ssim"] for r in rows])),
+                            "seconds_per_image": float(np.mean([r["seconds_per_image"] for r in rows]))})
+    with out_fs.open(f"{out_root}/summary.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(summary[0]))
+        writer.writeheader()
+        writer.writerows(summary)
+    write_image(f"{out.rstrip('/')}/crops.png", _crops(testset, out, methods, chosen))
+    return summary
+
+
+def _crops(testset: str, out: str, methods: list[str], chosen: list[Item]) -> np.ndarray:
+    """One 96x96 HR crop per test picture (its middle alpha, middle truth frame): truth, then every method."""
+    import zarr
+
+    from pipeline.storage import zarr_store
+
+    def opened(url: str):
+        return zarr.open_group(zarr_store(url, read_only=True), mode="r")
+
+    window = (1, slice(80, 176), slice(80, 176))
+    rows = []
+    for picture in dict.fromkeys(item.picture for item in chosen):
+        alphas = [item for item in chosen if item.picture == picture]
+        name = alphas[len(alphas) // 2].name
+        tiles = [labelled(opened(f"{testset.rstrip('/')}/{name}.zarr")["truth"][window], "truth")]
+        tiles += [labelled(opened(f"{out.rstrip('/')}/{name}/{method}.zarr")["video"][window], method)
+                  for method in methods]
+        rows.append(side_by_side(*tiles))
+    return np.concatenate(rows, axis=0)
