@@ -39,6 +39,7 @@ class CSCSR(nn.Module):
         self.motion = MotionEstimation(config) if config.flow_guidance else None
         self.temporal = nn.ModuleList([TemporalPixels(c, t, config.flow_guidance) for _ in "rgb"])
         self.integration = Integration(c, config.features, config.blocks)
+        initialise(self)
 
     def forward(self, spikes: torch.Tensor, cfa: str | list[str], zero_reset=False, scale: int = 4) -> dict:
         """(B, N, H, W) 0/1 spikes -> {"image": (B, 3, sH, sW), "flows": middle->first and ->last
@@ -82,6 +83,30 @@ class CSCSR(nn.Module):
         flow = sum(p.numel() for p in self.motion.parameters()) if self.motion is not None else 0
         total = sum(p.numel() for p in self.parameters())
         return {"network": total - flow, "flow": flow, "total": total}
+
+
+def initialise(model: nn.Module) -> None:
+    """He initialisation for every convolution (PyTorch's default shrinks activations layer by layer,
+    which left a 40-layer network learning nothing in hundreds of steps), residual branches scaled
+    by 0.1 so the trunk starts near identity. Layers that must start at zero keep their own init."""
+    from cscsr.blocks import ResBlock
+    from cscsr.integration import Integration
+    from cscsr.spike_flow import FlowDecoder
+
+    keep = set()
+    for module in model.modules():
+        if isinstance(module, FlowDecoder):
+            keep.add(module.body[-1])
+        if isinstance(module, Integration):
+            keep.update(module.heads)
+    for module in model.modules():
+        if isinstance(module, (nn.Conv2d, nn.Conv3d)) and module not in keep:
+            nn.init.kaiming_normal_(module.weight, nonlinearity="relu")
+            if module.bias is not None:
+                nn.init.zeros_(module.bias)
+    for module in model.modules():
+        if isinstance(module, ResBlock):
+            module.body[-1].weight.data.mul_(0.1)
 
 
 def pad_keeping_phase(x: torch.Tensor, multiple: int) -> torch.Tensor:

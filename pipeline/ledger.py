@@ -1,0 +1,120 @@
+"""The watcher's ledger: one row per (recording, parameters), in SQLite inside OUTBOX.
+
+A row's key is a hash of the recording's fingerprint and the reconstruction parameters,
+so the same bytes dropped twice are done once, and new parameters mean new work. States:
+
+    queued -> running -> done
+                      -> failed (retried after a back-off, up to a bound) -> quarantined
+                      -> failed, final (bad input: retrying cannot help)
+
+A row left ``running`` by a watcher that died is taken up again (its outputs resumed) by
+the next one. Every change is one SQLite transaction, so a kill at any moment leaves the
+ledger consistent.
+"""
+
+import json
+import sqlite3
+import time
+from contextlib import closing
+from dataclasses import dataclass
+from pathlib import Path
+
+STATES = ("queued", "running", "done", "failed", "quarantined")
+FILENAME = "ledger.sqlite"
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS recordings (
+    key TEXT PRIMARY KEY,
+    name TEXT NOT NULL,
+    source TEXT NOT NULL,
+    fingerprint TEXT NOT NULL,
+    params TEXT NOT NULL,
+    state TEXT NOT NULL,
+    attempts INTEGER NOT NULL DEFAULT 0,
+    final INTEGER NOT NULL DEFAULT 0,
+    error TEXT,
+    queued_at REAL NOT NULL,
+    started_at REAL,
+    finished_at REAL,
+    seconds REAL,
+    next_try REAL,
+    output TEXT
+)
+"""
+
+
+@dataclass(frozen=True)
+class Row:
+    key: str
+    name: str
+    source: str
+    fingerprint: str
+    params: str
+    state: str
+    attempts: int
+    final: int
+    error: str | None
+    queued_at: float
+    started_at: float | None
+    finished_at: float | None
+    seconds: float | None
+    next_try: float | None
+    output: str | None
+
+
+class Ledger:
+    def __init__(self, folder: str | Path):
+        self.path = Path(folder) / FILENAME
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        with self._connect() as db:
+            db.execute(_SCHEMA)
+
+    def _connect(self) -> sqlite3.Connection:
+        db = sqlite3.connect(self.path, timeout=30, isolation_level=None)  # autocommit; explicit transactions
+        db.row_factory = lambda cursor, values: Row(*values)
+        return db
+
+    def _write(self, sql: str, args: tuple) -> None:
+        with closing(self._connect()) as db:
+            db.execute("BEGIN IMMEDIATE")
+            db.execute(sql, args)
+            db.execute("COMMIT")
+
+    def get(self, key: str) -> Row | None:
+        with closing(self._connect()) as db:
+            return db.execute("SELECT * FROM recordings WHERE key = ?", (key,)).fetchone()
+
+    def rows(self) -> list[Row]:
+        with closing(self._connect()) as db:
+            return db.execute("SELECT * FROM recordings ORDER BY queued_at, name").fetchall()
+
+    def owner_of(self, output: str) -> Row | None:
+        """The row, done or in progress, that an output name belongs to."""
+        with closing(self._connect()) as db:
+            return db.execute("SELECT * FROM recordings WHERE output = ? AND state != 'quarantined' "
+                              "AND NOT (state = 'failed' AND final = 1) ORDER BY queued_at LIMIT 1", (output,)).fetchone()
+
+    def queue(self, key: str, name: str, source: str, fingerprint: str, params: dict) -> None:
+        self._write("INSERT OR IGNORE INTO recordings (key, name, source, fingerprint, params, state, queued_at) "
+                    "VALUES (?, ?, ?, ?, ?, 'queued', ?)", (key, name, source, fingerprint, json.dumps(params), time.time()))
+
+    def start(self, key: str, output: str | None) -> None:
+        self._write("UPDATE recordings SET state = 'running', attempts = attempts + 1, started_at = ?, output = ?, "
+                    "error = NULL, next_try = NULL WHERE key = ?", (time.time(), output, key))
+
+    def done(self, key: str, seconds: float) -> None:
+        self._write("UPDATE recordings SET state = 'done', finished_at = ?, seconds = ?, error = NULL WHERE key = ?",
+                    (time.time(), seconds, key))
+
+    def fail(self, key: str, error: str, *, final: bool, retry_in: float | None, quarantine: bool) -> None:
+        state = "quarantined" if quarantine else "failed"
+        next_try = None if final or quarantine or retry_in is None else time.time() + retry_in
+        self._write("UPDATE recordings SET state = ?, error = ?, final = ?, finished_at = ?, next_try = ? WHERE key = ?",
+                    (state, error, int(final), time.time(), next_try, key))
+
+    def record_refusal(self, key: str, name: str, source: str, error: str) -> None:
+        """A candidate refused before any work (bad name, unknown kind, bad sidecar): failed, final."""
+        now = time.time()
+        self._write("INSERT OR IGNORE INTO recordings (key, name, source, fingerprint, params, state, attempts, final, "
+                    "error, queued_at, finished_at) VALUES (?, ?, ?, '', '{}', 'failed', 1, 1, ?, ?, ?)",
+                    (key, name, source, error, now, now))

@@ -1,0 +1,302 @@
+"""``cscsr watch``: reconstruct recordings as they land in an inbox, exactly once each.
+
+Each pass lists INBOX (any fsspec URL): spike stores (``NAME.zarr``) and raw captures
+(``NAME.dat``, ``NAME.npz``, ``NAME.npy``) with an optional sidecar ``NAME.json`` (height,
+width, cfa, flip, fps, reset, head_columns, key, name; the watcher's defaults fill the
+rest). A recording is taken once it has not changed for ``settle`` seconds (a file still
+being copied is left for a later pass). For each: ingest a raw capture into
+``OUTBOX/NAME.spikes.zarr``, reconstruct into ``OUTBOX/NAME.zarr``, export
+``OUTBOX/NAME.mp4``; the ledger (:mod:`pipeline.ledger`) records every step's outcome.
+
+Killing the watcher at any moment loses nothing and duplicates nothing: the ledger row it
+left ``running`` is taken up by the next pass, whose reconstruction resumes from the
+committed tiles, and outputs are named by the recording, so there is never a second copy.
+Bad input (unknown extension, unsafe name, nonsense sidecar, truncated capture) is recorded
+as failed with its reason and never stops the other recordings; other errors are retried
+with exponential back-off, then quarantined. Names are checked so no output can land
+outside OUTBOX. One watcher per OUTBOX at a time (a lock file).
+"""
+
+import fcntl
+import hashlib
+import json
+import os
+import re
+import time
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from pipeline.cluster import dask_client
+from pipeline.export import export_mp4
+from pipeline.ingest import IngestOptions, ingest
+from pipeline.ledger import Ledger
+from pipeline.reconstruct import ReconstructOptions, reconstruct
+from pipeline.spike_store import open_spike_store
+from pipeline.storage import exists, is_local, resolve
+from pipeline.video_store import open_video_store
+from stages.errors import InputError
+
+RAW = ("dat", "npz", "npy")
+KINDS = ("zarr",) + RAW
+SKIPPED_SUFFIXES = ("json", "partial", "tmp", "part", "crdownload")  # sidecars, and uploads still in flight
+SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
+SIDECAR_FIELDS = {"height": int, "width": int, "cfa": str, "flip": bool, "fps": (int, float), "reset": str,
+                  "head_columns": int, "key": str, "name": str}
+SAMPLE = 1 << 20  # bytes read from each end of a file for its fingerprint
+
+
+@dataclass(frozen=True)
+class CaptureDefaults:
+    """What a raw capture without a sidecar (or a sidecar without the field) is taken to be."""
+
+    height: int | None = None
+    width: int | None = None
+    cfa: str = "rggb"
+    flip: bool = False
+    fps: float = 20000.0
+    reset: str = "subtract"
+    head_columns: int = 0
+    key: str | None = None
+
+
+@dataclass(frozen=True)
+class WatchOptions:
+    method: str = "tfp"
+    weights: str | None = None
+    every: int = 41
+    tile: int = 256
+    settle: float = 10.0  # seconds a recording must stay unchanged before it is taken
+    max_attempts: int = 3  # tries of a recording that fails for other reasons than its input
+    backoff: float = 60.0  # seconds before the first retry, doubling each time
+    defaults: CaptureDefaults = field(default_factory=CaptureDefaults)
+
+
+@dataclass(frozen=True)
+class Candidate:
+    name: str  # output name: OUTBOX/NAME.zarr
+    url: str
+    kind: str
+    sidecar: dict
+    modified: float
+    problem: str | None = None
+
+
+def discover(inbox: str) -> list[Candidate]:
+    """The recordings in INBOX (one level), with a reason for each one that cannot be taken."""
+    fs, root = resolve(inbox)
+    if not fs.isdir(root):
+        raise InputError(f"inbox {inbox} is not a folder")
+    base_url = str(inbox).rstrip("/")
+    found = []
+    for entry in sorted(fs.ls(root, detail=True), key=lambda e: e["name"]):
+        base = entry["name"].rstrip("/").rsplit("/", 1)[-1]
+        suffix = base.rsplit(".", 1)[-1].lower() if "." in base else ""
+        if base.startswith(".") or suffix in SKIPPED_SUFFIXES:
+            continue
+        stem = base[: -len(suffix) - 1] if suffix else base
+        url = f"{base_url}/{base}"
+        modified = _modified(fs, entry)
+        if suffix not in KINDS:
+            found.append(Candidate(stem, url, suffix, {}, modified,
+                                   f"unknown kind of file {base!r}: expected NAME.zarr, .dat, .npz or .npy"))
+            continue
+        sidecar, problem = _sidecar(fs, f"{root}/{stem}.json")
+        if sidecar.get("_modified"):
+            modified = max(modified, sidecar.pop("_modified"))
+        name = sidecar.get("name", stem)
+        if problem is None and (not SAFE_NAME.match(name) or ".." in name):
+            problem = f"unsafe name {name!r}: letters, digits, '.', '_' and '-' only, no '..'"
+        found.append(Candidate(name, url, suffix, sidecar, modified, problem))
+    return found
+
+
+def _modified(fs, entry: dict) -> float:
+    """Latest modification time of a file, or of any file under a directory (a Zarr store)."""
+    def stamp(info):
+        value = info.get("mtime") or info.get("LastModified") or info.get("created") or 0
+        return value.timestamp() if hasattr(value, "timestamp") else float(value)
+
+    if entry.get("type") == "directory":
+        return max([stamp(info) for info in fs.find(entry["name"], detail=True).values()] + [stamp(entry)])
+    return stamp(entry)
+
+
+def _sidecar(fs, path: str) -> tuple[dict, str | None]:
+    if not fs.exists(path):
+        return {}, None
+    name = path.rsplit("/", 1)[-1]
+    try:
+        values = json.loads(fs.cat_file(path))
+    except (ValueError, UnicodeDecodeError) as error:
+        return {}, f"sidecar {name} is not JSON ({error})"
+    if not isinstance(values, dict):
+        return {}, f"sidecar {name} must be a JSON object, got {type(values).__name__}"
+    for key, value in values.items():
+        kind = SIDECAR_FIELDS.get(key)
+        if kind is None:
+            return {}, f"sidecar {name}: unknown field {key!r} (known: {', '.join(SIDECAR_FIELDS)})"
+        if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+            return {}, f"sidecar {name}: {key} must be {getattr(kind, '__name__', 'a number')}, got {value!r}"
+    return {**values, "_modified": _modified(fs, fs.info(path))}, None
+
+
+def fingerprint(candidate: Candidate) -> str:
+    """A hash of the recording's bytes: size and both ends of a file; every file's size and the
+    metadata of a Zarr store. Renaming a recording does not change it; changing it does."""
+    fs, path = resolve(candidate.url)
+    digest = hashlib.sha256()
+    if candidate.kind == "zarr":
+        for name, info in sorted(fs.find(path, detail=True).items()):
+            relative = name[len(path.rstrip("/")) :]
+            digest.update(f"{relative}:{info['size']};".encode())
+            if relative.endswith("zarr.json"):
+                digest.update(fs.cat_file(name))
+    else:
+        size = fs.size(path)
+        digest.update(f"{candidate.kind}:{size};".encode())
+        with fs.open(path, "rb") as f:
+            digest.update(f.read(SAMPLE))
+            if size > SAMPLE:
+                f.seek(max(size - SAMPLE, SAMPLE))
+                digest.update(f.read())
+    return digest.hexdigest()
+
+
+def parameters(candidate: Candidate, options: WatchOptions) -> dict:
+    params = {"method": options.method, "weights": options.weights, "every": options.every, "tile": options.tile}
+    if candidate.kind in RAW:
+        capture = asdict(options.defaults)
+        capture.update({k: v for k, v in candidate.sidecar.items() if k != "name"})
+        params["capture"] = capture
+    return params
+
+
+def key_of(fingerprint_: str, params: dict) -> str:
+    return hashlib.sha256((fingerprint_ + json.dumps(params, sort_keys=True)).encode()).hexdigest()[:24]
+
+
+def process(candidate: Candidate, key: str, params: dict, outbox: str, ledger: Ledger, options: WatchOptions,
+            client, log) -> None:
+    """Ingest (raw captures), reconstruct, export; record the outcome. Never raises for one recording."""
+    row = ledger.get(key)
+    out = str(outbox).rstrip("/")
+    video, preview = f"{out}/{candidate.name}.zarr", f"{out}/{candidate.name}.mp4"
+    taken_up = row.state in ("running", "failed")  # a previous attempt may have left outputs to reuse or resume
+    ledger.start(key, candidate.name)
+    started = time.perf_counter()
+    try:
+        spikes = candidate.url
+        if candidate.kind in RAW:
+            spikes = f"{out}/{candidate.name}.spikes.zarr"
+            if not (taken_up and _complete_spikes(spikes)):
+                log(f"{candidate.name}: ingest {candidate.url}")
+                c = params["capture"]
+                ingest(candidate.url, spikes, IngestOptions(c["height"], c["width"], c["cfa"], c["fps"], c["flip"],
+                                                            c["head_columns"], c["key"], c["reset"], overwrite=True),
+                       progress=False)
+        resume = taken_up and exists(video)
+        if not (resume and open_video_store(video).attrs.get("state") == "complete"):
+            log(f"{candidate.name}: reconstruct {options.method}{' (resumed)' if resume else ''}")
+            reconstruct(spikes, video, ReconstructOptions(method=options.method, every=options.every, tile=options.tile,
+                                                          weights=options.weights, resume=resume, overwrite=not resume),
+                        client=client, progress=False)
+        export_mp4(video, preview, overwrite=True, progress=False)
+    except InputError as error:
+        ledger.fail(key, str(error), final=True, retry_in=None, quarantine=False)
+        log(f"{candidate.name}: failed: {error}")
+        return
+    except Exception as error:  # anything else may pass: retry later, up to a bound
+        attempts = ledger.get(key).attempts
+        quarantine = attempts >= options.max_attempts
+        message = f"{type(error).__name__}: {' '.join(str(error).split())}"
+        ledger.fail(key, message, final=False, retry_in=options.backoff * 2 ** (attempts - 1), quarantine=quarantine)
+        log(f"{candidate.name}: {'quarantined after ' + str(attempts) + ' attempts' if quarantine else 'will retry'}: "
+            f"{message}")
+        return
+    ledger.done(key, time.perf_counter() - started)
+    log(f"{candidate.name}: done in {time.perf_counter() - started:.1f} s -> {video}")
+
+
+def _complete_spikes(url: str) -> bool:
+    try:
+        open_spike_store(url)
+        return True
+    except InputError:
+        return False
+
+
+def watch_once(inbox: str, outbox: str, options: WatchOptions, client, log=print) -> dict:
+    """One pass over INBOX; returns how many recordings were processed, waited for and skipped."""
+    ledger = Ledger(outbox)
+    counts = {"processed": 0, "waiting": 0, "skipped": 0, "refused": 0}
+    now = time.time()
+    for candidate in discover(inbox):
+        if candidate.problem:
+            refusal = hashlib.sha256(f"{candidate.url}|{candidate.problem}".encode()).hexdigest()[:24]  # once per problem
+            if ledger.get(refusal) is None:
+                ledger.record_refusal(refusal, candidate.name, candidate.url, candidate.problem)
+                log(f"{candidate.url}: failed: {candidate.problem}")
+            counts["refused"] += 1
+            continue
+        if now - candidate.modified < options.settle:
+            counts["waiting"] += 1  # still being written, or just landed: next pass
+            continue
+        params = parameters(candidate, options)
+        key = key_of(fingerprint(candidate), params)
+        row = ledger.get(key)
+        if row is None:
+            owner = ledger.owner_of(candidate.name)
+            ledger.queue(key, candidate.name, candidate.url, fingerprint(candidate), params)
+            if owner is not None:
+                ledger.start(key, None)
+                ledger.fail(key, f"output name {candidate.name!r} already belongs to {owner.source} (other bytes or "
+                                 f"parameters): rename the recording or give its sidecar a 'name'",
+                            final=True, retry_in=None, quarantine=False)
+                counts["refused"] += 1
+                continue
+            row = ledger.get(key)
+        waiting = row.state == "failed" and not row.final and (row.next_try or 0) > now
+        if row.state in ("done", "quarantined") or (row.state == "failed" and row.final) or waiting:
+            counts["skipped"] += 1
+            continue
+        process(candidate, key, params, outbox, ledger, options, client, log)
+        counts["processed"] += 1
+    return counts
+
+
+@contextmanager
+def outbox_lock(outbox: str):
+    """Hold OUTBOX/.watch.lock for the watcher's life: a second watcher is refused."""
+    path = Path(outbox) / ".watch.lock"
+    with open(path, "a") as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise InputError(f"another cscsr watch is already working on {outbox}") from None
+        yield
+
+
+def watch(inbox: str, outbox: str, options: WatchOptions, *, once: bool, interval: float, workers: int | None = None,
+          scheduler: str | None = None, log=print) -> None:
+    """Passes over INBOX every ``interval`` seconds (or one, ``once``), on one Dask client."""
+    if not is_local(outbox):
+        raise InputError(f"OUTBOX must be a local folder (the ledger is SQLite), got {outbox}")
+    resolve(inbox)
+    os.makedirs(outbox, exist_ok=True)
+    with outbox_lock(outbox), dask_client(workers=workers, scheduler=scheduler) as client:
+        while True:
+            counts = watch_once(inbox, outbox, options, client, log)
+            log(f"pass: {counts['processed']} processed, {counts['waiting']} still settling, "
+                f"{counts['skipped']} already handled, {counts['refused']} refused")
+            if once:
+                return
+            time.sleep(interval)
+
+
+def parse_interval(text: str) -> float:
+    """'90', '90s', '10m', '1h' -> seconds."""
+    match = re.fullmatch(r"\s*(\d+(?:\.\d+)?)\s*([smh]?)\s*", str(text))
+    if not match or float(match.group(1)) <= 0:
+        raise InputError(f"--interval must look like 30s, 10m or 1h, got {text!r}")
+    return float(match.group(1)) * {"": 1, "s": 1, "m": 60, "h": 3600}[match.group(2)]

@@ -1,0 +1,90 @@
+"""The commands the compose file runs, for real: ``dask scheduler`` and two ``dask worker`` processes on
+127.0.0.1, with ``cscsr reconstruct --scheduler`` and ``cscsr watch --once --scheduler`` submitting to them."""
+
+import os
+import socket
+import subprocess
+import sys
+import time
+
+import imageio.v3 as iio
+import pytest
+import zarr
+
+from pipeline.reconstruct import ReconstructOptions, reconstruct
+from pipeline.simulate import SimulateOptions, simulate
+from tests.test_simulate import chunk_files, picture
+from tests.test_watch import settled
+
+BIN = os.path.dirname(sys.executable)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def scheduler():
+    """tcp://127.0.0.1:PORT of a scheduler with two single-threaded workers, as in docker-compose.yml."""
+    from distributed import Client
+
+    port = free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    processes = [subprocess.Popen([f"{BIN}/dask", "scheduler", "--host", "127.0.0.1", "--port", str(port),
+                                   "--dashboard-address", ":0", "--no-show"], stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.DEVNULL)]
+    processes += [subprocess.Popen([f"{BIN}/dask", "worker", address, "--nworkers", "1", "--nthreads", "1",
+                                    "--no-dashboard"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                  for _ in range(2)]
+    try:
+        deadline = time.time() + 60
+        while True:
+            try:
+                with Client(address, timeout=5) as client:
+                    client.wait_for_workers(2, timeout=max(deadline - time.time(), 1))
+                    break
+            except (OSError, TimeoutError):
+                if time.time() > deadline:
+                    raise
+                time.sleep(0.5)
+        yield address
+    finally:
+        for process in processes:
+            process.terminate()
+        for process in processes:
+            process.wait(timeout=30)
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory) -> str:
+    folder = tmp_path_factory.mktemp("cluster")
+    iio.imwrite(folder / "scene.png", picture("chelsea", 128))
+    store = str(folder / "inbox" / "scene.zarr")
+    simulate(str(folder / "scene.png"), store, SimulateOptions(scale=4, frames=130, motion="random"), workers=1,
+             progress=False)
+    settled(folder / "inbox")
+    return store
+
+
+def test_reconstruct_and_watch_on_a_real_scheduler(scheduler, recording, tmp_path):
+    local = str(tmp_path / "local.zarr")
+    reconstruct(recording, local, ReconstructOptions(method="tfi", every=10, tile=16), workers=1, progress=False)
+
+    remote = str(tmp_path / "remote.zarr")
+    run = subprocess.run([f"{BIN}/cscsr", "reconstruct", recording, remote, "--method", "tfi", "--every", "10",
+                          "--tile", "16", "--scheduler", scheduler], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert chunk_files(remote) == chunk_files(local)  # the same bytes as on a local cluster
+
+    outbox = tmp_path / "outbox"
+    inbox = os.path.dirname(recording)
+    run = subprocess.run([f"{BIN}/cscsr", "watch", inbox, str(outbox), "--once", "--method", "tfi", "--every", "10",
+                          "--tile", "16", "--scheduler", scheduler], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert "scene: done" in run.stdout
+    video = zarr.open_group(str(outbox / "scene.zarr"), mode="r")
+    assert video.attrs["state"] == "complete" and video["video"].shape == (9, 128, 128, 3)
+    assert chunk_files(str(outbox / "scene.zarr")) == chunk_files(local)
+    assert (outbox / "scene.mp4").stat().st_size > 1000

@@ -1,0 +1,182 @@
+"""``cscsr watch``: an inbox processed once per recording, bad input recorded, kills survived."""
+
+import json
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from cscsr import samples
+from pipeline.ledger import Ledger
+from pipeline.watch import WatchOptions, outbox_lock, parse_interval, watch_once
+from stages.errors import InputError
+from tests.test_simulate import chunk_files
+
+REDS = {"height": samples.REDS_HEIGHT, "width": samples.REDS_WIDTH, "cfa": "mono", "flip": True}
+
+
+def settled(folder) -> None:
+    """Make everything in ``folder`` a minute old, as if copied in long ago."""
+    past = time.time() - 60
+    for root, dirs, files in os.walk(folder):
+        for name in dirs + files:
+            os.utime(os.path.join(root, name), (past, past))
+
+
+def drop(inbox, name: str, data: bytes, sidecar=None) -> None:
+    (inbox / name).write_bytes(data)
+    if sidecar is not None:
+        stem = name.rsplit(".", 1)[0]
+        (inbox / f"{stem}.json").write_text(sidecar if isinstance(sidecar, str) else json.dumps(sidecar))
+
+
+def states(outbox) -> dict:
+    return {row.name: (row.state, row.final, row.attempts, row.error) for row in Ledger(outbox).rows()}
+
+
+@pytest.fixture(scope="module")
+def client():
+    from distributed import Client, LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
+            Client(cluster) as connected:
+        yield connected
+
+
+def test_bad_input_is_recorded_and_never_stops_the_others(tmp_path, client, cli):
+    inbox, outbox = tmp_path / "inbox", tmp_path / "box" / "outbox"
+    inbox.mkdir()
+    reds = open(samples.path(samples.REDS_DAT), "rb").read()
+    drop(inbox, "good.dat", reds, REDS)
+    drop(inbox, "truncated.dat", reds[:100_001], REDS)
+    drop(inbox, "nonsense.dat", reds, "{height: tall")
+    drop(inbox, "wrongtype.dat", reds, {**REDS, "height": "250"})
+    drop(inbox, "notes.txt", b"hello")
+    drop(inbox, "sneaky.dat", reds, {**REDS, "name": "../../escaped"})
+    settled(inbox)
+    drop(inbox, "growing.dat", reds[:50_000], REDS)  # just landed: left for a later pass
+
+    counts = watch_once(str(inbox), str(outbox), WatchOptions(tile=128), client, log=lambda line: None)
+    assert counts == {"processed": 2, "waiting": 1, "skipped": 0, "refused": 4}
+    got = states(outbox)
+    assert got["good"][:3] == ("done", 0, 1)
+    assert got["truncated"][:2] == ("failed", 1) and "12500" in got["truncated"][3]  # names the frame size
+    assert "not JSON" in got["nonsense"][3] and "height must be int" in got["wrongtype"][3]
+    assert "unknown kind of file 'notes.txt'" in got["notes"][3]
+    assert "unsafe name '../../escaped'" in got["../../escaped"][3]
+    assert "growing" not in got
+    assert sorted(os.listdir(outbox)) == [".watch.lock", "good.mp4", "good.spikes.zarr", "good.zarr", "ledger.sqlite"] \
+        or sorted(os.listdir(outbox)) == ["good.mp4", "good.spikes.zarr", "good.zarr", "ledger.sqlite"]
+    assert sorted(os.listdir(tmp_path)) == ["box", "inbox"] and os.listdir(tmp_path / "box") == ["outbox"]
+
+    settled(inbox)  # the growing file stopped growing: taken now (and refused: 50,000 bytes is not whole frames)
+    again = watch_once(str(inbox), str(outbox), WatchOptions(tile=128), client, log=lambda line: None)
+    assert again == {"processed": 1, "waiting": 0, "skipped": 2, "refused": 4}  # good and truncated: handled
+    assert states(outbox)["good"][2] == 1 and states(outbox)["growing"][0] == "failed"  # done once, not twice
+    assert len(Ledger(outbox).rows()) == 7  # one row per recording, however many passes
+
+    result = cli("status", outbox)
+    assert result.exit_code == 0 and "good" in result.stdout and "done" in result.stdout
+    lines = [json.loads(line) for line in cli("status", outbox, "--json").stdout.splitlines()]
+    assert {line["name"] for line in lines} >= {"good", "truncated", "notes"}
+
+
+def test_failures_are_retried_with_back_off_then_quarantined(tmp_path, client, monkeypatch):
+    import pipeline.watch
+
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    drop(inbox, "flaky.dat", open(samples.path(samples.REDS_DAT), "rb").read(), REDS)
+    settled(inbox)
+    calls = []
+
+    def broken(*args, **kwargs):
+        calls.append(args)
+        raise OSError("disk on fire")
+
+    monkeypatch.setattr(pipeline.watch, "reconstruct", broken)
+    options = WatchOptions(max_attempts=3, backoff=3600)
+    watch_once(str(inbox), str(outbox), options, client, log=lambda line: None)
+    state, final, attempts, error = states(outbox)["flaky"]
+    assert (state, final, attempts) == ("failed", 0, 1) and "OSError: disk on fire" in error
+    watch_once(str(inbox), str(outbox), options, client, log=lambda line: None)
+    assert len(calls) == 1  # the back-off (an hour) has not passed: not retried yet
+    for _ in range(3):
+        with sqlite3.connect(outbox / "ledger.sqlite") as db:  # let the back-off pass
+            db.execute("UPDATE recordings SET next_try = 0")
+        watch_once(str(inbox), str(outbox), options, client, log=lambda line: None)
+    assert len(calls) == 3 and states(outbox)["flaky"][:3] == ("quarantined", 0, 3)
+
+
+def test_a_second_watcher_is_refused_and_intervals_parse(tmp_path, cli):
+    (tmp_path / "inbox").mkdir()
+    (tmp_path / "outbox").mkdir()
+    with outbox_lock(str(tmp_path / "outbox")):
+        result = cli("watch", tmp_path / "inbox", tmp_path / "outbox", "--once", "--workers", 1)
+    assert result.exit_code == 1 and "another cscsr watch is already working" in result.stdout + result.stderr
+    assert parse_interval("10m") == 600 and parse_interval("90") == 90 and parse_interval("1h") == 3600
+    with pytest.raises(InputError, match="30s, 10m or 1h"):
+        parse_interval("soon")
+    assert cli("status", tmp_path / "inbox").exit_code == 1  # no ledger there
+
+
+def _ledger_state(outbox, name):
+    try:
+        row = next((r for r in Ledger(outbox).rows() if r.name == name), None)
+    except sqlite3.Error:
+        return None
+    return row.state if row else None
+
+
+def _committed(url) -> int:
+    import zarr
+
+    try:
+        return int(zarr.open_group(url, mode="r")["committed"][:].sum())
+    except Exception:
+        return 0
+
+
+def test_killing_the_watcher_mid_job_loses_nothing_and_duplicates_nothing(tmp_path):
+    """A real ``cscsr watch`` process group is SIGKILLed while it reconstructs; the next pass finishes the
+    job: one ledger row (2 attempts), outputs byte-identical to an uninterrupted watcher's."""
+    from pipeline.simulate import SimulateOptions, simulate
+    from tests.test_simulate import picture
+    import imageio.v3 as iio
+
+    inbox = tmp_path / "inbox"
+    inbox.mkdir()
+    iio.imwrite(tmp_path / "scene.png", picture("coffee", 128))
+    simulate(str(tmp_path / "scene.png"), str(inbox / "scene.zarr"),
+             SimulateOptions(scale=4, frames=250, motion="random", speed=0.3), workers=1, progress=False)
+    settled(inbox)
+    cscsr = os.path.join(os.path.dirname(sys.executable), "cscsr")
+    args = ["watch", str(inbox), None, "--once", "--workers", "1", "--every", "5", "--tile", "8", "--settle", "0"]
+
+    def command(outbox):
+        return [cscsr] + [str(outbox) if a is None else a for a in args]
+
+    subprocess.run(command(tmp_path / "clean"), check=True, capture_output=True)
+
+    killed = tmp_path / "killed"
+    process = subprocess.Popen(command(killed), start_new_session=True, stdout=subprocess.DEVNULL,
+                               stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    while time.time() < deadline and not (_ledger_state(killed, "scene") == "running"
+                                          and _committed(str(killed / "scene.zarr")) >= 20):
+        time.sleep(0.05)
+    os.killpg(process.pid, signal.SIGKILL)
+    process.wait()
+    total = len(range(20, 250 - 20, 5)) * 16
+    assert _ledger_state(killed, "scene") == "running" and 20 <= _committed(str(killed / "scene.zarr")) < total
+
+    subprocess.run(command(killed), check=True, capture_output=True)
+    rows = Ledger(killed).rows()
+    assert [(r.name, r.state, r.attempts) for r in rows] == [("scene", "done", 2)]
+    assert chunk_files(str(killed / "scene.zarr")) == chunk_files(str(tmp_path / "clean" / "scene.zarr"))
+    assert sorted(p for p in os.listdir(killed) if not p.startswith(".")) == ["ledger.sqlite", "scene.mp4", "scene.zarr"]
