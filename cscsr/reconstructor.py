@@ -1,9 +1,11 @@
 """The network behind the pipeline's reconstructor interface (``--method cscsr``).
 
 Loaded once per worker process by the pipeline and reused; windows of the same shape run
-as one batch under ``torch.inference_mode``, on the worker's GPU when it has one.
+as one batch under ``torch.inference_mode``, on the worker's GPU when it has one, else on
+one CPU thread per worker (so the bytes do not depend on the number of workers).
 """
 
+import contextlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,11 +47,26 @@ class NetworkReconstructor:
         """Windows of one tile (same shape, CFA, reset, gain, scale) -> (s*h, s*w, 3) uint8 each."""
         first = windows[0]
         spikes = np.stack([unpack_rows(w.packed, w.width) for w in windows])  # (B, N, h, w) uint8
-        with torch.inference_mode():
+        with one_thread_on_cpu(self.device), torch.inference_mode():
             x = torch.from_numpy(spikes).to(self.device, torch.float32)
             rate = self.model(x, first.cfa, first.reset == "zero", first.scale)["image"]  # (B, 3, sH, sW)
             rate = rate.permute(0, 2, 3, 1).float().cpu().numpy()
         return [expose(r, first.gain) for r in rate]
+
+
+@contextlib.contextmanager
+def one_thread_on_cpu(device: torch.device):
+    """Run torch on one thread: its CPU kernels split sums differently for other thread counts, so
+    the output would depend on how many workers share the machine. Parallelism comes from workers."""
+    if device.type != "cpu":
+        yield
+        return
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
 
 
 def load_reconstructor(weights: str | None, device: str | None = None) -> NetworkReconstructor:
