@@ -201,11 +201,35 @@ def train(options: TrainOptions, out: str | os.PathLike, *, resume: bool = False
             log(f"step {step}/{options.steps}  loss {entry['loss']:.4f}  val {score:.2f} dB (TFP base {base:.2f} dB)"
                 f"  {rate:.2f} samples/s")
     final = out / f"cscsr-{options.config}.safetensors"
-    save_weights(model, final, steps=str(step), command=command, options=json.dumps(asdict(options)),
-                 data="simulated on the fly: dead leaves and scikit-image pictures "
-                      f"({', '.join(TRAIN_PICTURES)}), random camera paths, alpha 0.6-1.0, both resets, "
-                      "realistic noise on half, four CFA phases, x2 and x4")
+    save_weights(model, final, **_about(step, options, command))
     return final
+
+
+def _about(step: int, options: TrainOptions, command: str) -> dict:
+    return {"steps": str(step), "command": command, "options": json.dumps(asdict(options)),
+            "data": "simulated on the fly: dead leaves and scikit-image pictures "
+                    f"({', '.join(TRAIN_PICTURES)}), random camera paths, alpha 0.6-1.0, both resets, "
+                    "realistic noise on half, four CFA phases, x2 and x4"}
+
+
+def export_weights(folder: str | os.PathLike, dest: str | os.PathLike, command: str = "") -> int:
+    """The latest checkpoint of a training folder as a weights file (a run need not be finished)."""
+    from safetensors import safe_open
+    from safetensors.torch import load_file
+
+    from cscsr.config import CSCSRConfig
+
+    checkpoint = Path(folder) / "checkpoint.safetensors"
+    if not checkpoint.exists():
+        raise InputError(f"{checkpoint} does not exist: nothing trained there yet")
+    with safe_open(str(checkpoint), "pt") as f:
+        metadata = f.metadata()
+    model = CSCSR(CSCSRConfig.from_json(metadata["config"]))
+    model.load_state_dict({k[6:]: v for k, v in load_file(str(checkpoint)).items() if k.startswith("model.")})
+    options = TrainOptions(**json.loads(metadata["options"]))
+    step = int(metadata["step"])
+    save_weights(model, dest, **_about(step, options, command or "cscsr train (exported from a checkpoint)"))
+    return step
 
 
 def _prefetch(step: int, options: TrainOptions, depth: int = 2):

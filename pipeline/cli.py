@@ -228,6 +228,16 @@ def train(out: Annotated[str, typer.Argument(help="Folder for checkpoints, log.j
     stdout.print(f"weights: {final}")
 
 
+@command("export-weights")
+def export_weights(folder: Annotated[str, typer.Argument(help="A cscsr train folder.")],
+                   dest: Annotated[str, typer.Argument(help="Weights file to write (.safetensors).")]):
+    """The latest checkpoint of a training run as a weights file for --weights."""
+    from cscsr.train import export_weights as run
+
+    step = run(folder, dest)
+    stdout.print(f"{dest}: weights after {step} steps")
+
+
 @command("make-testset")
 def make_testset(out: Annotated[str, typer.Argument(help="Folder for the test set (sources, stores, manifest).")],
                  workers: Workers = None,

@@ -63,3 +63,14 @@ def test_a_resumed_run_ends_where_an_uninterrupted_one_does(tmp_path):
         train(options, tmp_path / "whole", log=lambda line: None)
     with pytest.raises(InputError, match="other options"):
         train(TrainOptions(steps=6, **{**TINY, "batch": 3}), tmp_path / "whole", resume=True, log=lambda line: None)
+
+
+def test_export_weights_from_a_checkpoint(tmp_path, cli):
+    train(TrainOptions(steps=2, **TINY), tmp_path / "run", log=lambda line: None)
+    result = cli("export-weights", tmp_path / "run", tmp_path / "w.safetensors")
+    assert result.exit_code == 0 and "after 2 steps" in result.stdout
+    exported, metadata = load_model(tmp_path / "w.safetensors")
+    final, _ = load_model(tmp_path / "run" / "cscsr-lite.safetensors")
+    assert metadata["steps"] == "2"
+    assert all(torch.equal(a, b) for a, b in zip(exported.state_dict().values(), final.state_dict().values()))
+    assert cli("export-weights", tmp_path, tmp_path / "x.safetensors").exit_code == 1
