@@ -19,6 +19,7 @@ import numpy as np
 
 from pipeline.batches import in_bounded_window, window_size
 from pipeline.cluster import dashboard_link, dask_client
+from pipeline.lease import check_free, held
 from pipeline.progress import progress_bar
 from pipeline.spike_store import open_spike_store
 from pipeline.storage import claim_output, exists
@@ -168,7 +169,9 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
     method.check(options.window, scale, meta.cfa)
     if options.resume and not exists(out):
         raise InputError(f"cannot resume: {out} does not exist")
-    if not options.resume:
+    if options.resume:
+        check_free(out)
+    else:
         claim_output(out, overwrite=options.overwrite, flag="--resume or --overwrite")
     centres = output_centres(store.n_frames, options.window, options.every)
     grid = tile_grid(meta.height, meta.width, options.tile, method.halo)
@@ -182,8 +185,33 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
         plan = Plan(store_url, out, options.method, options.weights, options.window, options.every, float(gain), scale,
                     meta.cfa, meta.reset, options.tile, uuid.uuid4().hex)
         done = _prepare_output(plan, options.resume, centres, grid, (meta.height * scale, meta.width * scale))
+        failed = _run_tasks(client, plan, options, centres, grid, method, done, progress)
+        if failed:
+            raise JobIncomplete(out, failed, len(centres))
+        open_video_store(out, writable=True).attrs["state"] = "complete"
+    skipped = int(done.sum())
+    return {"frames": len(centres), "tasks_run": done.size - skipped, "tasks_skipped": skipped}
+
+
+class JobIncomplete(RuntimeError):
+    """Some tasks raised: which output frames are missing and why; the rest is committed."""
+
+    def __init__(self, out: str, failed: dict[int, str], n_frames: int):
+        frames = sorted(failed)
+        shown = ", ".join(map(str, frames[:20])) + (", ..." if len(frames) > 20 else "")
+        first = failed[frames[0]]
+        super().__init__(f"{len(frames)} of {n_frames} output frames failed (frames {shown}; frame {frames[0]}: "
+                         f"{first}); the other frames are committed in {out}: fix the cause and run again with --resume")
+        self.failed = failed
+
+
+def _run_tasks(client, plan: Plan, options: ReconstructOptions, centres: list[int], grid, method, done: np.ndarray,
+               progress: bool) -> dict[int, str]:
+    """Submit every task not yet committed, holding the output's lease; -> {frame: error} of failed ones."""
+    with held(plan.out):
         tiles = (len(grid), len(grid[0]))
         groups = task_groups(len(centres), getattr(method, "batch", 1), tiles, done)
+        failed = {}
         remaining = {i: tiles[0] * tiles[1] - int(done[i].sum()) for i in range(len(centres))}
         plan = client.scatter(plan, broadcast=True)  # sent to each worker once, not with every task
         group_of = {}  # future key -> (frames, ty, tx) (cheaper than fetching each result)
@@ -198,17 +226,17 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
         with progress_bar(f"reconstruct {options.method}", len(centres), enabled=progress) as advance:
             advance(sum(1 for left in remaining.values() if left == 0))
             for future in in_bounded_window(submissions(), window_size(client)):
-                if future.status != "finished":
-                    future.result()  # raises the task's error here
                 frames, ty, tx = group_of.pop(future.key)
+                if future.status != "finished":  # the task raised: record it, go on with the others
+                    reason = " ".join(str(future.exception()).split()) or type(future.exception()).__name__
+                    failed.update({index: f"tile ({ty}, {tx}): {reason}" for index in frames})
+                    continue
                 for index in frames:
                     if not done[index, ty, tx]:
                         remaining[index] -= 1
                         if remaining[index] == 0:
                             advance(1)
-        open_video_store(out, writable=True).attrs["state"] = "complete"
-    skipped = int(done.sum())
-    return {"frames": len(centres), "tasks_run": done.size - skipped, "tasks_skipped": skipped}
+        return failed
 
 
 def _prepare_output(plan: Plan, resume: bool, centres: list[int], grid: list[list[Tile]], hr_size: tuple[int, int]):

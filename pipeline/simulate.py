@@ -23,6 +23,7 @@ from pipeline.batches import in_bounded_window, window_size
 
 from pipeline.cluster import dask_client
 from pipeline.frame_sources import FrameSource, open_frame_source
+from pipeline.lease import held
 from pipeline.progress import progress_bar
 from pipeline.spike_store import SpikeMeta, SpikeStoreWriter, chunk_frames_for, write_region
 from pipeline.storage import new_output
@@ -226,7 +227,7 @@ def simulate(src: str, dest: str, options: SimulateOptions = SimulateOptions(), 
         pairs = None if scene.is_still else _SourcePairs(client, source, options)
         submissions = _submissions(client, scene, pairs, options, model, chunk, truth_at, dest, height, width)
         spikes = 0
-        with progress_bar(f"simulate {src}", options.frames, enabled=progress) as advance:
+        with held(dest), progress_bar(f"simulate {src}", options.frames, enabled=progress) as advance:
             for future in in_bounded_window(submissions, window_size(client)):
                 if (written := future.result()) is not None:  # a spikes chunk: (frames, spikes)
                     advance(written[0])

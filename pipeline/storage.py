@@ -55,8 +55,12 @@ def size_of(url: str) -> int:
 
 
 def claim_output(url: str, *, overwrite: bool, flag: str = "--overwrite") -> None:
-    """Refuse an existing output unless ``overwrite``; with it, clear the old output."""
+    """Refuse an existing output unless ``overwrite``; with it, clear the old output (never one that
+    another live job is writing: see :mod:`pipeline.lease`)."""
     if exists(url):
+        from pipeline.lease import check_free
+
+        check_free(url)
         if not overwrite:
             raise InputError(f"output {url} already exists (pass {flag} to replace it)")
         remove(url)

@@ -1,0 +1,159 @@
+"""Faults on a real multi-process cluster: killed workers, a failing tile, two jobs on one output."""
+
+import glob
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+import zarr
+from distributed import Client, LocalCluster
+
+from pipeline.reconstruct import JobIncomplete, ReconstructOptions, reconstruct
+from pipeline.simulate import SimulateOptions, simulate
+from tests.test_simulate import chunk_files, picture
+
+BIN = os.path.dirname(sys.executable)
+
+
+@pytest.fixture(scope="module")
+def client():
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
+            Client(cluster) as connected:
+        yield connected
+
+
+@pytest.fixture(scope="module")
+def source(tmp_path_factory) -> str:
+    path = tmp_path_factory.mktemp("src") / "scene.png"
+    iio.imwrite(path, picture("rocket", 128))
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def recording(source, tmp_path_factory) -> str:
+    store = str(tmp_path_factory.mktemp("rec") / "sim.zarr")
+    simulate(source, store, SimulateOptions(scale=4, frames=300, motion="random", chunk_frames=20), workers=1,
+             progress=False)
+    return store
+
+
+def committed(url: str) -> int:
+    try:
+        return int(zarr.open_group(url, mode="r")["committed"][:].sum())
+    except Exception:
+        return 0
+
+
+def kill_a_worker_when(client, ready, timeout=120) -> int:
+    """SIGKILL one worker process as soon as ``ready()``; returns its pid."""
+    pids = client.run(os.getpid)
+    deadline = time.time() + timeout
+    while not ready():
+        assert time.time() < deadline, "the job never got going"
+        time.sleep(0.02)
+    pid = sorted(pids.values())[0]
+    os.kill(pid, signal.SIGKILL)
+    return pid
+
+
+def in_background(function, *args, **kwargs):
+    outcome = {}
+
+    def run():
+        try:
+            outcome["result"] = function(*args, **kwargs)
+        except BaseException as error:  # noqa: BLE001 - handed to the test
+            outcome["error"] = error
+
+    thread = threading.Thread(target=run)
+    thread.start()
+    return thread, outcome
+
+
+def test_a_worker_killed_mid_reconstruct(recording, client, tmp_path):
+    options = ReconstructOptions(method="tfi", every=5, tile=8)
+    clean = str(tmp_path / "clean.zarr")
+    reconstruct(recording, clean, options, client=client, progress=False)
+    out = str(tmp_path / "killed.zarr")
+    thread, outcome = in_background(reconstruct, recording, out, options, client=client, progress=False)
+    kill_a_worker_when(client, lambda: committed(out) >= 40)
+    thread.join(300)
+    assert "error" not in outcome, outcome.get("error")
+    assert chunk_files(out) == chunk_files(clean)
+    client.wait_for_workers(2, timeout=60)  # the nanny restarted it
+
+
+def test_a_worker_killed_mid_simulate(source, client, tmp_path):
+    options = SimulateOptions(scale=4, frames=800, motion="random", chunk_frames=20, noise="realistic")
+    clean = str(tmp_path / "clean.zarr")
+    simulate(source, clean, options, workers=2, progress=False)
+    out = str(tmp_path / "killed.zarr")
+    # simulate makes its own client: point it at this module's cluster, whose workers the test can kill
+    thread, outcome = in_background(simulate, source, out, options, scheduler=client.scheduler.address,
+                                    progress=False)
+    kill_a_worker_when(client, lambda: len(glob.glob(f"{out}/spikes/c/*/*/*")) >= 8)
+    thread.join(300)
+    assert "error" not in outcome, outcome.get("error")
+    a, b = chunk_files(out), chunk_files(clean)
+    assert a.keys() == b.keys()
+    assert all(a[name] == b[name] for name in a if name != "zarr.json")
+    client.wait_for_workers(2, timeout=60)
+
+
+def test_a_failing_tile_is_reported_and_the_rest_committed(recording, client, tmp_path):
+    damaged = str(tmp_path / "damaged.zarr")
+    shutil.copytree(recording, damaged)
+    chunk = sorted(glob.glob(f"{damaged}/spikes/c/*/*/*"), key=lambda p: int(p.split("/")[-3]))[7]  # frames 140..159
+    original = open(chunk, "rb").read()
+    with open(chunk, "wb") as f:
+        f.write(b"\x00garbage, not zstd")
+    out = str(tmp_path / "out.zarr")
+    options = ReconstructOptions(method="tfp", every=5, tile=16)
+    with pytest.raises(JobIncomplete) as caught:
+        reconstruct(damaged, out, options, client=client, progress=False)
+    failed = sorted(caught.value.failed)
+    centres = zarr.open_group(out, mode="r")["frames"][:]
+    touching = [i for i, c in enumerate(centres) if c - 20 <= 159 and c + 20 >= 140]
+    assert failed == touching and "frames " in str(caught.value) and "--resume" in str(caught.value)
+    group = zarr.open_group(out, mode="r")
+    assert group.attrs["state"] == "writing"  # not marked complete
+    done = group["committed"][:]
+    assert done[failed].sum() == 0 and done[[i for i in range(len(centres)) if i not in failed]].all()
+
+    with open(chunk, "wb") as f:  # repaired: --resume finishes exactly the failed frames
+        f.write(original)
+    counts = reconstruct(damaged, out, ReconstructOptions(method="tfp", every=5, tile=16, resume=True), client=client,
+                         progress=False)
+    assert counts["tasks_run"] == len(failed) * 4
+    reconstruct(recording, str(tmp_path / "clean.zarr"), options, client=client, progress=False)
+    a, b = chunk_files(out), chunk_files(str(tmp_path / "clean.zarr"))
+    assert all(a[name] == b[name] for name in a if name != "zarr.json") and a.keys() == b.keys()
+
+
+def test_two_jobs_on_one_output_never_interleave(recording, tmp_path):
+    out = str(tmp_path / "out.zarr")
+    first = subprocess.Popen([f"{BIN}/cscsr", "reconstruct", recording, out, "--method", "tfi", "--every", "2",
+                              "--tile", "8", "--workers", "1"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                             text=True)
+    deadline = time.time() + 120
+    while committed(out) < 10:
+        assert time.time() < deadline and first.poll() is None, "the first job never got going"
+        time.sleep(0.05)
+    for flag in ("--resume", "--overwrite"):
+        second = subprocess.run([f"{BIN}/cscsr", "reconstruct", recording, out, "--method", "tfi", "--every", "2",
+                                 "--tile", "8", "--workers", "1", flag], capture_output=True, text=True, timeout=120)
+        assert second.returncode == 1 and "being written by another job" in second.stderr, second.stderr
+        assert len(second.stderr.strip().splitlines()) == 1
+    assert first.wait(300) == 0, first.stderr.read()
+    assert zarr.open_group(out, mode="r").attrs["state"] == "complete"
+    assert not os.path.exists(f"{out}/lease.json")  # released at the end
+    clean = str(tmp_path / "clean.zarr")
+    reconstruct(recording, clean, ReconstructOptions(method="tfi", every=2, tile=8), workers=1, progress=False)
+    assert chunk_files(out) == chunk_files(clean)
