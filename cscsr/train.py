@@ -39,7 +39,7 @@ class TrainOptions:
     lr_side: int = 32  # LR crop side (HR 128 at x4)
     learning_rate: float = 2e-4
     decay_every: int = 7500  # learning rate x0.9 every this many steps (the sibling recipe)
-    flow_weight: float = 0.05
+    flow_weight: float = 0.1
     clip: float = 0.1  # gradient norm bound: without it the loss oscillated instead of falling
     scale4_share: float = 0.75  # share of steps at x4; the rest at x2
     seed: int = 0
