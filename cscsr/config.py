@@ -38,6 +38,11 @@ class CSCSRConfig:
 
     def check(self) -> "CSCSRConfig":
         """Refuse settings that cannot cover the clip symmetrically (supplement, eq. 1)."""
+        for name in ("frames", "length", "stride", "colour_features", "features", "blocks", "flow_features",
+                     "flow_frames", "flow_span"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < (0 if name == "blocks" else 1):
+                raise InputError(f"configuration {name} must be a positive integer, got {value!r}")
         if self.motion not in MOTIONS:
             raise InputError(f"unknown motion estimation {self.motion!r}: expected one of {', '.join(MOTIONS)}")
         if self.frames % 2 == 0 or self.length % 2 == 0:

@@ -52,7 +52,11 @@ def read_metadata(path: str | os.PathLike) -> dict[str, str]:
             header = json.loads(f.read(length))
         except ValueError:
             raise InputError(f"{path} is not a safetensors file (its header is not JSON)") from None
+    if not isinstance(header, dict):
+        raise InputError(f"{path} is not a safetensors file (its header is not a JSON object)")
     metadata = header.get("__metadata__") or {}
+    if not isinstance(metadata, dict):
+        metadata = {}
     if metadata.get("format") != FORMAT:
         raise InputError(f"{path} is not a cscsr weights file (metadata format {metadata.get('format')!r}, "
                          f"expected {FORMAT!r})")

@@ -67,9 +67,32 @@ class SpikeMeta:
         missing = [k for k in ("height", "width", "cfa") if k not in attrs]
         if missing:
             raise InputError(f"spike store attributes lack {', '.join(missing)}")
+        check_attribute_types(attrs)
         known = {f for f in cls.__dataclass_fields__ if f != "extra"}
         extra = {k: v for k, v in attrs.items() if k not in known | {"format_version", "cscsr_version", "state", "spike_count"}}
         return cls(**{k: attrs[k] for k in known if k in attrs}, extra=extra)
+
+
+# What each attribute must be: a store written by hand or damaged is refused by name, never misread
+# (a string "no" for flipped would otherwise read as true and export frames upside down).
+_ATTRIBUTE_TYPES = {"height": int, "width": int, "head_columns": int, "spike_count": int, "scale": int,
+                    "fps": float, "gain": float, "threshold": float, "flipped": bool, "cfa": str, "reset": str}
+
+
+def check_attribute_types(attrs: dict) -> None:
+    for name, kind in _ATTRIBUTE_TYPES.items():
+        if name not in attrs or attrs[name] is None:
+            continue
+        value = attrs[name]
+        ok = (isinstance(value, bool) if kind is bool else
+              isinstance(value, int) and not isinstance(value, bool) if kind is int else
+              isinstance(value, (int, float)) and not isinstance(value, bool) if kind is float else isinstance(value, str))
+        if not ok:
+            label = {int: "an integer", float: "a number", bool: "true or false", str: "a string"}[kind]
+            raise InputError(f"attribute {name} must be {label}, got {value!r}")
+    for name in ("height", "width"):
+        if attrs[name] <= 0:
+            raise InputError(f"attribute {name} must be positive, got {attrs[name]}")
 
 
 def chunk_frames_for(meta: SpikeMeta, n_frames: int) -> int:
@@ -85,7 +108,10 @@ class SpikeStore:
         self.url = url
         self.group = group
         self.attrs = dict(group.attrs)
-        self.meta = SpikeMeta.from_attrs(self.attrs)
+        try:
+            self.meta = SpikeMeta.from_attrs(self.attrs)
+        except InputError as error:
+            raise InputError(f"spike store {url}: {error}") from None
         if SPIKES not in group:
             raise InputError(f"{url} is not a spike store: it has no '{SPIKES}' array")
         self.spikes: zarr.Array = group[SPIKES]
