@@ -5,7 +5,9 @@ read, then yields ``(first_frame, packed_block)`` pairs of bounded size, so a ca
 than memory goes through in constant memory.
 """
 
+import tokenize
 import zipfile
+import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -94,9 +96,15 @@ class ArrayCapture:
             version = np.lib.format.read_magic(stream)
             read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
             shape, fortran, dtype = read_header(stream)
-        except ValueError as error:
-            raise InputError(f"{self.url} is not a valid .npy array: {error}") from None
+        except (ValueError, SyntaxError, TypeError, tokenize.TokenError, zipfile.BadZipFile, zlib.error, EOFError) as error:
+            raise InputError(f"{self.url} is not a valid .npy array: {' '.join(str(error).split())}") from None
         check_spike_array_header(shape, dtype)
+        frame_bytes = int(np.prod(shape[1:], dtype=object)) * dtype.itemsize
+        if self.key is None and frame_bytes * shape[0] > self.fs.size(self.path):  # checked before reading anything
+            raise InputError(f"{self.url} is truncated: its header promises {shape[0]} frames of {frame_bytes} bytes, "
+                             f"more than the file holds")
+        if frame_bytes > 2**31:
+            raise InputError(f"{self.url}: frames of shape {tuple(shape[1:])} are too large to be spike frames")
         if fortran:
             raise InputError(f"{self.url} holds a Fortran-ordered array; save it C-ordered (np.ascontiguousarray)")
         return shape, dtype
@@ -108,7 +116,10 @@ class ArrayCapture:
             for start in range(0, self.n_frames, frames_per_block):
                 count = min(frames_per_block, self.n_frames - start)
                 nbytes = count * frame_items * self.dtype.itemsize
-                data = stream.read(nbytes)
+                try:
+                    data = stream.read(nbytes)
+                except (zlib.error, zipfile.BadZipFile, EOFError) as error:
+                    raise InputError(f"{self.url} is damaged near frame {start}: {' '.join(str(error).split())}") from None
                 if len(data) != nbytes:
                     raise InputError(f"{self.url} is truncated: frame {start + len(data) // (frame_items * self.dtype.itemsize)} of {self.n_frames} is incomplete")
                 frames = np.frombuffer(data, self.dtype).reshape(count, self.height, self.width)

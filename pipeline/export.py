@@ -32,6 +32,9 @@ def export(store_url: str, dest: str, *, overwrite: bool = False, progress: bool
         is_video = "video" in zarr.open_group(zarr_store(store_url, read_only=True), mode="r")
     except FileNotFoundError:
         raise InputError(f"cannot read store {store_url}: no Zarr group there") from None
+    except (ValueError, TypeError, KeyError, AttributeError, zarr.errors.BaseZarrError) as error:
+        reason = " ".join(str(error).split()) or type(error).__name__
+        raise InputError(f"cannot read store {store_url}: its Zarr metadata is damaged ({reason})") from None
     suffix = str(dest).lower().rsplit(".", 1)[-1] if "." in str(dest).rsplit("/", 1)[-1] else ""
     if is_video:
         if suffix not in ("mp4", ""):

@@ -115,6 +115,8 @@ class SpikeStore:
         if SPIKES not in group:
             raise InputError(f"{url} is not a spike store: it has no '{SPIKES}' array")
         self.spikes: zarr.Array = group[SPIKES]
+        if not isinstance(self.spikes, zarr.Array):
+            raise InputError(f"{url} is not a spike store: its '{SPIKES}' is a group, not an array")
         expected = (self.meta.height, packed_width(self.meta.width))
         if self.spikes.dtype != np.uint8 or self.spikes.ndim != 3 or self.spikes.shape[1:] != expected:
             raise InputError(
@@ -142,9 +144,15 @@ def open_spike_store(url: str, *, allow_incomplete: bool = False) -> SpikeStore:
     """Open and check a spike store; an error if it is missing, malformed or unfinished."""
     try:
         group = zarr.open_group(zarr_store(url, read_only=True), mode="r")
+        store = SpikeStore(url, group)
     except FileNotFoundError:
         raise InputError(f"cannot read spike store {url}: no Zarr group there") from None
-    store = SpikeStore(url, group)
+    except InputError:
+        raise
+    except (ValueError, TypeError, KeyError, AttributeError, zarr.errors.BaseZarrError) as error:
+        reason = " ".join(str(error).split()) or type(error).__name__
+        raise InputError(f"cannot read spike store {url}: its Zarr metadata is damaged or not a spike store "
+                         f"({reason})") from None
     if not (allow_incomplete or store.complete):
         raise InputError(f"spike store {url} is incomplete (state {store.attrs.get('state')!r}): its writer did not finish")
     return store

@@ -10,6 +10,8 @@ def check_spike_array_header(shape: tuple, dtype: np.dtype) -> None:
     """Reject arrays that cannot be spike frames, before any data is read."""
     if len(shape) != 3:
         raise InputError(f"spike array has rank {len(shape)} (shape {tuple(shape)}); expected (T, H, W)")
+    if any(isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0 for n in shape):
+        raise InputError(f"spike array header has a nonsense shape {tuple(shape)}")
     if not (np.issubdtype(dtype, np.integer) or np.issubdtype(dtype, np.bool_) or np.issubdtype(dtype, np.floating)):
         raise InputError(f"spike array has dtype {dtype}; expected 0/1 integers or booleans")
     if min(shape) == 0:

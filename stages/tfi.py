@@ -19,6 +19,9 @@ def tfi_rate(packed_window: np.ndarray, width: int, reset: str = "subtract") -> 
     spikes = unpack_rows(packed_window, width).astype(bool)  # (N, H, W)
     n = spikes.shape[0]
     centre = n // 2
+    if centre + 1 >= n:  # no frame after the centre (a window of 1): the TFP rate is all there is
+        rate = spikes.mean(axis=0, dtype=np.float32)
+        return undo_zero_reset(rate) if reset == "zero" else rate
     before = spikes[: centre + 1][::-1]  # frames centre, centre-1, ..., 0
     after = spikes[centre + 1 :]  # frames centre+1, ..., N-1
     fired_before, fired_after = before.any(axis=0), after.any(axis=0)

@@ -101,16 +101,14 @@ INGEST_CASES = [
     case("npy-cut-in-header", "c.npy", VALID_NPY[:30], [], [INPUT, "not a valid .npy array"]),
     case("npy-cut-in-data", "c.npy", VALID_NPY[:-100], [], [INPUT, "is truncated", "frame 44 of 45"]),
     case("npy-header-only", "c.npy", VALID_NPY[: len(VALID_NPY) - SPIKES.nbytes], [],
-         [INPUT, "is truncated", "frame 0 of 45"]),
+         [INPUT, "is truncated", "promises 45 frames"]),
     # random bytes
     case("npy-random-bytes", "c.npy", RNG.bytes(700), [], [INPUT, "not a valid .npy array"]),
     case("npz-random-bytes", "c.npz", RNG.bytes(700), [], [INPUT, "not a valid .npz archive"]),
     case("npz-cut-archive", "c.npz", VALID_NPZ[: len(VALID_NPZ) // 2], [], [INPUT, "not a valid .npz archive"]),
     case("npz-member-random-bytes", "c.npz", zip_member(RNG.bytes(300)), [], [INPUT, "not a valid .npy array"]),
     case("npz-member-cut-in-data", "c.npz", zip_member(VALID_NPY[:-100]), [], [INPUT, "is truncated"]),
-    case("npz-member-corrupt-deflate", "c.npz", corrupt_deflate(), [], [INPUT],
-         bug="a damaged deflate stream inside a .npz gives 'error: error: Error -3 while decompressing data: "
-             "invalid bit length repeat' (a zlib.error, not naming the file)"),
+    case("npz-member-corrupt-deflate", "c.npz", corrupt_deflate(), [], [INPUT, "decompressing"]),
     # keys
     case("npz-without-key", "c.npz", npz_bytes(other=SPIKES, more=SPIKES), [],
          [INPUT, "no array 'spk'", "other, more"]),
@@ -135,27 +133,16 @@ INGEST_CASES = [
     case("npy-zero-frames", "c.npy", npy_bytes(SPIKES[:0]), [], ["empty", "(0, 8, 16)"]),
     # hand-made headers
     case("npy-header-huge-frame-count", "c.npy", shape_header("(1000000000000, 8, 16)"), [],
-         [INPUT, "is truncated", "of 1000000000000"]),
+         [INPUT, "is truncated", "promises 1000000000000 frames"]),
     case("npz-header-huge-frame-count", "c.npz", zip_member(shape_header("(1000000000000, 8, 16)")), [],
          [INPUT, "is truncated"]),
-    case("npy-header-huge-frame-size", "c.npy", shape_header(f"(1, {2**31}, {2**31})"), [], [INPUT],
-         bug="a .npy header claiming 2^62-byte frames gives 'error: MemoryError: MemoryError' (the reader "
-             "asks for a whole frame before comparing the header with the file size)"),
-    case("npy-header-overflowing-shape", "c.npy", shape_header(f"({2**62}, {2**62}, {2**62})"), [], [INPUT],
-         bug="a .npy header with 2^62 in every dimension gives "
-             "'error: OverflowError: cannot fit 'int' into an index-sized integer'"),
-    case("npy-header-negative-shape", "c.npy", shape_header("(-41, 8, 16)"), [], [INPUT, "-41, 8, 16"],
-         bug="a .npy header with a negative dimension passes the header check and fails in Zarr: "
-             "'error: Expected all values to be non-negative. Got (-41, 8, 2) instead.' (no file named, "
-             "the packed shape, not the file's)"),
-    case("npy-header-bool-dimension", "c.npy", shape_header("(41, 8, True)"), [], [INPUT],
-         bug="a .npy header with shape (41, 8, True) gives 'error: TypeError: an integer is required' "
-             "(after the output store was created)"),
+    case("npy-header-huge-frame-size", "c.npy", shape_header(f"(1, {2**31}, {2**31})"), [], [INPUT, "truncated"]),
+    case("npy-header-overflowing-shape", "c.npy", shape_header(f"({2**62}, {2**62}, {2**62})"), [],
+         [INPUT, "truncated"]),
+    case("npy-header-negative-shape", "c.npy", shape_header("(-41, 8, 16)"), [], ["nonsense shape (-41, 8, 16)"]),
+    case("npy-header-bool-dimension", "c.npy", shape_header("(41, 8, True)"), [], ["nonsense shape (41, 8, True)"]),
     case("npy-header-not-a-literal", "c.npy", npy_with_header("{'descr': '|u1', "), [],
-         [INPUT, "not a valid .npy array"],
-         bug="a .npy header that is not a complete Python literal gives "
-             "\"error: TokenError: ('EOF in multi-line statement', (2, 0))\" (tokenize.TokenError is not a "
-             "ValueError, so the reader's check lets it through)"),
+         [INPUT, "not a valid .npy array"]),
     case("npy-header-not-a-dict", "c.npy", npy_with_header("[1, 2, 3]"), [], [INPUT, "not a valid .npy array"]),
     case("npy-header-bad-descr", "c.npy", shape_header("(41, 8, 16)", descr="zz"), [],
          [INPUT, "not a valid .npy array"]),
@@ -270,9 +257,7 @@ NOT_JSON = ("the store's metadata is not valid JSON and the message is the bare 
 STORE_CASES = [
     # (id, build(path), commands, fragments, bug)
     ("no-spikes-array", lambda p: make_store(p, spikes=None), ALL, [STORE, "has no 'spikes' array"], None),
-    ("spikes-is-a-group", spikes_group, ALL, [STORE, "spikes"],
-     ("a store whose 'spikes' is a group, not an array, gives \"error: AttributeError: 'Group' object has no "
-     "attribute 'dtype'\"")),
+    ("spikes-is-a-group", spikes_group, ALL, [STORE, "spikes"], None),
     ("spikes-float32", lambda p: make_store(p, spikes=PACKED.astype(np.float32)), ALL,
      [STORE, "'spikes' is float32 (45, 8, 2), expected uint8 (T, 8, 2)"], None),
     ("spikes-rank-2", lambda p: make_store(p, spikes=PACKED[0]), ALL, [STORE, "'spikes' is uint8 (8, 2)"], None),
@@ -296,17 +281,13 @@ STORE_CASES = [
     ("reset-unknown", lambda p: make_store(p, reset="half"), ALL, ["unknown reset mode 'half'"], None),
     ("state-writing", lambda p: make_store(p, state="writing"), READERS, [STORE, "incomplete (state 'writing')"], None),
     ("state-missing", lambda p: make_store(p, drop=("state",)), READERS, [STORE, "incomplete (state None)"], None),
-    ("zarr-json-not-json", lambda p: (make_store(p), write(p, "zarr.json", "{not json")), ALL, [STORE], NOT_JSON),
-    ("zarr-json-empty", lambda p: (make_store(p), write(p, "zarr.json", "")), ALL, [STORE], NOT_JSON),
-    ("zarr-json-a-list", lambda p: (make_store(p), write(p, "zarr.json", "[1, 2]")), ALL, [STORE],
-     "a zarr.json holding a JSON list gives 'error: TypeError: pop expected at most 1 argument, got 2'"),
+    ("zarr-json-not-json", lambda p: (make_store(p), write(p, "zarr.json", "{not json")), ALL, [STORE], None),
+    ("zarr-json-empty", lambda p: (make_store(p), write(p, "zarr.json", "")), ALL, [STORE], None),
+    ("zarr-json-a-list", lambda p: (make_store(p), write(p, "zarr.json", "[1, 2]")), ALL, [STORE], None),
     ("zarr-json-attributes-a-list",
      lambda p: (make_store(p), write(p, "zarr.json", json.dumps({"zarr_format": 3, "node_type": "group",
-                                                                 "attributes": [1]}))), ALL, [STORE],
-     ("a zarr.json whose attributes are a list gives \"error: TypeError: Expected dict with string keys. Got "
-     "<class 'list'> instead.\"")),
-    ("spikes-zarr-json-not-json", lambda p: (make_store(p), write(p, "spikes/zarr.json", "{oops")), ALL, [STORE],
-     NOT_JSON.replace("store's metadata", "spikes array's metadata")),
+                                                                 "attributes": [1]}))), ALL, [STORE], None),
+    ("spikes-zarr-json-not-json", lambda p: (make_store(p), write(p, "spikes/zarr.json", "{oops")), ALL, [STORE], None),
     ("root-is-an-array", root_array, ALL, [STORE, "group"],
      ("a Zarr array (not a group) at the store's path gives 'error: An array already exists in store file://... at "
      "path .' (Zarr's message for a write conflict; it does not say the path is not a spike store)")),

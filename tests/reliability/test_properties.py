@@ -104,10 +104,6 @@ def test_tfi_rate_bounds_and_finite(bits):
     assert np.allclose(rate[busy], 1)
 
 
-@pytest.mark.xfail(strict=True, raises=ValueError,
-                   reason="BUG: tfi_rate on a window of 1 or 2 frames (no frame after the centre; reachable as "
-                          "cscsr reconstruct --method tfi --window 1) raises 'attempt to get argmax of an empty "
-                          "sequence' instead of falling back to the TFP rate")
 @pytest.mark.parametrize("n", [1, 2])
 def test_tfi_rate_short_window_falls_back_to_tfp(n):
     bits = np.tile(np.array([[[1, 0, 1, 1, 0, 0, 0, 1, 1]]], np.uint8), (n, 1, 1))  # (N, H=1, W=9)
