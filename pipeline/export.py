@@ -32,6 +32,8 @@ def export(store_url: str, dest: str, *, overwrite: bool = False, progress: bool
         is_video = "video" in zarr.open_group(zarr_store(store_url, read_only=True), mode="r")
     except FileNotFoundError:
         raise InputError(f"cannot read store {store_url}: no Zarr group there") from None
+    except zarr.errors.ContainsArrayError:
+        raise InputError(f"cannot read store {store_url}: it holds a Zarr array, not a group") from None
     except (ValueError, TypeError, KeyError, AttributeError, zarr.errors.BaseZarrError) as error:
         reason = " ".join(str(error).split()) or type(error).__name__
         raise InputError(f"cannot read store {store_url}: its Zarr metadata is damaged ({reason})") from None

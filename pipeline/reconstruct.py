@@ -21,7 +21,7 @@ from pipeline.batches import in_bounded_window, window_size
 from pipeline.cluster import dashboard_link, dask_client
 from pipeline.lease import check_free, held
 from pipeline.progress import progress_bar
-from pipeline.spike_store import open_spike_store
+from pipeline.spike_store import open_spike_store, read_frames
 from pipeline.storage import claim_output, exists
 from pipeline.video_store import TileWriter, committed_mask, create_video_store, open_video_store
 from stages.colour import auto_gain
@@ -105,8 +105,9 @@ def _reconstruct_tile(plan: Plan, frames: tuple[tuple[int, int], ...], tile: Til
     spikes, writer = _opened(plan.spikes, plan.out, plan.run)
     method = reconstructor(plan.method, plan.weights)
     width = tile.rx1 - tile.rx0
-    windows = [Window(spikes[c - half : c + half + 1, tile.ry0 : tile.ry1, tile.rx0 // 8 : -(-tile.rx1 // 8)],
-                      width, plan.cfa, plan.reset, plan.gain, plan.scale) for _, c in frames]
+    region = (slice(tile.ry0, tile.ry1), slice(tile.rx0 // 8, -(-tile.rx1 // 8)))
+    windows = [Window(read_frames(spikes, plan.spikes, c - half, c + half + 1, region), width, plan.cfa, plan.reset,
+                      plan.gain, plan.scale) for _, c in frames]
     ys, xs = tile.crop(plan.scale)
     for (index, _), image in zip(frames, method.many(windows)):
         writer.write(index, (ty, tx), (tile.y0 * plan.scale, tile.x0 * plan.scale), image[ys, xs])

@@ -136,8 +136,31 @@ class SpikeStore:
         return self.attrs.get("spike_count")
 
     def read(self, start: int, stop: int) -> np.ndarray:
-        """Packed frames ``[start, stop)`` as a numpy array."""
-        return self.spikes[start:stop]
+        """Packed frames ``[start, stop)``; an error naming the frames if a chunk is missing or damaged."""
+        return read_frames(self.spikes, self.url, start, stop)
+
+
+def read_frames(spikes: zarr.Array, url: str, start: int, stop: int, region: tuple = ()) -> np.ndarray:
+    """Frames ``[start, stop)`` of a spike array (rows and packed columns ``region``), refusing to
+    read a missing chunk as zeros.
+
+    The writer stores every chunk, empty or not (``write_empty_chunks``), so a chunk that is not
+    there is lost data, which Zarr would silently fill with zeros.
+    """
+    from zarr.core.sync import sync
+
+    step = spikes.chunks[0]
+    prefix = f"{spikes.store_path.path}/" if spikes.store_path.path else ""
+    for index in range(start // step, -(-stop // step)):
+        key = prefix + spikes.metadata.encode_chunk_key((index, 0, 0))
+        if not sync(spikes.store.exists(key)):
+            raise InputError(f"spike store {url}: the chunk of frames {index * step}..{(index + 1) * step - 1} is "
+                             f"missing (lost data)")
+    try:
+        return spikes[(slice(start, stop), *region)]
+    except (RuntimeError, ValueError) as error:
+        raise InputError(f"spike store {url}: frames {start}..{stop - 1} cannot be read, a chunk is damaged "
+                         f"({' '.join(str(error).split())})") from None
 
 
 def open_spike_store(url: str, *, allow_incomplete: bool = False) -> SpikeStore:
@@ -149,6 +172,8 @@ def open_spike_store(url: str, *, allow_incomplete: bool = False) -> SpikeStore:
         raise InputError(f"cannot read spike store {url}: no Zarr group there") from None
     except InputError:
         raise
+    except zarr.errors.ContainsArrayError:
+        raise InputError(f"cannot read spike store {url}: it holds a Zarr array, not a group") from None
     except (ValueError, TypeError, KeyError, AttributeError, zarr.errors.BaseZarrError) as error:
         reason = " ".join(str(error).split()) or type(error).__name__
         raise InputError(f"cannot read spike store {url}: its Zarr metadata is damaged or not a spike store "

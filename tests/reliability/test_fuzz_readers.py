@@ -288,17 +288,11 @@ STORE_CASES = [
      lambda p: (make_store(p), write(p, "zarr.json", json.dumps({"zarr_format": 3, "node_type": "group",
                                                                  "attributes": [1]}))), ALL, [STORE], None),
     ("spikes-zarr-json-not-json", lambda p: (make_store(p), write(p, "spikes/zarr.json", "{oops")), ALL, [STORE], None),
-    ("root-is-an-array", root_array, ALL, [STORE, "group"],
-     ("a Zarr array (not a group) at the store's path gives 'error: An array already exists in store file://... at "
-     "path .' (Zarr's message for a write conflict; it does not say the path is not a spike store)")),
+    ("root-is-an-array", root_array, ALL, [STORE, "holds a Zarr array, not a group"], None),
     ("path-is-a-file", a_file, ALL, [STORE, "no Zarr group there"], None),
     ("empty-directory", lambda p: p.mkdir(), ALL, [STORE, "no Zarr group there"], None),
-    ("chunk-damaged", corrupt_chunk, READERS, [STORE],
-     ("a damaged chunk gives 'error: RuntimeError: Zstd decompression error: invalid input data' (no store or "
-     "chunk named; export leaves nothing, reconstruct fails in its automatic-gain task)")),
-    ("chunk-missing", missing_chunk, ("export",), [STORE, "chunk"],
-     ("a deleted chunk of 'spikes' reads as zeros: export writes a .dat with 20 silent frames and exits 0 "
-     "(the store writes every chunk, empty or not, so a missing one is lost data)")),
+    ("chunk-damaged", corrupt_chunk, READERS, [STORE, "a chunk is damaged"], None),
+    ("chunk-missing", missing_chunk, ("export",), [STORE, "is missing (lost data)"], None),
     ("flipped-text", lambda p: make_store(p, flipped="no"), ("export",), [STORE, "flipped must be true or false"], None),
     ("head-columns-text", lambda p: make_store(p, head_columns="x"), ("export",), [STORE, "head_columns must be an integer"],
      None),
