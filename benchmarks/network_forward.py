@@ -126,7 +126,7 @@ def main() -> None:
              f"{r['parameters'] / 1e6:.2f} M + {r['flow_parameters'] / 1e6:.2f} M"] for r in results]
     print()
     print(f"device {args.device}, {threads} threads, batch 1, x4, load average {load_average()}")
-    print(f"paper: CSCSR 1.032 s per 180x320 image on a GPU of its time\n")
+    print("paper: CSCSR 1.032 s per 180x320 image on a GPU of its time\n")
     print(markdown_table(["config", "LR size", "dtype", "forward s (median)", "vs TFP", "peak RSS MiB",
                           "FLOPs / output px", "GFLOPs", "params (net + flow)"], rows))
     save_results(f"network_forward_{args.device}", {"threads": threads, "repeats": repeats, "cases": results,

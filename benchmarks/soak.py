@@ -24,14 +24,7 @@ import threading
 import time
 
 from _common import ROOT, load_average, markdown_table, save_results
-
-
-def high_water(pid: int) -> int:
-    with open(f"/proc/{pid}/status") as f:
-        for line in f:
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) * 1024
-    return 0
+from reconstruct_memory import high_water
 
 
 def write_recording(url: str, frames: int, size: int) -> None:

@@ -28,6 +28,6 @@ def demosaic(rate: torch.Tensor, colours: torch.Tensor) -> torch.Tensor:
 
 
 def base_image(spikes: torch.Tensor, colours: torch.Tensor, zero_reset: torch.Tensor, scale: int) -> torch.Tensor:
-    """-> (B, 3, sH, sW) demosaicked TFP, bicubic x s; also the LR (B, 3, H, W) version."""
-    lr = demosaic(tfp(spikes, zero_reset), colours)
-    return F.interpolate(lr, scale_factor=scale, mode="bicubic", align_corners=False), lr
+    """-> (B, 3, sH, sW) demosaicked TFP, bicubic x s."""
+    lr = demosaic(tfp(spikes, zero_reset), colours)  # (B, 3, H, W)
+    return F.interpolate(lr, scale_factor=scale, mode="bicubic", align_corners=False)

@@ -20,10 +20,12 @@ from torch import nn
 
 from cscsr.base_image import base_image
 from cscsr.bayer import cell_masks, check_bayer, colour_masks
+from cscsr.blocks import ResBlock
 from cscsr.bssr import BSSR
 from cscsr.config import CSCSRConfig
 from cscsr.integration import SCALES, Integration
 from cscsr.motion import MotionEstimation
+from cscsr.spike_flow import FlowDecoder
 from cscsr.temporal_pixels import TemporalPixels
 from stages.errors import InputError
 
@@ -60,7 +62,7 @@ class CSCSR(nn.Module):
         features = [self.temporal[c](self.bssr[c](x, colours[:, c : c + 1]), colours[:, c : c + 1], flows)
                     for c in range(3)]  # 3 x (B, C, Hp, Wp)
         residual = self.integration(torch.cat(features, 1), zero, scale)  # (B, 3, s*Hp, s*Wp)
-        base, _ = base_image(x, colours, zero, scale)
+        base = base_image(x, colours, zero, scale)
         image = (base + residual)[..., : scale * h, : scale * w]
         if key_flows is not None:
             key_flows = tuple(f[..., :h, :w] for f in key_flows)
@@ -89,10 +91,6 @@ def initialise(model: nn.Module) -> None:
     """He initialisation for every convolution (PyTorch's default shrinks activations layer by layer,
     which left a 40-layer network learning nothing in hundreds of steps), residual branches scaled
     by 0.1 so the trunk starts near identity. Layers that must start at zero keep their own init."""
-    from cscsr.blocks import ResBlock
-    from cscsr.integration import Integration
-    from cscsr.spike_flow import FlowDecoder
-
     keep = set()
     for module in model.modules():
         if isinstance(module, FlowDecoder):

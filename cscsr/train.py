@@ -135,20 +135,30 @@ def save_checkpoint(path: Path, model: CSCSR, optimiser: torch.optim.Optimizer, 
     os.replace(partial, path)  # a killed run never leaves half a checkpoint
 
 
-def load_checkpoint(path: Path, model: CSCSR, optimiser: torch.optim.Optimizer, options: TrainOptions) -> int:
+def read_checkpoint(path: Path) -> tuple[dict, dict]:
+    """(tensors, metadata) of a checkpoint file."""
     from safetensors import safe_open
     from safetensors.torch import load_file
 
     with safe_open(str(path), "pt") as f:
         metadata = f.metadata()
+    return load_file(str(path)), metadata
+
+
+def model_weights(tensors: dict) -> dict:
+    """The network's part of a checkpoint's tensors, as a state dict."""
+    return {k.removeprefix("model."): v for k, v in tensors.items() if k.startswith("model.")}
+
+
+def load_checkpoint(path: Path, model: CSCSR, optimiser: torch.optim.Optimizer, options: TrainOptions) -> int:
+    tensors, metadata = read_checkpoint(path)
     recorded = json.loads(metadata["options"])
     changed = [k for k in ("config", "batch", "lr_side", "seed", "learning_rate", "flow_weight", "scale4_share", "clip",
                            "distinct_batches")
                if recorded.get(k) != asdict(options)[k]]
     if changed:
         raise InputError(f"cannot resume {path}: it was trained with other options ({', '.join(changed)})")
-    tensors = load_file(str(path))
-    model.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
+    model.load_state_dict(model_weights(tensors))
     state = {"state": {}, "param_groups": json.loads(metadata["param_groups"])}
     for key, value in tensors.items():
         if key.startswith("optimiser."):
@@ -214,18 +224,14 @@ def _about(step: int, options: TrainOptions, command: str) -> dict:
 
 def export_weights(folder: str | os.PathLike, dest: str | os.PathLike, command: str = "") -> int:
     """The latest checkpoint of a training folder as a weights file (a run need not be finished)."""
-    from safetensors import safe_open
-    from safetensors.torch import load_file
-
     from cscsr.config import CSCSRConfig
 
     checkpoint = Path(folder) / "checkpoint.safetensors"
     if not checkpoint.exists():
         raise InputError(f"{checkpoint} does not exist: nothing trained there yet")
-    with safe_open(str(checkpoint), "pt") as f:
-        metadata = f.metadata()
+    tensors, metadata = read_checkpoint(checkpoint)
     model = CSCSR(CSCSRConfig.from_json(metadata["config"]))
-    model.load_state_dict({k[6:]: v for k, v in load_file(str(checkpoint)).items() if k.startswith("model.")})
+    model.load_state_dict(model_weights(tensors))
     options = TrainOptions(**json.loads(metadata["options"]))
     step = int(metadata["step"])
     save_weights(model, dest, **_about(step, options, command or "cscsr train (exported from a checkpoint)"))

@@ -12,7 +12,7 @@ import tempfile
 
 from pipeline.progress import progress_bar
 from pipeline.spike_store import open_spike_store
-from pipeline.storage import claim_output, new_output, resolve
+from pipeline.storage import claim_output, new_output, open_group, resolve
 from stages.dat import DatLayout, packed_to_dat
 from stages.errors import InputError
 
@@ -24,19 +24,7 @@ VIDEO_FPS = 10
 
 def export(store_url: str, dest: str, *, overwrite: bool = False, progress: bool = True) -> None:
     """Write the store at ``store_url`` to ``dest``: the kind of store and ``dest``'s extension decide how."""
-    import zarr
-
-    from pipeline.storage import zarr_store
-
-    try:
-        is_video = "video" in zarr.open_group(zarr_store(store_url, read_only=True), mode="r")
-    except FileNotFoundError:
-        raise InputError(f"cannot read store {store_url}: no Zarr group there") from None
-    except zarr.errors.ContainsArrayError:
-        raise InputError(f"cannot read store {store_url}: it holds a Zarr array, not a group") from None
-    except (ValueError, TypeError, KeyError, AttributeError, zarr.errors.BaseZarrError) as error:
-        reason = " ".join(str(error).split()) or type(error).__name__
-        raise InputError(f"cannot read store {store_url}: its Zarr metadata is damaged ({reason})") from None
+    is_video = "video" in open_group(store_url)
     suffix = str(dest).lower().rsplit(".", 1)[-1] if "." in str(dest).rsplit("/", 1)[-1] else ""
     if is_video:
         if suffix not in ("mp4", ""):

@@ -19,7 +19,7 @@ import zarr
 from zarr.codecs import ZstdCodec
 
 import cscsr
-from pipeline.storage import zarr_store
+from pipeline.storage import describe, open_group, zarr_store
 from stages.bits import packed_width
 from stages.cfa import check_cfa
 from stages.errors import InputError
@@ -165,19 +165,12 @@ def read_frames(spikes: zarr.Array, url: str, start: int, stop: int, region: tup
 
 def open_spike_store(url: str, *, allow_incomplete: bool = False) -> SpikeStore:
     """Open and check a spike store; an error if it is missing, malformed or unfinished."""
+    group = open_group(url, "spike store")
     try:
-        group = zarr.open_group(zarr_store(url, read_only=True), mode="r")
         store = SpikeStore(url, group)
-    except FileNotFoundError:
-        raise InputError(f"cannot read spike store {url}: no Zarr group there") from None
-    except InputError:
-        raise
-    except zarr.errors.ContainsArrayError:
-        raise InputError(f"cannot read spike store {url}: it holds a Zarr array, not a group") from None
-    except (ValueError, TypeError, KeyError, AttributeError, zarr.errors.BaseZarrError) as error:
-        reason = " ".join(str(error).split()) or type(error).__name__
-        raise InputError(f"cannot read spike store {url}: its Zarr metadata is damaged or not a spike store "
-                         f"({reason})") from None
+    except (TypeError, KeyError, AttributeError) as error:  # metadata of the wrong shape
+        raise InputError(f"cannot read spike store {url}: its Zarr metadata is not a spike store's "
+                         f"({describe(error)})") from None
     if not (allow_incomplete or store.complete):
         raise InputError(f"spike store {url} is incomplete (state {store.attrs.get('state')!r}): its writer did not finish")
     return store

@@ -48,6 +48,23 @@ def zarr_store(url: str, *, read_only: bool) -> zarr.abc.store.Store:
     return zarr.storage.FsspecStore.from_url(str(url), read_only=read_only)
 
 
+def open_group(url: str, what: str = "store") -> zarr.Group:
+    """The Zarr group at ``url``, read-only; a one-line error if it is missing, an array, or damaged."""
+    try:
+        return zarr.open_group(zarr_store(url, read_only=True), mode="r")
+    except FileNotFoundError:
+        raise InputError(f"cannot read {what} {url}: no Zarr group there") from None
+    except zarr.errors.ContainsArrayError:
+        raise InputError(f"cannot read {what} {url}: it holds a Zarr array, not a group") from None
+    except (ValueError, TypeError, KeyError, AttributeError, zarr.errors.BaseZarrError) as error:
+        raise InputError(f"cannot read {what} {url}: its Zarr metadata is damaged ({describe(error)})") from None
+
+
+def describe(error: BaseException) -> str:
+    """An exception as one line of text."""
+    return " ".join(str(error).split()) or type(error).__name__
+
+
 def size_of(url: str) -> int:
     """Bytes stored under a URL (a file, or every file of a directory tree)."""
     fs, path = resolve(url)

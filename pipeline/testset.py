@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cscsr.training_data import TEST_PICTURES as PICTURES
 from pipeline.cluster import dask_client
 from pipeline.evaluate import evaluate
 from pipeline.images import write_image
@@ -23,7 +24,6 @@ from pipeline.storage import claim_output, resolve
 from stages.errors import InputError
 from stages.pictures import labelled, side_by_side
 
-PICTURES = ("astronaut", "coffee", "chelsea")  # cscsr.training_data.TEST_PICTURES
 ALPHAS = (0.6, 0.8, 1.0)
 HR_SIDE, SCALE, FRAMES, TRUTH_EVERY, SPEED = 256, 4, 123, 41, 0.5
 
@@ -94,7 +94,7 @@ def evaluate_testset(testset: str, methods: list[str], out: str, *, weights: str
     claim_output(out, overwrite=True, flag="")
     out_fs, out_root = resolve(out)
     out_fs.makedirs(out_root, exist_ok=True)
-    per_item, crops = [], {}
+    per_item = []
     with dask_client(workers=workers, scheduler=scheduler) as client:
         for item in chosen:
             rows = evaluate(f"{testset.rstrip('/')}/{item.name}.zarr", methods, f"{out.rstrip('/')}/{item.name}",

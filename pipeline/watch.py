@@ -243,11 +243,12 @@ def watch_once(inbox: str, outbox: str, options: WatchOptions, client, log=print
             counts["waiting"] += 1  # still being written, or just landed: next pass
             continue
         params = parameters(candidate, options)
-        key = key_of(fingerprint(candidate), params)
+        bytes_hash = fingerprint(candidate)
+        key = key_of(bytes_hash, params)
         row = ledger.get(key)
         if row is None:
             owner = ledger.owner_of(candidate.name)
-            ledger.queue(key, candidate.name, candidate.url, fingerprint(candidate), params)
+            ledger.queue(key, candidate.name, candidate.url, bytes_hash, params)
             if owner is not None:
                 ledger.start(key, None)
                 ledger.fail(key, f"output name {candidate.name!r} already belongs to {owner.source} (other bytes or "

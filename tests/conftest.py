@@ -84,3 +84,13 @@ def write_dat(path, bits: np.ndarray, *, flip: bool = False) -> bytes:
     with open(path, "wb") as handle:
         handle.write(data)
     return data
+
+
+@pytest.fixture(scope="module")
+def client():
+    """A real LocalCluster of two single-threaded worker processes, shared by a test module."""
+    from distributed import Client, LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
+            Client(cluster) as connected:
+        yield connected

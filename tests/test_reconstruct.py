@@ -10,19 +10,11 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 import zarr
-from distributed import Client, LocalCluster
 
 from pipeline.reconstruct import ReconstructOptions, output_centres, reconstruct
 from pipeline.simulate import SimulateOptions, simulate
 from tests.test_bad_input import assert_refused
 from tests.test_simulate import chunk_files, picture
-
-
-@pytest.fixture(scope="module")
-def client():
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
-            Client(cluster) as connected:
-        yield connected
 
 
 @pytest.fixture(scope="module")

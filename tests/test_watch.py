@@ -8,7 +8,6 @@ import subprocess
 import sys
 import time
 
-import numpy as np
 import pytest
 
 from cscsr import samples
@@ -37,15 +36,6 @@ def drop(inbox, name: str, data: bytes, sidecar=None) -> None:
 
 def states(outbox) -> dict:
     return {row.name: (row.state, row.final, row.attempts, row.error) for row in Ledger(outbox).rows()}
-
-
-@pytest.fixture(scope="module")
-def client():
-    from distributed import Client, LocalCluster
-
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
-            Client(cluster) as connected:
-        yield connected
 
 
 def test_bad_input_is_recorded_and_never_stops_the_others(tmp_path, client, cli):

@@ -10,23 +10,14 @@ import threading
 import time
 
 import imageio.v3 as iio
-import numpy as np
 import pytest
 import zarr
-from distributed import Client, LocalCluster
 
 from pipeline.reconstruct import JobIncomplete, ReconstructOptions, reconstruct
 from pipeline.simulate import SimulateOptions, simulate
 from tests.test_simulate import chunk_files, picture
 
 BIN = os.path.dirname(sys.executable)
-
-
-@pytest.fixture(scope="module")
-def client():
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
-            Client(cluster) as connected:
-        yield connected
 
 
 @pytest.fixture(scope="module")
