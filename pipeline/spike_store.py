@@ -168,8 +168,10 @@ def open_spike_store(url: str, *, allow_incomplete: bool = False) -> SpikeStore:
     group = open_group(url, "spike store")
     try:
         store = SpikeStore(url, group)
-    except (TypeError, KeyError, AttributeError) as error:  # metadata of the wrong shape
-        raise InputError(f"cannot read spike store {url}: its Zarr metadata is not a spike store's "
+    except InputError:
+        raise
+    except (ValueError, TypeError, KeyError, AttributeError, zarr.errors.BaseZarrError) as error:  # damaged arrays
+        raise InputError(f"cannot read spike store {url}: its Zarr metadata is damaged or not a spike store's "
                          f"({describe(error)})") from None
     if not (allow_incomplete or store.complete):
         raise InputError(f"spike store {url} is incomplete (state {store.attrs.get('state')!r}): its writer did not finish")
