@@ -9,7 +9,10 @@ wall time, output frames per second, the kernel's peak RSS (VmHWM) of each worke
 client process (which hosts the scheduler), and the largest number of tasks the scheduler
 held at once (sampled every 20 ms). Reference: the shortest recording. Goal: memory and the
 scheduler's task count flat across lengths (a bounded submission window, tasks reading only
-their own window). Not in CI: the longest run takes minutes.
+their own window). Peaks alone cannot tell a leak from caches filling up to their bounds, so
+the current RSS of workers and client is also sampled every second: the table gives it at the
+half-way point and at the end of each run (a leak keeps growing over the second half; bounded
+caches have stopped). Not in CI: the longest run takes minutes.
 
 Run: ``python benchmarks/soak.py [--lengths 10000,100000,1000000] [--size 16]``.
 """
@@ -63,21 +66,39 @@ def child(store: str, out: str) -> dict:
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
             Client(cluster) as client:
         most, stop = [0], threading.Event()
+        pids = list(client.run(os.getpid).values())
+        timeline = []  # (seconds, largest worker RSS, client RSS), every second
 
         def sample():
+            tick = time.perf_counter()
             while not stop.wait(0.02):
                 most[0] = max(most[0], len(cluster.scheduler.tasks))
+                if time.perf_counter() - tick >= 1:
+                    tick = time.perf_counter()
+                    timeline.append((tick - start, max(map(resident, pids)), resident(os.getpid())))
 
+        start = time.perf_counter()
         sampler = threading.Thread(target=sample, daemon=True)
         sampler.start()
-        start = time.perf_counter()
         counts = reconstruct(store, out, ReconstructOptions(every=41, tile=256, gain=2.0), client=client, progress=False)
         seconds = time.perf_counter() - start
         stop.set()
-        pids = client.run(os.getpid)
-        workers = [high_water(pid) for pid in pids.values()]
+        sampler.join()
+        workers = [high_water(pid) for pid in pids]
+    half = [row for row in timeline if row[0] >= seconds / 2][:1] or timeline[-1:]
     return {"seconds": seconds, "frames": counts["frames"], "worker_peaks": workers,
-            "client_peak": high_water(os.getpid()), "most_scheduler_tasks": most[0]}
+            "client_peak": high_water(os.getpid()), "most_scheduler_tasks": most[0],
+            "rss_half": half[0][1:] if half else None, "rss_end": timeline[-1][1:] if timeline else None,
+            "timeline": timeline}
+
+
+def resident(pid: int) -> int:
+    """A process's current RSS, bytes (``VmRSS``)."""
+    with open(f"/proc/{pid}/status") as status:
+        for line in status:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    raise RuntimeError(f"no VmRSS in /proc/{pid}/status")
 
 
 def main() -> None:
@@ -105,12 +126,19 @@ def main() -> None:
         rows.append([f"{r['spike_frames']:,}", f"{r['frames']:,}", f"{r['seconds']:.1f}", f"{r['frames'] / r['seconds']:.0f}",
                      f"{max(r['worker_peaks']) / 2**20:.0f} ({max(r['worker_peaks']) / max(base['worker_peaks']):.2f}x)",
                      f"{r['client_peak'] / 2**20:.0f} ({r['client_peak'] / base['client_peak']:.2f}x)",
-                     f"{r['most_scheduler_tasks']}"])
+                     f"{r['most_scheduler_tasks']}", _growth(r, 0), _growth(r, 1)])
     print(f"\n{args.size}x{args.size} RGGB, TFP, every 41, 2 workers; load average {load_average()}\n")
     print(markdown_table(["spike frames", "output frames (tasks)", "seconds", "output frames / s",
                           "largest worker peak RSS MiB (vs shortest)", "client + scheduler peak RSS MiB (vs shortest)",
-                          "most tasks held by the scheduler"], rows))
+                          "most tasks held by the scheduler", "worker RSS MiB half-way -> end",
+                          "client RSS MiB half-way -> end"], rows))
     save_results("soak", {"size": args.size, "runs": results})
+
+
+def _growth(run: dict, which: int) -> str:
+    if not run["rss_half"]:
+        return "(run under 1 s)"
+    return f"{run['rss_half'][which] / 2**20:.0f} -> {run['rss_end'][which] / 2**20:.0f}"
 
 
 if __name__ == "__main__":

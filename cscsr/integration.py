@@ -24,9 +24,9 @@ class Integration(nn.Module):
         self.up = nn.ModuleList([nn.Sequential(nn.Conv2d(features, 4 * features, 3, 1, 1), nn.PixelShuffle(2),
                                                nn.ReLU(inplace=True)) for _ in SCALES])
         self.heads = nn.ModuleList([nn.Conv2d(features, 3, 3, 1, 1) for _ in SCALES])
-        for head in self.heads:  # an untrained network returns (almost) its base image: training starts there
-            nn.init.normal_(head.weight, std=1e-3)
-            nn.init.zeros_(head.bias)
+        for head in self.heads:  # an untrained network returns its base image: training starts there
+            nn.init.zeros_(head.weight)  # a random start residual was measured to make the optimiser kill the
+            nn.init.zeros_(head.bias)  # features' ReLUs to remove it, leaving the network stuck at its base
 
     def forward(self, colours: torch.Tensor, zero_reset: torch.Tensor, scale: int) -> torch.Tensor:
         b, _, h, w = colours.shape
