@@ -48,7 +48,11 @@ def main() -> None:
     rows = [[f"{s['tasks']:,}", f"{s['seconds']:.0f}", f"{max(s['workers']) / 2**20:.0f}", f"{s['client'] / 2**20:.0f}"]
             for s in samples]
     last = samples[-1]
-    per_task = lambda a, b: (b - a) / (last["tasks"] - first["tasks"]) / 1024  # noqa: E731
+
+    def per_task(before: int, after: int) -> float:
+        """KiB of RSS gained per task between the first and the last sample."""
+        return (after - before) / (last["tasks"] - first["tasks"]) / 1024
+
     print(f"\ntrivial tasks, 2 workers; load average {load_average()}\n")
     print(markdown_table(["tasks done", "seconds", "largest worker RSS MiB", "client + scheduler RSS MiB"], rows))
     print(f"\ngrowth per task after the first {first['tasks']:,}: worker "
