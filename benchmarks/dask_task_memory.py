@@ -16,7 +16,7 @@ import sys
 import time
 
 from _common import ROOT, load_average, markdown_table, save_results
-from soak import resident
+from reconstruct_memory import resident
 
 
 def plus_one(i: int) -> int:

@@ -50,11 +50,21 @@ def high_water(pid: int) -> int:
     Not ``ru_maxrss``: Linux carries that across fork + exec, so a fresh interpreter would
     report the peak of the process that started it.
     """
+    return memory_field(pid, "VmHWM")
+
+
+def resident(pid: int) -> int:
+    """A process's current RSS, bytes (``VmRSS``)."""
+    return memory_field(pid, "VmRSS")
+
+
+def memory_field(pid: int, field: str) -> int:
+    """A memory figure (kB in ``/proc/<pid>/status``) in bytes."""
     with open(f"/proc/{pid}/status") as status:
         for line in status:
-            if line.startswith("VmHWM:"):
+            if line.startswith(f"{field}:"):
                 return int(line.split()[1]) * 1024
-    raise RuntimeError(f"no VmHWM in /proc/{pid}/status")
+    raise RuntimeError(f"no {field} in /proc/{pid}/status")
 
 
 class Sampler(threading.Thread):

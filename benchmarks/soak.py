@@ -27,7 +27,7 @@ import threading
 import time
 
 from _common import ROOT, load_average, markdown_table, save_results
-from reconstruct_memory import high_water
+from reconstruct_memory import high_water, resident
 
 
 def write_recording(url: str, frames: int, size: int) -> None:
@@ -90,15 +90,6 @@ def child(store: str, out: str) -> dict:
             "client_peak": high_water(os.getpid()), "most_scheduler_tasks": most[0],
             "rss_half": half[0][1:] if half else None, "rss_end": timeline[-1][1:] if timeline else None,
             "timeline": timeline}
-
-
-def resident(pid: int) -> int:
-    """A process's current RSS, bytes (``VmRSS``)."""
-    with open(f"/proc/{pid}/status") as status:
-        for line in status:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) * 1024
-    raise RuntimeError(f"no VmRSS in /proc/{pid}/status")
 
 
 def main() -> None:

@@ -14,6 +14,7 @@ from stages.bits import pack_rows
 from stages.errors import InputError
 from stages.reconstruct import Window
 from stages.tiles import tile_grid
+from tests.conftest import with_random_heads
 
 FRAMES = 41
 
@@ -33,13 +34,6 @@ def lite() -> CSCSR:
     for decoder in model.motion.flow.decoders:  # untrained flows start at zero: give them motion to carry
         torch.nn.init.normal_(decoder.body[-1].weight, std=0.01)
     return with_random_heads(model)
-
-
-def with_random_heads(model: CSCSR) -> CSCSR:
-    """Untrained heads give a zero residual (the output is the base image): make the network's part show."""
-    for head in model.integration.heads:  # as the heads were initialised before they started at zero
-        torch.nn.init.normal_(head.weight, std=1e-3)
-    return model
 
 
 def run(model, spikes, cfa="rggb", scale=4, **kw):

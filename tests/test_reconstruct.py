@@ -13,6 +13,7 @@ import zarr
 
 from pipeline.reconstruct import ReconstructOptions, output_centres, reconstruct
 from pipeline.simulate import SimulateOptions, simulate
+from tests.conftest import with_random_heads
 from tests.test_bad_input import assert_refused
 from tests.test_simulate import chunk_files, picture
 
@@ -206,10 +207,7 @@ def random_weights(tmp_path_factory) -> str:
 
     torch.manual_seed(0)
     path = tmp_path_factory.mktemp("weights") / "lite-random.safetensors"
-    model = CSCSR(named("lite"))
-    for head in model.integration.heads:  # untrained heads give a zero residual: make the network's part show
-        torch.nn.init.normal_(head.weight, std=1e-3)
-    save_weights(model, path, steps="0 (random initialisation)")
+    save_weights(with_random_heads(CSCSR(named("lite"))), path, steps="0 (random initialisation)")
     return str(path)
 
 

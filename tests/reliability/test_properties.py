@@ -69,16 +69,20 @@ def test_tfp_rate_bounds_and_mean(bits):
     _, h, w = bits.shape
     packed = pack_rows(bits)
     rate = tfp_rate(packed, w, "subtract")
-    assert rate.dtype == np.float32 and rate.shape == (h, w)
-    assert np.isfinite(rate).all()
-    assert (rate >= 0).all() and (rate <= 1).all()
-    np.testing.assert_allclose(rate, bits.mean(axis=0), rtol=1e-6, atol=1e-7)
-
     zero = tfp_rate(packed, w, "zero")
-    assert np.isfinite(zero).all()
-    assert (zero >= 0).all() and (zero <= 2 + 1e-6).all()  # undo_zero_reset(1) == 2
+    assert_rates_in_bounds(rate, zero, (h, w))
+    np.testing.assert_allclose(rate, bits.mean(axis=0), rtol=1e-6, atol=1e-7)
     assert (zero >= rate - 1e-7).all()  # the correction only ever brightens
     np.testing.assert_allclose(zero, undo_zero_reset(rate), rtol=1e-6)
+
+
+def assert_rates_in_bounds(rate: np.ndarray, zero: np.ndarray, shape: tuple[int, int]) -> None:
+    """A subtract-reset rate image: float32, finite, in [0, 1]; its zero-reset reading: finite, in [0, 2]
+    (undo_zero_reset(1) == 2)."""
+    assert rate.dtype == np.float32 and rate.shape == shape
+    assert np.isfinite(rate).all() and np.isfinite(zero).all()
+    assert (rate >= 0).all() and (rate <= 1).all()
+    assert (zero >= 0).all() and (zero <= 2 + 1e-6).all()
 
 
 def test_undo_zero_reset_end_points():
@@ -92,12 +96,8 @@ def test_tfi_rate_bounds_and_finite(bits):
     n, h, w = bits.shape
     packed = pack_rows(bits)
     rate = tfi_rate(packed, w, "subtract")
-    assert rate.dtype == np.float32 and rate.shape == (h, w)
-    assert np.isfinite(rate).all()
-    assert (rate >= 0).all() and (rate <= 1).all()
     zero = tfi_rate(packed, w, "zero")
-    assert np.isfinite(zero).all()
-    assert (zero >= 0).all() and (zero <= 2 + 1e-6).all()
+    assert_rates_in_bounds(rate, zero, (h, w))
     # a pixel that never fires reads 0 with both resets; one that always fires reads 1 (subtract)
     silent, busy = bits.sum(axis=0) == 0, bits.sum(axis=0) == n
     assert (rate[silent] == 0).all() and (zero[silent] == 0).all()
