@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stages.cfa import BAYER_PATTERNS
+from stages.cfa import BAYER_PATTERNS, flip_horizontally, flip_vertically, transpose
 from stages.frames import to_unit_rgb
 from stages.motion import CameraPath, render
 from stages.sensor import SensorModel, area_downsample, cfa_sample, fire, increments, initial_state
@@ -143,6 +143,30 @@ def random_clip(seed, *, lr_side: int, scale: int, pictures: tuple[str, ...] = T
                          cfa=BAYER_PATTERNS[rng.integers(4)], zero_reset=bool(rng.random() < 0.5),
                          noise="realistic" if rng.random() < 0.5 else "none",
                          speed=float(rng.uniform(0, MAX_SPEED)))
+
+
+def reoriented(clip: Clip, orientation: int) -> Clip:
+    """The clip seen under one of the 8 flips and quarter turns (0 leaves it as it is).
+
+    Spikes, truth and flows turn together and the CFA name follows the turn, so the result is
+    exactly the clip the simulator would give for the turned scene: eight clips for one
+    simulation. Bits 0, 1, 2 of ``orientation``: transpose, then flip left-right, then upside down.
+    """
+    spikes, truth, flows, cfa = clip.spikes, clip.truth, clip.flows, clip.cfa
+    if orientation & 1:
+        spikes, truth = spikes.swapaxes(-1, -2), truth.swapaxes(-1, -2)
+        flows, cfa = flows[:, ::-1].swapaxes(-1, -2), transpose(cfa)  # (x, y) -> (y, x)
+    if orientation & 2:
+        spikes, truth, flows = spikes[..., ::-1], truth[..., ::-1], flows[..., ::-1] * _SIGNS[0]
+        cfa = flip_horizontally(cfa, spikes.shape[-1])
+    if orientation & 4:
+        spikes, truth, flows = spikes[..., ::-1, :], truth[..., ::-1, :], flows[..., ::-1, :] * _SIGNS[1]
+        cfa = flip_vertically(cfa, spikes.shape[-2])
+    return Clip(np.ascontiguousarray(spikes), np.ascontiguousarray(truth), np.ascontiguousarray(flows, np.float32),
+                cfa, clip.zero_reset, clip.alpha, clip.scale)
+
+
+_SIGNS = (np.array([-1, 1], np.float32)[:, None, None], np.array([1, -1], np.float32)[:, None, None])  # x or y negated
 
 
 def batch_arrays(clips: list[Clip]) -> dict:

@@ -210,6 +210,8 @@ def train(out: Annotated[str, typer.Argument(help="Folder for checkpoints, log.j
           lr_side: Annotated[int, typer.Option(help="LR crop side of a training clip (even).")] = 32,
           learning_rate: Annotated[float, typer.Option(help="Adam learning rate (x0.9 every 7,500 steps).")] = 2e-4,
           seed: Annotated[int, typer.Option(help="Seed of the clips and the initial weights.")] = 0,
+          pool: Annotated[int, typer.Option(help="Clips simulated up front and reused under 8 flips and turns "
+                                                 "(0: a fresh clip every time).")] = 0,
           checkpoint_every: Annotated[int, typer.Option(help="Steps between checkpoints.")] = 100,
           validate_every: Annotated[int, typer.Option(help="Steps between validation PSNR lines.")] = 250,
           threads: Annotated[Optional[int], typer.Option(help="Torch threads (default: every core).")] = None,
@@ -222,7 +224,7 @@ def train(out: Annotated[str, typer.Argument(help="Folder for checkpoints, log.j
     if threads:
         torch.set_num_threads(threads)
     options = TrainOptions(config=config, steps=steps, batch=batch, lr_side=lr_side, learning_rate=learning_rate,
-                           seed=seed, checkpoint_every=checkpoint_every, validate_every=validate_every)
+                           seed=seed, pool=pool, checkpoint_every=checkpoint_every, validate_every=validate_every)
     final = run(options, out, resume=resume, log=lambda line: stdout.print(line, highlight=False),
                 command="cscsr train " + " ".join(sys.argv[2:]))
     stdout.print(f"weights: {final}")

@@ -34,6 +34,18 @@ def flip_vertically(cfa: str, height: int) -> str:
     return cfa[2:] + cfa[:2]
 
 
+def flip_horizontally(cfa: str, width: int) -> str:
+    """The pattern as seen after mirroring an image of ``width`` columns left to right."""
+    if cfa == "mono" or width % 2:
+        return cfa
+    return cfa[1] + cfa[0] + cfa[3] + cfa[2]
+
+
+def transpose(cfa: str) -> str:
+    """The pattern as seen after swapping an image's rows and columns."""
+    return cfa if cfa == "mono" else cfa[0] + cfa[2] + cfa[1] + cfa[3]
+
+
 def colour_index(cfa: str, height: int, width: int) -> np.ndarray:
     """(H, W) int8 map of the colour each pixel sees: 0 R, 1 G, 2 B; -1 everywhere for mono."""
     if cfa == "mono":

@@ -11,7 +11,7 @@ from cscsr.training_data import TEST_PICTURES, TRAIN_PICTURES, random_clip
 from cscsr.weights_io import load_model
 from stages.errors import InputError
 
-TINY = dict(batch=2, lr_side=16, checkpoint_every=2, validate_every=2, validation_clips=1)
+TINY = dict(batch=2, lr_side=16, checkpoint_every=2, validate_every=2, validation_clips=1, warmup=2)
 
 
 def test_a_clip_is_reproducible_and_consistent():
@@ -74,3 +74,59 @@ def test_export_weights_from_a_checkpoint(tmp_path, cli):
     assert metadata["steps"] == "2"
     assert all(torch.equal(a, b) for a, b in zip(exported.state_dict().values(), final.state_dict().values()))
     assert cli("export-weights", tmp_path, tmp_path / "x.safetensors").exit_code == 1
+
+
+def warp_error(clip, flows) -> float:
+    """How well ``flows`` (middle -> frame 11) carry the spikes around frame 11 onto those around frame 20."""
+    from cscsr.warp import warp
+
+    spikes = torch.from_numpy(clip.spikes).float()
+    middle, early = spikes[16:25].mean(0)[None, None], spikes[7:16].mean(0)[None, None]
+    moved = warp(early, torch.from_numpy(np.ascontiguousarray(flows[0]))[None])
+    return float((moved - middle).abs()[..., 4:-4, 4:-4].mean())
+
+
+def test_a_reoriented_clip_is_the_clip_of_the_turned_scene():
+    from cscsr.train import psnr_intensity
+    from cscsr.training_data import batch_arrays, dead_leaves, reoriented, simulate_clip
+
+    rng = np.random.default_rng(5)
+    grey = np.repeat(dead_leaves(rng, 4 * 48).mean(2, keepdims=True), 3, 2)  # grey: the mosaic is one image
+    clip = simulate_clip(grey, rng, lr_side=32, scale=4, alpha=0.9, cfa="rggb", zero_reset=False, noise="none",
+                         speed=0.15)
+    colourful = random_clip([3, 1], lr_side=16, scale=4)
+    model_base = None
+    for orientation in range(8):
+        turned = reoriented(clip, orientation)
+        # the flows still say where the picture went: better than no flow, negated or with x and y swapped
+        right = warp_error(turned, turned.flows)
+        assert right == pytest.approx(warp_error(clip, clip.flows), abs=1e-6)
+        assert right < 0.9 * min(warp_error(turned, 0 * turned.flows), warp_error(turned, -turned.flows),
+                                 warp_error(turned, turned.flows[:, ::-1]))
+        # the CFA name follows the turn: the demosaicked base image is exactly as good
+        probe = to_tensors(batch_arrays([reoriented(colourful, orientation)]))
+        from cscsr.network import CSCSR
+        from cscsr.config import named
+
+        model_base = model_base or CSCSR(named("lite")).eval()
+        with torch.inference_mode():
+            base = model_base(probe["spikes"], probe["cfa"], probe["zero_reset"], 4)["base"]
+        score = psnr_intensity(base, probe["truth"], probe["alpha"])
+        reference = score if orientation == 0 else reference
+        assert score == pytest.approx(reference, abs=1e-4)
+    assert reoriented(reoriented(colourful, 1), 1).cfa == colourful.cfa
+    assert np.array_equal(reoriented(reoriented(colourful, 6), 6).truth, colourful.truth)
+
+
+def test_a_pool_is_reproducible_and_batches_come_from_it():
+    from cscsr.train import clip_pool
+
+    options = TrainOptions(pool=3, scale4_share=1.0, **TINY)
+    pool = clip_pool(options)
+    again = clip_pool(options)
+    assert len(pool[4]) == 3 and not pool[2]
+    assert all(np.array_equal(a.spikes, b.spikes) for a, b in zip(pool[4], again[4]))
+    first, repeat = make_batch(5, options, {}, pool), make_batch(5, options, {}, pool)
+    assert np.array_equal(first["spikes"], repeat["spikes"]) and first["cfa"] == repeat["cfa"]
+    sums = {float(c.truth.sum()) for c in pool[4]}
+    assert all(round(float(t.sum()), 2) in {round(s, 2) for s in sums} for t in first["truth"])  # turned, not new
