@@ -163,12 +163,15 @@ def reconstruct(store: Annotated[str, typer.Argument(help="Spike store URL.")],
                 weights: Annotated[Optional[str], typer.Option(help="Network weights (safetensors) for cscsr.")] = None,
                 workers: Workers = None, scheduler: Scheduler = None,
                 resume: Annotated[bool, typer.Option("--resume", help="Finish an interrupted run into OUT.")] = False,
-                overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace OUT if it exists.")] = False):
+                overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace OUT if it exists.")] = False,
+                segment_tasks: Annotated[int, typer.Option(help="Tasks per segment: each segment runs in a fresh "
+                                                                 "process and cluster, so memory stays bounded.")]
+                = 20_000):
     """Reconstruct HR colour video from a spike store, over Dask."""
     from pipeline.reconstruct import ReconstructOptions, reconstruct as run
 
-    counts = run(store, out, ReconstructOptions(method, every, window, gain, scale, tile, weights, resume, overwrite),
-                 workers=workers, scheduler=scheduler)
+    counts = run(store, out, ReconstructOptions(method, every, window, gain, scale, tile, weights, resume, overwrite,
+                                                segment_tasks), workers=workers, scheduler=scheduler)
     stdout.print(f"{out}: {counts['frames']} frames ({counts['tasks_run']} tasks run, {counts['tasks_skipped']} already committed)")
 
 

@@ -33,6 +33,13 @@ def _thread_env(workers: int) -> dict:
     return {name: threads for name in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
 
 
+def check_reachable(scheduler: str | None) -> None:
+    """Refuse at once, before any output exists, a scheduler (named or in the environment) that does not answer."""
+    if scheduler or os.environ.get("DASK_SCHEDULER_ADDRESS"):
+        with dask_client(scheduler=scheduler):
+            pass
+
+
 @contextlib.contextmanager
 def dask_client(*, workers: int | None = None, scheduler: str | None = None) -> Iterator[Client]:
     """A connected client; a local cluster of ``workers`` processes unless a scheduler is named."""

@@ -13,14 +13,16 @@ else automatic exposure of the middle window), so tiles and frames agree with ea
 import contextlib
 import functools
 import uuid
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
 
 from pipeline.batches import in_bounded_window, window_size
-from pipeline.cluster import dashboard_link, dask_client
+from pipeline.cluster import check_reachable, dashboard_link, dask_client
 from pipeline.lease import check_free, held
 from pipeline.progress import progress_bar
+from pipeline.segments import Outcome, in_segments
 from pipeline.spike_store import open_spike_store, read_frames
 from pipeline.storage import claim_output, exists
 from pipeline.video_store import TileWriter, committed_mask, create_video_store, open_video_store
@@ -30,6 +32,7 @@ from stages.reconstruct import METHODS, Window, classic
 from stages.tfp import tfp_rate
 from stages.tiles import Tile, tile_grid
 
+SEGMENT_TASKS = 20_000  # ~7 min of 16-tile 1000x1000 TFP frames on 2 workers; a fresh cluster costs ~3 s
 DEFAULT_TILE = 256  # LR pixels: a 1000x1000 frame becomes 16 tasks of 1024x1024 HR
 
 
@@ -44,6 +47,7 @@ class ReconstructOptions:
     weights: str | None = None
     resume: bool = False
     overwrite: bool = False
+    segment_tasks: int = SEGMENT_TASKS  # tasks per fresh cluster when the job starts its own (bounded memory)
 
 
 @dataclass(frozen=True)
@@ -153,13 +157,16 @@ def check_options(options: ReconstructOptions, n_frames: int) -> None:
         raise InputError(f"--tile must be a positive multiple of 8 LR pixels, got {options.tile}")
     if options.resume and options.overwrite:
         raise InputError("--resume and --overwrite contradict each other: choose one")
+    if options.segment_tasks < 1:
+        raise InputError(f"--segment-tasks must be >= 1, got {options.segment_tasks}")
 
 
 def reconstruct(store_url: str, out: str, options: ReconstructOptions = ReconstructOptions(), *,
                 workers: int | None = None, scheduler: str | None = None, client=None, progress: bool = True) -> dict:
     """Reconstruct the recording at ``store_url`` into an HR video store at ``out``.
 
-    Runs on ``client`` if given, else on a cluster from ``workers``/``scheduler``. Returns
+    Runs on ``client`` if given, else in segments of ``options.segment_tasks`` tasks, each on a
+    fresh cluster from ``workers``/``scheduler`` (see :mod:`pipeline.segments`). Returns
     counts: output frames, tasks run now, tasks found already committed.
     """
     store = open_spike_store(store_url)
@@ -170,6 +177,8 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
     method.check(options.window, scale, meta.cfa)
     if options.resume and not exists(out):
         raise InputError(f"cannot resume: {out} does not exist")
+    if not client:
+        check_reachable(scheduler)  # segments connect later, after the output exists
     if options.resume:
         check_free(out)
     else:
@@ -177,19 +186,26 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
     centres = output_centres(store.n_frames, options.window, options.every)
     grid = tile_grid(meta.height, meta.width, options.tile, method.halo)
 
-    with contextlib.nullcontext(client) if client else dask_client(workers=workers, scheduler=scheduler) as client:
-        if progress and (link := dashboard_link(client)):
-            print(f"dashboard: {link}")
-        gain = options.gain or meta.gain
-        if gain is None:
-            gain = client.submit(_auto_gain, store_url, centres[len(centres) // 2], options.window, meta.reset).result()
-        plan = Plan(store_url, out, options.method, options.weights, options.window, options.every, float(gain), scale,
-                    meta.cfa, meta.reset, options.tile, uuid.uuid4().hex)
-        done = _prepare_output(plan, options.resume, centres, grid, (meta.height * scale, meta.width * scale))
-        failed = _run_tasks(client, plan, options, centres, grid, method, done, progress)
-        if failed:
-            raise JobIncomplete(out, failed, len(centres))
-        open_video_store(out, writable=True).attrs["state"] = "complete"
+    gain = options.gain or meta.gain
+    if gain is None:
+        with contextlib.nullcontext(client) if client else dask_client(workers=workers, scheduler=scheduler) as c:
+            gain = c.submit(_auto_gain, store_url, centres[len(centres) // 2], options.window, meta.reset).result()
+    plan = Plan(store_url, out, options.method, options.weights, options.window, options.every, float(gain), scale,
+                meta.cfa, meta.reset, options.tile, uuid.uuid4().hex)
+    done = _prepare_output(plan, options.resume, centres, grid, (meta.height * scale, meta.width * scale))
+    groups = task_groups(len(centres), getattr(method, "batch", 1), (len(grid), len(grid[0])), done)
+    with held(out), progress_bar(f"reconstruct {options.method}", len(centres), enabled=progress) as advance:
+        if client:
+            if progress and (link := dashboard_link(client)):
+                print(f"dashboard: {link}")
+            outcomes = run_groups(client, plan, groups, centres, grid)
+        else:
+            outcomes = in_segments(run_groups, (plan,), groups, (centres, grid), options.segment_tasks,
+                                   workers=workers, scheduler=scheduler, show_dashboard=progress)
+        failed = _tally(outcomes, done, advance)
+    if failed:
+        raise JobIncomplete(out, failed, len(centres))
+    open_video_store(out, writable=True).attrs["state"] = "complete"
     skipped = int(done.sum())
     return {"frames": len(centres), "tasks_run": done.size - skipped, "tasks_skipped": skipped}
 
@@ -206,38 +222,42 @@ class JobIncomplete(RuntimeError):
         self.failed = failed
 
 
-def _run_tasks(client, plan: Plan, options: ReconstructOptions, centres: list[int], grid, method, done: np.ndarray,
-               progress: bool) -> dict[int, str]:
-    """Submit every task not yet committed, holding the output's lease; -> {frame: error} of failed ones."""
-    with held(plan.out):
-        tiles = (len(grid), len(grid[0]))
-        groups = task_groups(len(centres), getattr(method, "batch", 1), tiles, done)
-        failed = {}
-        remaining = {i: tiles[0] * tiles[1] - int(done[i].sum()) for i in range(len(centres))}
-        plan = client.scatter(plan, broadcast=True)  # sent to each worker once, not with every task
-        group_of = {}  # future key -> (frames, ty, tx) (cheaper than fetching each result)
+def run_groups(client, plan: Plan, groups: list, centres: list[int], grid) -> Iterator[Outcome]:
+    """Submit ``groups`` in a bounded window; yield each one's outcome as it finishes."""
+    shared = client.scatter(plan, broadcast=True)  # sent to each worker once, not with every task
+    group_of = {}  # future key -> (frames, ty, tx) (cheaper than fetching each result)
 
-        def submissions():
-            for frames, ty, tx in groups:
-                future = client.submit(_reconstruct_tile, plan, tuple((i, centres[i]) for i in frames), grid[ty][tx],
-                                       ty, tx, pure=False)
-                group_of[future.key] = (frames, ty, tx)
-                yield future
+    def submissions():
+        for frames, ty, tx in groups:
+            future = client.submit(_reconstruct_tile, shared, tuple((i, centres[i]) for i in frames), grid[ty][tx],
+                                   ty, tx, pure=False)
+            group_of[future.key] = (frames, ty, tx)
+            yield future
 
-        with progress_bar(f"reconstruct {options.method}", len(centres), enabled=progress) as advance:
-            advance(sum(1 for left in remaining.values() if left == 0))
-            for future in in_bounded_window(submissions(), window_size(client)):
-                frames, ty, tx = group_of.pop(future.key)
-                if future.status != "finished":  # the task raised: record it, go on with the others
-                    reason = " ".join(str(future.exception()).split()) or type(future.exception()).__name__
-                    failed.update({index: f"tile ({ty}, {tx}): {reason}" for index in frames})
-                    continue
-                for index in frames:
-                    if not done[index, ty, tx]:
-                        remaining[index] -= 1
-                        if remaining[index] == 0:
-                            advance(1)
-        return failed
+    for future in in_bounded_window(submissions(), window_size(client)):
+        frames, ty, tx = group_of.pop(future.key)
+        error = None
+        if future.status != "finished":  # the task raised: report it, go on with the others
+            error = " ".join(str(future.exception()).split()) or type(future.exception()).__name__
+        yield Outcome(frames.start, frames.stop, ty, tx, error)
+
+
+def _tally(outcomes: Iterable[Outcome], done: np.ndarray, advance) -> dict[int, str]:
+    """Count finished tiles per output frame (a frame is done when all its tiles are); -> {frame: error}."""
+    failed = {}
+    remaining = {i: done.shape[1] * done.shape[2] - int(done[i].sum()) for i in range(done.shape[0])}
+    advance(sum(1 for left in remaining.values() if left == 0))
+    for outcome in outcomes:
+        frames = range(outcome.start, outcome.stop)
+        if outcome.error is not None:
+            failed.update({index: f"tile ({outcome.ty}, {outcome.tx}): {outcome.error}" for index in frames})
+            continue
+        for index in frames:
+            if not done[index, outcome.ty, outcome.tx]:
+                remaining[index] -= 1
+                if remaining[index] == 0:
+                    advance(1)
+    return failed
 
 
 def _prepare_output(plan: Plan, resume: bool, centres: list[int], grid: list[list[Tile]], hr_size: tuple[int, int]):

@@ -72,6 +72,12 @@ def test_reconstruct_and_watch_on_a_real_scheduler(scheduler, recording, tmp_pat
     local = str(tmp_path / "local.zarr")
     reconstruct(recording, local, ReconstructOptions(method="tfi", every=10, tile=16), workers=1, progress=False)
 
+    # in segments of 12 tasks (of 36), each on its own fresh process and cluster: the same bytes
+    segmented = str(tmp_path / "segmented.zarr")
+    counts = reconstruct(recording, segmented, ReconstructOptions(method="tfi", every=10, tile=16, segment_tasks=12),
+                         workers=1, progress=False)
+    assert counts["tasks_run"] == 36 and chunk_files(segmented) == chunk_files(local)
+
     remote = str(tmp_path / "remote.zarr")
     run = subprocess.run([f"{BIN}/cscsr", "reconstruct", recording, remote, "--method", "tfi", "--every", "10",
                           "--tile", "16", "--scheduler", scheduler], capture_output=True, text=True, timeout=300)

@@ -1,0 +1,104 @@
+"""Long jobs in segments, each in a fresh process with a fresh cluster: memory that stays bounded.
+
+Dask keeps a little memory per task for good in every process that touches it (measured:
+~0.5 KiB per task in the client and scheduler, ~0.2-1 KiB in a worker; part of it is
+``dask.utils.key_split``'s cache of every task key, the rest we could not attribute; it is
+not released by ``malloc_trim`` or by closing the cluster). A million-task job would carry
+hundreds of MB of it. So a job that starts its own cluster runs its tasks ``size`` at a
+time in a child process that starts the cluster (scheduler and workers), runs them, and
+exits; the parent keeps only the plan, the progress bar and the lease. Outcomes stream back
+over a queue as they happen, so progress and failure reports are as live as in one process.
+
+The child dies with its parent (``PR_SET_PDEATHSIG``), so a killed job leaves no segment
+writing behind it, and ``--resume`` finds the output as the last committed task left it.
+"""
+
+import ctypes
+import multiprocessing
+import queue
+import signal
+import sys
+from collections.abc import Callable, Iterator, Sequence
+from typing import NamedTuple
+
+from stages.errors import InputError
+
+
+class Outcome(NamedTuple):
+    """One finished task: output frames ``start:stop`` of tile (ty, tx), and its error if it raised."""
+
+    start: int
+    stop: int
+    ty: int
+    tx: int
+    error: str | None
+
+
+_END = "end"
+_FAILED = "failed"
+
+
+def in_segments(run: Callable[..., Iterator[Outcome]], before: tuple, items: Sequence, after: tuple, size: int, *,
+                workers: int | None, scheduler: str | None, show_dashboard: bool) -> Iterator[Outcome]:
+    """``run(client, *before, items[i:i + size], *after)`` for each segment, each in its own process."""
+    context = multiprocessing.get_context("spawn")  # a fresh interpreter: nothing carried over
+    for start in range(0, len(items), size):
+        messages = context.Queue()
+        child = context.Process(target=_segment, name=f"cscsr-segment-{start // size}",
+                                args=(run, before, items[start : start + size], after, workers, scheduler,
+                                      show_dashboard and start == 0, messages))
+        child.start()
+        try:
+            yield from _relay(messages, child)
+        finally:
+            if child.is_alive():  # the parent stops early (an error, Ctrl-C): the segment stops too
+                child.terminate()
+            child.join()
+
+
+def _relay(messages, child) -> Iterator[Outcome]:
+    while True:
+        try:
+            message = messages.get(timeout=1.0)
+        except queue.Empty:
+            if child.is_alive():
+                continue
+            try:  # it may have finished between the two checks
+                message = messages.get(timeout=1.0)
+            except queue.Empty:
+                raise RuntimeError(f"the segment process stopped (exit code {child.exitcode}) without finishing: "
+                                   "its committed tasks are kept; run again with --resume") from None
+        if message[0] == _END:
+            return
+        if message[0] == _FAILED:
+            kind, text = message[1], message[2]
+            raise (InputError if kind == "InputError" else RuntimeError)(text)
+        yield Outcome(*message[1:])
+
+
+def _segment(run, before, items, after, workers, scheduler, show_dashboard, messages) -> None:
+    """Child: start a cluster, run the segment, send each outcome, exit (and all its memory with it)."""
+    _die_with_parent()
+    from pipeline.cluster import dashboard_link, dask_client
+
+    try:
+        with dask_client(workers=workers, scheduler=scheduler) as client:
+            if show_dashboard and (link := dashboard_link(client)):
+                print(f"dashboard: {link}", file=sys.stderr)
+            for outcome in run(client, *before, items, *after):
+                messages.put(("outcome", *outcome))
+        messages.put((_END,))
+    except Exception as error:  # reported by the parent, which owns the user's terminal and exit code
+        messages.put((_FAILED, type(error).__name__, " ".join(str(error).split()) or type(error).__name__))
+    finally:
+        messages.close()
+        messages.join_thread()
+
+
+def _die_with_parent() -> None:
+    """Ask Linux to SIGKILL this process when its parent dies (no-op elsewhere)."""
+    if sys.platform.startswith("linux"):
+        try:
+            ctypes.CDLL(None).prctl(1, signal.SIGKILL)  # 1 = PR_SET_PDEATHSIG
+        except (OSError, AttributeError):
+            pass
