@@ -4,20 +4,22 @@ What: for recordings of ``--lengths`` frames (default 10,000, 100,000 and 1,000,
 16x16 RGGB frames (an integrate-and-fire simulation of a slowly changing scene, written
 straight into a spike store in blocks), ``pipeline.reconstruct.reconstruct`` with TFP, window
 41, an output frame every 41 spike frames (244, 2,439 and 24,390 output frames; one task
-each), on a local cluster of 2 worker processes. Measured per length, in a fresh interpreter:
-wall time, output frames per second, the kernel's peak RSS (VmHWM) of each worker and of the
-client process (which hosts the scheduler), and the largest number of tasks the scheduler
-held at once (sampled every 20 ms). Reference: the shortest recording. Goal: memory and the
-scheduler's task count flat across lengths (a bounded submission window, tasks reading only
-their own window). Peaks alone cannot tell a leak from caches filling up to their bounds, so
-the current RSS of workers and client is also sampled every second: the table gives it at the
-half-way point and at the end of each run (a leak keeps growing over the second half; bounded
-caches have stopped). Not in CI: the longest run takes minutes.
+each), as ``cscsr reconstruct --workers 2`` runs it: in segments of ``--segment`` tasks, each in
+a fresh process with a fresh local cluster of 2 workers (``pipeline.segments``). Measured per
+length, in a fresh interpreter, by sampling the job's process tree every second: wall time,
+output frames per second, peak RSS (VmHWM) of the largest worker, of the largest segment
+process (client and scheduler) and of the job's own process. Reference: the shortest
+recording. Goal: every peak flat across lengths. Peaks alone cannot tell a leak from caches
+filling to their bounds, so the current RSS is given half-way and at the end of each run too.
+The graph stays bounded by construction (at most ``4 * workers + 4`` tasks submitted and
+unfinished; ``tests/test_reconstruct.py::test_submission_stays_in_a_bounded_window``).
+Not in CI: the longest run takes minutes.
 
-Run: ``python benchmarks/soak.py [--lengths 10000,100000,1000000] [--size 16]``.
+Run: ``python benchmarks/soak.py [--lengths 10000,100000,1000000] [--size 16] [--segment 10000]``.
 """
 
 import argparse
+import contextlib
 import json
 import os
 import subprocess
@@ -58,48 +60,60 @@ def write_recording(url: str, frames: int, size: int) -> None:
     writer.finish(spike_count=count)
 
 
-def child(store: str, out: str) -> dict:
-    from distributed import Client, LocalCluster
+def child(store: str, out: str, segment: int) -> dict:
+    """Run the job as ``cscsr reconstruct`` does (its own clusters, in segments); sample the process tree."""
+    import psutil
 
     from pipeline.reconstruct import ReconstructOptions, reconstruct
 
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
-            Client(cluster) as client:
-        most, stop = [0], threading.Event()
-        pids = list(client.run(os.getpid).values())
-        timeline = []  # (seconds, largest worker RSS, client RSS), every second
+    me = psutil.Process()
+    stop = threading.Event()
+    timeline = []  # (seconds, largest worker RSS, largest segment RSS, this process's RSS), every second
+    peaks = {"worker": 0, "segment": 0}
 
-        def sample():
-            tick = time.perf_counter()
-            while not stop.wait(0.02):
-                most[0] = max(most[0], len(cluster.scheduler.tasks))
-                if time.perf_counter() - tick >= 1:
-                    tick = time.perf_counter()
-                    timeline.append((tick - start, max(map(resident, pids)), resident(os.getpid())))
+    def sample():
+        while not stop.wait(1.0):
+            worker = segment_rss = 0
+            for process, depth in descendants(me):
+                with contextlib.suppress(psutil.Error, OSError):
+                    role = "segment" if depth == 1 else "worker"  # depth 2: nannies, 3: worker processes
+                    peaks[role] = max(peaks[role], high_water(process.pid))
+                    rss = resident(process.pid)
+                    worker, segment_rss = (max(worker, rss), segment_rss) if role == "worker" else \
+                        (worker, max(segment_rss, rss))
+            timeline.append((time.perf_counter() - start, worker, segment_rss, resident(os.getpid())))
 
-        start = time.perf_counter()
-        sampler = threading.Thread(target=sample, daemon=True)
-        sampler.start()
-        counts = reconstruct(store, out, ReconstructOptions(every=41, tile=256, gain=2.0), client=client, progress=False)
-        seconds = time.perf_counter() - start
-        stop.set()
-        sampler.join()
-        workers = [high_water(pid) for pid in pids]
-    half = [row for row in timeline if row[0] >= seconds / 2][:1] or timeline[-1:]
-    return {"seconds": seconds, "frames": counts["frames"], "worker_peaks": workers,
-            "client_peak": high_water(os.getpid()), "most_scheduler_tasks": most[0],
-            "rss_half": half[0][1:] if half else None, "rss_end": timeline[-1][1:] if timeline else None,
-            "timeline": timeline}
+    start = time.perf_counter()
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    counts = reconstruct(store, out, ReconstructOptions(every=41, tile=256, gain=2.0, segment_tasks=segment), workers=2,
+                         progress=False)
+    seconds = time.perf_counter() - start
+    stop.set()
+    sampler.join()
+    busy = [row for row in timeline if row[1]]  # samples while a segment's workers were up
+    half = [row for row in busy if row[0] >= seconds / 2][:1] or busy[-1:]
+    return {"seconds": seconds, "frames": counts["frames"], "segments": -(-counts["tasks_run"] // segment),
+            "worker_peak": peaks["worker"], "segment_peak": peaks["segment"], "job_peak": high_water(os.getpid()),
+            "rss_half": half[0][1:] if half else None, "rss_end": busy[-1][1:] if busy else None, "timeline": timeline}
+
+
+def descendants(process, depth: int = 1):
+    """(process, depth) for every process below ``process``."""
+    for kid in process.children():
+        yield kid, depth
+        yield from descendants(kid, depth + 1)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--lengths", default="10000,100000,1000000")
     parser.add_argument("--size", type=int, default=16)
+    parser.add_argument("--segment", type=int, default=10_000, help="tasks per segment (as cscsr reconstruct)")
     parser.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
-        print(json.dumps(child(*args.child)))
+        print(json.dumps(child(*args.child, args.segment)))
         return
     sys.path.insert(0, str(ROOT))
     rows, results = [], []
@@ -107,23 +121,27 @@ def main() -> None:
         for frames in map(int, args.lengths.split(",")):
             store, out = f"{scratch}/rec{frames}.zarr", f"{scratch}/out{frames}.zarr"
             write_recording(store, frames, args.size)
-            run = subprocess.run([sys.executable, __file__, "--child", store, out], cwd=ROOT, capture_output=True,
+            run = subprocess.run([sys.executable, __file__, "--child", store, out, "--segment", str(args.segment)], cwd=ROOT, capture_output=True,
                                  text=True, check=True)
             result = {"spike_frames": frames, **json.loads(run.stdout.strip().splitlines()[-1])}
             results.append(result)
             print(f"{frames} frames: {result['seconds']:.1f} s", file=sys.stderr, flush=True)
     base = results[0]
     for r in results:
-        rows.append([f"{r['spike_frames']:,}", f"{r['frames']:,}", f"{r['seconds']:.1f}", f"{r['frames'] / r['seconds']:.0f}",
-                     f"{max(r['worker_peaks']) / 2**20:.0f} ({max(r['worker_peaks']) / max(base['worker_peaks']):.2f}x)",
-                     f"{r['client_peak'] / 2**20:.0f} ({r['client_peak'] / base['client_peak']:.2f}x)",
-                     f"{r['most_scheduler_tasks']}", _growth(r, 0), _growth(r, 1)])
-    print(f"\n{args.size}x{args.size} RGGB, TFP, every 41, 2 workers; load average {load_average()}\n")
-    print(markdown_table(["spike frames", "output frames (tasks)", "seconds", "output frames / s",
-                          "largest worker peak RSS MiB (vs shortest)", "client + scheduler peak RSS MiB (vs shortest)",
-                          "most tasks held by the scheduler", "worker RSS MiB half-way -> end",
-                          "client RSS MiB half-way -> end"], rows))
-    save_results("soak", {"size": args.size, "runs": results})
+        rows.append([f"{r['spike_frames']:,}", f"{r['frames']:,}", f"{r['segments']}", f"{r['seconds']:.1f}",
+                     f"{r['frames'] / r['seconds']:.0f}", _peak(r, base, "worker_peak"), _peak(r, base, "segment_peak"),
+                     _peak(r, base, "job_peak"), _growth(r, 0), _growth(r, 1)])
+    print(f"\n{args.size}x{args.size} RGGB, TFP, every 41, 2 workers, {args.segment:,} tasks per segment; "
+          f"load average {load_average()}\n")
+    print(markdown_table(["spike frames", "output frames (tasks)", "segments", "seconds", "output frames / s",
+                          "largest worker peak RSS MiB (vs shortest)", "segment (client + scheduler) peak MiB",
+                          "job process peak MiB", "worker RSS MiB half-way -> end",
+                          "segment RSS MiB half-way -> end"], rows))
+    save_results("soak", {"size": args.size, "segment": args.segment, "runs": results})
+
+
+def _peak(run: dict, base: dict, key: str) -> str:
+    return f"{run[key] / 2**20:.0f} ({run[key] / base[key]:.2f}x)"
 
 
 def _growth(run: dict, which: int) -> str:

@@ -166,7 +166,7 @@ def reconstruct(store: Annotated[str, typer.Argument(help="Spike store URL.")],
                 overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace OUT if it exists.")] = False,
                 segment_tasks: Annotated[int, typer.Option(help="Tasks per segment: each segment runs in a fresh "
                                                                  "process and cluster, so memory stays bounded.")]
-                = 20_000):
+                = 10_000):
     """Reconstruct HR colour video from a spike store, over Dask."""
     from pipeline.reconstruct import ReconstructOptions, reconstruct as run
 

@@ -32,7 +32,7 @@ from stages.reconstruct import METHODS, Window, classic
 from stages.tfp import tfp_rate
 from stages.tiles import Tile, tile_grid
 
-SEGMENT_TASKS = 20_000  # ~7 min of 16-tile 1000x1000 TFP frames on 2 workers; a fresh cluster costs ~3 s
+SEGMENT_TASKS = 10_000  # minutes of work on any real frame size; a fresh process and cluster cost ~5 s
 DEFAULT_TILE = 256  # LR pixels: a 1000x1000 frame becomes 16 tasks of 1024x1024 HR
 
 
@@ -118,21 +118,20 @@ def _reconstruct_tile(plan: Plan, frames: tuple[tuple[int, int], ...], tile: Til
     return len(frames)
 
 
-def task_groups(n_frames: int, batch: int, tiles: tuple[int, int], done: np.ndarray) -> list[tuple[range, int, int]]:
+def task_groups(n_frames: int, batch: int, tiles: tuple[int, int], done: np.ndarray) -> Iterator[tuple[range, int, int]]:
     """(frames, ty, tx) of every task still to run: a tile of ``batch`` consecutive output frames.
 
     Groups are fixed by frame number, not by what is left, so a resumed job runs every batch
     exactly as an uninterrupted one would (a batch's numbers can depend on its size); a group
-    with any frame not committed runs whole.
+    with any frame not committed runs whole. Generated as consumed: a terabyte capture has
+    millions of tasks, and the job's process should not hold them all.
     """
-    groups = []
     for start in range(0, n_frames, batch):
         frames = range(start, min(start + batch, n_frames))
         for ty in range(tiles[0]):
             for tx in range(tiles[1]):
                 if not done[frames.start : frames.stop, ty, tx].all():
-                    groups.append((frames, ty, tx))
-    return groups
+                    yield frames, ty, tx
 
 
 def _auto_gain(spikes: str, centre: int, window: int, reset: str) -> float:
@@ -222,7 +221,7 @@ class JobIncomplete(RuntimeError):
         self.failed = failed
 
 
-def run_groups(client, plan: Plan, groups: list, centres: list[int], grid) -> Iterator[Outcome]:
+def run_groups(client, plan: Plan, groups: Iterable, centres: list[int], grid) -> Iterator[Outcome]:
     """Submit ``groups`` in a bounded window; yield each one's outcome as it finishes."""
     shared = client.scatter(plan, broadcast=True)  # sent to each worker once, not with every task
     group_of = {}  # future key -> (frames, ty, tx) (cheaper than fetching each result)
@@ -245,8 +244,8 @@ def run_groups(client, plan: Plan, groups: list, centres: list[int], grid) -> It
 def _tally(outcomes: Iterable[Outcome], done: np.ndarray, advance) -> dict[int, str]:
     """Count finished tiles per output frame (a frame is done when all its tiles are); -> {frame: error}."""
     failed = {}
-    remaining = {i: done.shape[1] * done.shape[2] - int(done[i].sum()) for i in range(done.shape[0])}
-    advance(sum(1 for left in remaining.values() if left == 0))
+    remaining = done.shape[1] * done.shape[2] - done.sum(axis=(1, 2))  # (frames,) tiles still to come
+    advance(int((remaining == 0).sum()))
     for outcome in outcomes:
         frames = range(outcome.start, outcome.stop)
         if outcome.error is not None:

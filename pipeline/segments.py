@@ -14,11 +14,12 @@ writing behind it, and ``--resume`` finds the output as the last committed task 
 """
 
 import ctypes
+import itertools
 import multiprocessing
 import queue
 import signal
 import sys
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator
 from typing import NamedTuple
 
 from stages.errors import InputError
@@ -38,15 +39,20 @@ _END = "end"
 _FAILED = "failed"
 
 
-def in_segments(run: Callable[..., Iterator[Outcome]], before: tuple, items: Sequence, after: tuple, size: int, *,
+def in_segments(run: Callable[..., Iterator[Outcome]], before: tuple, items: Iterable, after: tuple, size: int, *,
                 workers: int | None, scheduler: str | None, show_dashboard: bool) -> Iterator[Outcome]:
-    """``run(client, *before, items[i:i + size], *after)`` for each segment, each in its own process."""
+    """``run(client, *before, segment, *after)`` for each ``size`` items in turn, each in its own process
+    (items are drawn from ``items`` one segment at a time)."""
     context = multiprocessing.get_context("spawn")  # a fresh interpreter: nothing carried over
-    for start in range(0, len(items), size):
+    items = iter(items)
+    for number in itertools.count():
+        segment = list(itertools.islice(items, size))
+        if not segment:
+            return
         messages = context.Queue()
-        child = context.Process(target=_segment, name=f"cscsr-segment-{start // size}",
-                                args=(run, before, items[start : start + size], after, workers, scheduler,
-                                      show_dashboard and start == 0, messages))
+        child = context.Process(target=_segment, name=f"cscsr-segment-{number}",
+                                args=(run, before, segment, after, workers, scheduler, show_dashboard and number == 0,
+                                      messages))
         child.start()
         try:
             yield from _relay(messages, child)
