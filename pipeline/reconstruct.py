@@ -4,7 +4,9 @@ Output frame j is centred on spike frame ``c_j = W//2 + j*K`` and made from fram
 ``[c_j - W//2, c_j + W//2]``. Each (frame, tile) is one task that reads its own window and
 halo straight from Zarr (no overlap graph), reconstructs, crops the halo and writes its own
 chunk, then records itself in ``committed``. Tasks are submitted in a bounded window. The
-reconstructor (a model, for ``cscsr``) is built once per worker process and reused.
+reconstructor (a model, for ``cscsr``) is built once per worker process and reused. A job
+that starts its own cluster runs its tasks in segments, each in a fresh process and cluster
+(``pipeline.segments``), so that memory stays bounded over millions of tasks.
 
 The gain is fixed for the whole recording before any task runs (``--gain``, else the store's,
 else automatic exposure of the middle window), so tiles and frames agree with each other.
