@@ -1,9 +1,9 @@
 """Soak: reconstruction of very long recordings (up to 1,000,000 frames) in bounded memory and graph size.
 
-What: for recordings of ``--lengths`` frames (default 10,000, 100,000 and 1,000,000) of small
+What: for recordings of ``--lengths`` frames (default 100,000, 300,000 and 1,000,000) of small
 16x16 RGGB frames (an integrate-and-fire simulation of a slowly changing scene, written
 straight into a spike store in blocks), ``pipeline.reconstruct.reconstruct`` with TFP, window
-41, an output frame every 41 spike frames (244, 2,439 and 24,390 output frames; one task
+41, an output frame every 41 spike frames (2,439, 7,317 and 24,390 output frames; one task
 each), as ``cscsr reconstruct --workers 2`` runs it: in segments of ``--segment`` tasks, each in
 a fresh process with a fresh local cluster of 2 workers (``pipeline.segments``). Measured per
 length, in a fresh interpreter, by sampling the job's process tree every second: wall time,
@@ -15,7 +15,7 @@ The graph stays bounded by construction (at most ``4 * workers + 4`` tasks submi
 unfinished; ``tests/test_reconstruct.py::test_submission_stays_in_a_bounded_window``).
 Not in CI: the longest run takes minutes.
 
-Run: ``python benchmarks/soak.py [--lengths 10000,100000,1000000] [--size 16] [--segment 10000]``.
+Run: ``python benchmarks/soak.py [--lengths 100000,300000,1000000] [--size 16] [--segment 2500]``.
 """
 
 import argparse
@@ -107,9 +107,10 @@ def descendants(process, depth: int = 1):
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--lengths", default="10000,100000,1000000")
+    parser.add_argument("--lengths", default="100000,300000,1000000")
     parser.add_argument("--size", type=int, default=16)
-    parser.add_argument("--segment", type=int, default=10_000, help="tasks per segment (as cscsr reconstruct)")
+    parser.add_argument("--segment", type=int, default=2500,
+                        help="tasks per segment (cscsr reconstruct's --segment-tasks; under the shortest run's tasks)")
     parser.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
