@@ -85,7 +85,7 @@ def make_batch(step: int, options: TrainOptions, cache: dict, pool: dict | None 
     return batch_arrays(clips)
 
 
-def clip_pool(options: TrainOptions, progress=None) -> dict[int, list]:
+def clip_pool(options: TrainOptions) -> dict[int, list]:
     """``options.pool`` clips simulated once, by scale (the x4 share as in the steps), on every core.
 
     Simulating a clip costs about as much as a training step on it; a pool seen under eight
@@ -103,8 +103,6 @@ def clip_pool(options: TrainOptions, progress=None) -> dict[int, list]:
                            chunksize=8)
         for clip in jobs:
             pool[clip.scale].append(clip)
-            if progress:
-                progress()
     return pool
 
 

@@ -8,7 +8,7 @@ from pipeline.segments import Outcome, in_segments
 from stages.errors import InputError
 
 
-def one_outcome_per_item(client, label, items, pid_box):
+def one_outcome_per_item(client, label, items):
     """A segment's work: an outcome per item, tagged with the segment process's pid (in ``error``)."""
     assert client.run(os.getpid)  # a live cluster of its own
     for start in items:
@@ -26,7 +26,7 @@ def crashes(client, items):
 
 
 def test_each_segment_runs_in_its_own_process_and_streams_its_outcomes():
-    outcomes = list(in_segments(one_outcome_per_item, ("seg",), iter(range(5)), (None,), 2, workers=1, scheduler=None,
+    outcomes = list(in_segments(one_outcome_per_item, ("seg",), iter(range(5)), (), 2, workers=1, scheduler=None,
                                 show_dashboard=False))
     assert [o.start for o in outcomes] == [0, 1, 2, 3, 4]
     pids = [int(o.error.split()[1]) for o in outcomes]
