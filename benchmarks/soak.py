@@ -73,15 +73,13 @@ def child(store: str, out: str, segment: int) -> dict:
 
     def sample():
         while not stop.wait(1.0):
-            worker = segment_rss = 0
+            now = {"worker": 0, "segment": 0}  # largest current RSS per role
             for process, depth in descendants(me):
-                with contextlib.suppress(psutil.Error, OSError):
-                    role = "segment" if depth == 1 else "worker"  # depth 2: nannies, 3: worker processes
+                role = "segment" if depth == 1 else "worker"  # depth 2: nannies, 3: worker processes
+                with contextlib.suppress(psutil.Error, OSError):  # a process may end between listing and reading
                     peaks[role] = max(peaks[role], high_water(process.pid))
-                    rss = resident(process.pid)
-                    worker, segment_rss = (max(worker, rss), segment_rss) if role == "worker" else \
-                        (worker, max(segment_rss, rss))
-            timeline.append((time.perf_counter() - start, worker, segment_rss, resident(os.getpid())))
+                    now[role] = max(now[role], resident(process.pid))
+            timeline.append((time.perf_counter() - start, now["worker"], now["segment"], resident(os.getpid())))
 
     start = time.perf_counter()
     sampler = threading.Thread(target=sample, daemon=True)
@@ -122,8 +120,8 @@ def main() -> None:
         for frames in map(int, args.lengths.split(",")):
             store, out = f"{scratch}/rec{frames}.zarr", f"{scratch}/out{frames}.zarr"
             write_recording(store, frames, args.size)
-            run = subprocess.run([sys.executable, __file__, "--child", store, out, "--segment", str(args.segment)], cwd=ROOT, capture_output=True,
-                                 text=True, check=True)
+            command = [sys.executable, __file__, "--child", store, out, "--segment", str(args.segment)]
+            run = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, check=True)
             result = {"spike_frames": frames, **json.loads(run.stdout.strip().splitlines()[-1])}
             results.append(result)
             print(f"{frames} frames: {result['seconds']:.1f} s", file=sys.stderr, flush=True)

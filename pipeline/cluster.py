@@ -33,17 +33,15 @@ def _thread_env(workers: int) -> dict:
     return {name: threads for name in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
 
 
-def check_reachable(scheduler: str | None) -> None:
-    """Refuse at once, before any output exists, a scheduler (named or in the environment) that does not answer."""
-    if scheduler or os.environ.get("DASK_SCHEDULER_ADDRESS"):
-        with dask_client(scheduler=scheduler):
-            pass
+def scheduler_address(scheduler: str | None) -> str | None:
+    """The scheduler to use: ``--scheduler``, else ``DASK_SCHEDULER_ADDRESS``; None means a local cluster."""
+    return scheduler or os.environ.get("DASK_SCHEDULER_ADDRESS")
 
 
 @contextlib.contextmanager
 def dask_client(*, workers: int | None = None, scheduler: str | None = None) -> Iterator[Client]:
     """A connected client; a local cluster of ``workers`` processes unless a scheduler is named."""
-    address = scheduler or os.environ.get("DASK_SCHEDULER_ADDRESS")
+    address = scheduler_address(scheduler)
     if address:
         try:
             client = Client(address, timeout=CONNECT_TIMEOUT)

@@ -5,8 +5,8 @@ Output frame j is centred on spike frame ``c_j = W//2 + j*K`` and made from fram
 halo straight from Zarr (no overlap graph), reconstructs, crops the halo and writes its own
 chunk, then records itself in ``committed``. Tasks are submitted in a bounded window. The
 reconstructor (a model, for ``cscsr``) is built once per worker process and reused. A job
-that starts its own cluster runs its tasks in segments, each in a fresh process and cluster
-(``pipeline.segments``), so that memory stays bounded over millions of tasks.
+that starts its own local cluster runs its tasks in segments, each in a fresh process and
+cluster (``pipeline.segments``), so that memory stays bounded over millions of tasks.
 
 The gain is fixed for the whole recording before any task runs (``--gain``, else the store's,
 else automatic exposure of the middle window), so tiles and frames agree with each other.
@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.batches import in_bounded_window, window_size
-from pipeline.cluster import check_reachable, dashboard_link, dask_client
+from pipeline.cluster import dashboard_link, dask_client, scheduler_address
 from pipeline.lease import check_free, held
 from pipeline.progress import progress_bar
 from pipeline.segments import Outcome, in_segments
@@ -166,8 +166,9 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
                 workers: int | None = None, scheduler: str | None = None, client=None, progress: bool = True) -> dict:
     """Reconstruct the recording at ``store_url`` into an HR video store at ``out``.
 
-    Runs on ``client`` if given, else in segments of ``options.segment_tasks`` tasks, each on a
-    fresh cluster from ``workers``/``scheduler`` (see :mod:`pipeline.segments`). Returns
+    Runs on ``client`` if given, else on the scheduler named by ``scheduler`` (or the environment),
+    else in segments of ``options.segment_tasks`` tasks, each on a fresh local cluster of
+    ``workers`` (see :mod:`pipeline.segments`). Returns
     counts: output frames, tasks run now, tasks found already committed.
     """
     store = open_spike_store(store_url)
@@ -178,8 +179,6 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
     method.check(options.window, scale, meta.cfa)
     if options.resume and not exists(out):
         raise InputError(f"cannot resume: {out} does not exist")
-    if not client:
-        check_reachable(scheduler)  # segments connect later, after the output exists
     if options.resume:
         check_free(out)
     else:
@@ -187,23 +186,26 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
     centres = output_centres(store.n_frames, options.window, options.every)
     grid = tile_grid(meta.height, meta.width, options.tile, method.halo)
 
-    gain = options.gain or meta.gain
-    if gain is None:
-        with contextlib.nullcontext(client) if client else dask_client(workers=workers, scheduler=scheduler) as c:
-            gain = c.submit(_auto_gain, store_url, centres[len(centres) // 2], options.window, meta.reset).result()
-    plan = Plan(store_url, out, options.method, options.weights, options.window, options.every, float(gain), scale,
-                meta.cfa, meta.reset, options.tile, uuid.uuid4().hex)
-    done = _prepare_output(plan, options.resume, centres, grid, (meta.height * scale, meta.width * scale))
-    groups = task_groups(len(centres), getattr(method, "batch", 1), (len(grid), len(grid[0])), done)
-    with held(out), progress_bar(f"reconstruct {options.method}", len(centres), enabled=progress) as advance:
-        if client:
-            if progress and (link := dashboard_link(client)):
-                print(f"dashboard: {link}")
-            outcomes = run_groups(client, plan, groups, centres, grid)
-        else:
-            outcomes = in_segments(run_groups, (plan,), groups, (centres, grid), options.segment_tasks,
-                                   workers=workers, scheduler=scheduler, show_dashboard=progress)
-        failed = _tally(outcomes, done, advance)
+    with contextlib.ExitStack() as stack:
+        if client is None and scheduler_address(scheduler):  # a long-lived cluster: connect once, before any output
+            client = stack.enter_context(dask_client(scheduler=scheduler))
+        gain = options.gain or meta.gain
+        if gain is None:
+            with contextlib.nullcontext(client) if client else dask_client(workers=workers) as c:
+                gain = c.submit(_auto_gain, store_url, centres[len(centres) // 2], options.window, meta.reset).result()
+        plan = Plan(store_url, out, options.method, options.weights, options.window, options.every, float(gain),
+                    scale, meta.cfa, meta.reset, options.tile, uuid.uuid4().hex)
+        done = _prepare_output(plan, options.resume, centres, grid, (meta.height * scale, meta.width * scale))
+        groups = task_groups(len(centres), getattr(method, "batch", 1), (len(grid), len(grid[0])), done)
+        work = functools.partial(run_groups, plan=plan, centres=centres, grid=grid)
+        with held(out), progress_bar(f"reconstruct {options.method}", len(centres), enabled=progress) as advance:
+            if client:
+                if progress and (link := dashboard_link(client)):
+                    print(f"dashboard: {link}")
+                outcomes = work(client, groups)
+            else:  # our own local cluster: a fresh one per segment keeps memory bounded
+                outcomes = in_segments(work, groups, options.segment_tasks, workers=workers, show_dashboard=progress)
+            failed = _tally(outcomes, done, advance)
     if failed:
         raise JobIncomplete(out, failed, len(centres))
     open_video_store(out, writable=True).attrs["state"] = "complete"
@@ -223,7 +225,7 @@ class JobIncomplete(RuntimeError):
         self.failed = failed
 
 
-def run_groups(client, plan: Plan, groups: Iterable, centres: list[int], grid) -> Iterator[Outcome]:
+def run_groups(client, groups: Iterable, *, plan: Plan, centres: list[int], grid) -> Iterator[Outcome]:
     """Submit ``groups`` in a bounded window; yield each one's outcome as it finishes."""
     shared = client.scatter(plan, broadcast=True)  # sent to each worker once, not with every task
     group_of = {}  # future key -> (frames, ty, tx) (cheaper than fetching each result)

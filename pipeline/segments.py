@@ -4,7 +4,7 @@ Dask keeps a little memory per task for good in every process that touches it (m
 ~0.5 KiB per task in the client and scheduler, ~0.2-1 KiB in a worker; part of it is
 ``dask.utils.key_split``'s cache of every task key, the rest we could not attribute; it is
 not released by ``malloc_trim`` or by closing the cluster). A million-task job would carry
-hundreds of MB of it. So a job that starts its own cluster runs its tasks ``size`` at a
+hundreds of MB of it. So a job that starts its own local cluster runs its tasks ``size`` at a
 time in a child process that starts the cluster (scheduler and workers), runs them, and
 exits; the parent keeps only the plan, the progress bar and the lease. Outcomes stream back
 over a queue as they happen, so progress and failure reports are as live as in one process.
@@ -39,10 +39,10 @@ _END = "end"
 _FAILED = "failed"
 
 
-def in_segments(run: Callable[..., Iterator[Outcome]], before: tuple, items: Iterable, after: tuple, size: int, *,
-                workers: int | None, scheduler: str | None, show_dashboard: bool) -> Iterator[Outcome]:
-    """``run(client, *before, segment, *after)`` for each ``size`` items in turn, each in its own process
-    (items are drawn from ``items`` one segment at a time)."""
+def in_segments(run: Callable[..., Iterator[Outcome]], items: Iterable, size: int, *, workers: int | None,
+                show_dashboard: bool) -> Iterator[Outcome]:
+    """``run(client, segment)`` for each ``size`` items in turn, each in its own process on its own local
+    cluster of ``workers`` (items are drawn one segment at a time; ``run`` must pickle)."""
     context = multiprocessing.get_context("spawn")  # a fresh interpreter: nothing carried over
     items = iter(items)
     for number in itertools.count():
@@ -51,8 +51,7 @@ def in_segments(run: Callable[..., Iterator[Outcome]], before: tuple, items: Ite
             return
         messages = context.Queue()
         child = context.Process(target=_segment, name=f"cscsr-segment-{number}",
-                                args=(run, before, segment, after, workers, scheduler, show_dashboard and number == 0,
-                                      messages))
+                                args=(run, segment, workers, show_dashboard and number == 0, messages))
         child.start()
         try:
             yield from _relay(messages, child)
@@ -82,16 +81,16 @@ def _relay(messages, child) -> Iterator[Outcome]:
         yield Outcome(*message[1:])
 
 
-def _segment(run, before, items, after, workers, scheduler, show_dashboard, messages) -> None:
+def _segment(run, items, workers, show_dashboard, messages) -> None:
     """Child: start a cluster, run the segment, send each outcome, exit (and all its memory with it)."""
     _die_with_parent()
     from pipeline.cluster import dashboard_link, dask_client
 
     try:
-        with dask_client(workers=workers, scheduler=scheduler) as client:
+        with dask_client(workers=workers) as client:
             if show_dashboard and (link := dashboard_link(client)):
                 print(f"dashboard: {link}", file=sys.stderr)
-            for outcome in run(client, *before, items, *after):
+            for outcome in run(client, items):
                 messages.put(("outcome", *outcome))
         messages.put((_END,))
     except Exception as error:  # reported by the parent, which owns the user's terminal and exit code

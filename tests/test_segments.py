@@ -1,5 +1,6 @@
 """Segments: each in a fresh process with its own cluster; outcomes, errors and crashes reach the job."""
 
+import functools
 import os
 
 import pytest
@@ -8,7 +9,7 @@ from pipeline.segments import Outcome, in_segments
 from stages.errors import InputError
 
 
-def one_outcome_per_item(client, label, items):
+def one_outcome_per_item(client, items, label):
     """A segment's work: an outcome per item, tagged with the segment process's pid (in ``error``)."""
     assert client.run(os.getpid)  # a live cluster of its own
     for start in items:
@@ -26,8 +27,8 @@ def crashes(client, items):
 
 
 def test_each_segment_runs_in_its_own_process_and_streams_its_outcomes():
-    outcomes = list(in_segments(one_outcome_per_item, ("seg",), iter(range(5)), (), 2, workers=1, scheduler=None,
-                                show_dashboard=False))
+    work = functools.partial(one_outcome_per_item, label="seg")
+    outcomes = list(in_segments(work, iter(range(5)), 2, workers=1, show_dashboard=False))
     assert [o.start for o in outcomes] == [0, 1, 2, 3, 4]
     pids = [int(o.error.split()[1]) for o in outcomes]
     assert len(set(pids)) == 3 and os.getpid() not in pids  # segments of 2, 2 and 1, each its own process
@@ -36,6 +37,6 @@ def test_each_segment_runs_in_its_own_process_and_streams_its_outcomes():
 
 def test_an_error_in_a_segment_is_the_job_s_error_and_a_crash_is_named():
     with pytest.raises(InputError, match="the store went away"):
-        list(in_segments(refuses, (), range(3), (), 10, workers=1, scheduler=None, show_dashboard=False))
+        list(in_segments(refuses, range(3), 10, workers=1, show_dashboard=False))
     with pytest.raises(RuntimeError, match=r"segment process stopped \(exit code 3\).*--resume"):
-        list(in_segments(crashes, (), range(3), (), 10, workers=1, scheduler=None, show_dashboard=False))
+        list(in_segments(crashes, range(3), 10, workers=1, show_dashboard=False))
