@@ -1,9 +1,11 @@
-"""The cheap HR base image the network adds its output to: demosaicked, bicubic TFP.
+"""The cheap images the network starts from: demosaicked TFP at LR, and its bicubic HR base.
 
-TFP over the whole clip (corrected for a zero-reset sensor as in :mod:`stages.tfp`),
-demosaicked bilinearly by normalised convolution, enlarged by bicubic interpolation:
-differentiable torch versions of the classic baseline, so the network only learns the
-residual (a global skip).
+TFP (corrected for a zero-reset sensor as in :mod:`stages.tfp`), demosaicked bilinearly by
+normalised convolution: torch versions of the classic baseline. Over the whole clip it is
+the base image the network adds its residual to (a global skip, enlarged by bicubic
+interpolation); over the whole clip and over the middle window it is also an input of the
+integration trunk, which then starts as a plain super-resolution network on a meaningful
+image while the temporal branches learn.
 """
 
 import torch
@@ -27,7 +29,15 @@ def demosaic(rate: torch.Tensor, colours: torch.Tensor) -> torch.Tensor:
     return values / weights.clamp(min=1e-6)
 
 
-def base_image(spikes: torch.Tensor, colours: torch.Tensor, zero_reset: torch.Tensor, scale: int) -> torch.Tensor:
-    """-> (B, 3, sH, sW) demosaicked TFP, bicubic x s."""
-    lr = demosaic(tfp(spikes, zero_reset), colours)  # (B, 3, H, W)
+def lr_images(spikes: torch.Tensor, colours: torch.Tensor, zero_reset: torch.Tensor, middle: int) -> torch.Tensor:
+    """(B, N, H, W) spikes -> (B, 6, H, W): demosaicked TFP over all N frames, then over the middle
+    ``middle`` frames (less motion blur, more noise)."""
+    n = spikes.shape[1]
+    start = n // 2 - middle // 2
+    window = spikes[:, start : start + middle]
+    return torch.cat([demosaic(tfp(spikes, zero_reset), colours), demosaic(tfp(window, zero_reset), colours)], 1)
+
+
+def base_image(lr: torch.Tensor, scale: int) -> torch.Tensor:
+    """(B, 3, H, W) demosaicked TFP -> (B, 3, sH, sW), bicubic x s."""
     return F.interpolate(lr, scale_factor=scale, mode="bicubic", align_corners=False)

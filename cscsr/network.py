@@ -7,6 +7,7 @@ Algorithm 1 of the paper, one module per step:
       -> joint motion estimation          (B, N', 2, H, W) flows         cscsr.motion
       -> temporal-pixel features          (B, C, H, W) per colour        cscsr.temporal_pixels
       -> integration, pixel shuffle x s   (B, 3, sH, sW) residual        cscsr.integration
+         (also fed the demosaicked TFP over the clip and its middle w frames, (B, 6, H, W))
       +  demosaicked bicubic TFP base     (B, 3, sH, sW)                 cscsr.base_image
 
 Values are firing rates alpha*I/theta (what TFP estimates), so exposure stays the
@@ -18,7 +19,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from cscsr.base_image import base_image
+from cscsr.base_image import base_image, lr_images
 from cscsr.bayer import cell_masks, check_bayer, colour_masks
 from cscsr.blocks import ResBlock
 from cscsr.bssr import BSSR
@@ -61,8 +62,9 @@ class CSCSR(nn.Module):
             flows, key_flows = None, None
         features = [self.temporal[c](self.bssr[c](x, colours[:, c : c + 1]), colours[:, c : c + 1], flows)
                     for c in range(3)]  # 3 x (B, C, Hp, Wp)
-        residual = self.integration(torch.cat(features, 1), zero, scale)  # (B, 3, s*Hp, s*Wp)
-        base = base_image(x, colours, zero, scale)
+        images = lr_images(x, colours, zero, self.config.length)  # (B, 6, Hp, Wp)
+        residual = self.integration(torch.cat(features, 1), images, zero, scale)  # (B, 3, s*Hp, s*Wp)
+        base = base_image(images[:, :3], scale)
         image = (base + residual)[..., : scale * h, : scale * w]
         if key_flows is not None:
             key_flows = tuple(f[..., :h, :w] for f in key_flows)
