@@ -38,7 +38,8 @@ class TrainOptions:
     batch: int = 8
     lr_side: int = 32  # LR crop side (HR 128 at x4)
     learning_rate: float = 2e-4
-    decay_every: int = 7500  # learning rate x0.9 every this many steps (the sibling recipe)
+    decay_every: int = 7500  # learning rate x0.9 every this many steps (the sibling recipe); a resumed run may
+    # change it, which drops the rate at once to its place on the new schedule (how the shipped weights were annealed)
     warmup: int = 200  # steps of linear learning-rate warm-up: Adam's first steps move every weight by the full
     # rate at once, which from zero heads threw the output 0.4 off (validation 17.4 -> 5.7 dB in two steps)
     flow_weight: float = 0.1
@@ -54,7 +55,8 @@ class TrainOptions:
     def check(self) -> "TrainOptions":
         named(self.config)
         for label, value in (("steps", self.steps), ("batch", self.batch), ("checkpoint_every", self.checkpoint_every),
-                             ("validate_every", self.validate_every)):
+                             ("validate_every", self.validate_every), ("warmup", self.warmup),
+                             ("decay_every", self.decay_every)):
             if value < 1:
                 raise InputError(f"{label} must be >= 1, got {value}")
         if self.lr_side < 16 or self.lr_side % 2:

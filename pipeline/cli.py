@@ -211,7 +211,12 @@ def train(out: Annotated[str, typer.Argument(help="Folder for checkpoints, log.j
           steps: Annotated[int, typer.Option(help="Optimiser steps in all (a resumed run continues to this).")] = 20000,
           batch: Annotated[int, typer.Option(help="Clips per step.")] = 8,
           lr_side: Annotated[int, typer.Option(help="LR crop side of a training clip (even).")] = 32,
-          learning_rate: Annotated[float, typer.Option(help="Adam learning rate (x0.9 every 7,500 steps).")] = 2e-4,
+          learning_rate: Annotated[float, typer.Option(help="Adam learning rate (after the warm-up, x0.9 every "
+                                                             "--decay-every steps).")] = 2e-4,
+          warmup: Annotated[int, typer.Option(help="Steps of linear learning-rate warm-up.")] = 200,
+          decay_every: Annotated[int, typer.Option(help="Steps between x0.9 learning-rate decays; may change on "
+                                                        "--resume (the rate drops at once to its new place on the "
+                                                        "schedule: an annealing phase).")] = 7500,
           seed: Annotated[int, typer.Option(help="Seed of the clips and the initial weights.")] = 0,
           pool: Annotated[int, typer.Option(help="Clips simulated up front and reused under 8 flips and turns "
                                                  "(0: a fresh clip every time).")] = 0,
@@ -227,7 +232,8 @@ def train(out: Annotated[str, typer.Argument(help="Folder for checkpoints, log.j
     if threads:
         torch.set_num_threads(threads)
     options = TrainOptions(config=config, steps=steps, batch=batch, lr_side=lr_side, learning_rate=learning_rate,
-                           seed=seed, pool=pool, checkpoint_every=checkpoint_every, validate_every=validate_every)
+                           warmup=warmup, decay_every=decay_every, seed=seed, pool=pool,
+                           checkpoint_every=checkpoint_every, validate_every=validate_every)
     final = run(options, out, resume=resume, log=lambda line: stdout.print(line, highlight=False),
                 command="cscsr train " + " ".join(sys.argv[2:]))
     stdout.print(f"weights: {final}")

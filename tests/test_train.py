@@ -65,6 +65,17 @@ def test_a_resumed_run_ends_where_an_uninterrupted_one_does(tmp_path):
         train(TrainOptions(steps=6, **{**TINY, "batch": 3}), tmp_path / "whole", resume=True, log=lambda line: None)
 
 
+def test_a_resumed_run_may_anneal_with_a_shorter_decay(tmp_path):
+    """--decay-every may change on --resume: the rate drops at once to its place on the new schedule."""
+    train(TrainOptions(steps=4, **TINY), tmp_path / "run", log=lambda line: None)
+    train(TrainOptions(steps=6, decay_every=2, **TINY), tmp_path / "run", resume=True, log=lambda line: None)
+    rates = [json.loads(line)["lr"] for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    base = TrainOptions().learning_rate
+    assert rates == pytest.approx([base, base, base * 0.9**3])  # after steps 2, 4 (7,500-step decay), then 6 (2-step)
+    with pytest.raises(InputError, match="decay_every must be >= 1"):
+        TrainOptions(decay_every=0).check()
+
+
 def test_export_weights_from_a_checkpoint(tmp_path, cli):
     train(TrainOptions(steps=2, **TINY), tmp_path / "run", log=lambda line: None)
     result = cli("export-weights", tmp_path / "run", tmp_path / "w.safetensors")
