@@ -16,6 +16,7 @@ import os
 import queue
 import threading
 import time
+import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -228,8 +229,10 @@ def train(options: TrainOptions, out: str | os.PathLike, *, resume: bool = False
         group["lr"] = options.learning_rate
         group.pop("initial_lr", None)
     schedule = torch.optim.lr_scheduler.LambdaLR(optimiser, lambda n: learning_rate_factor(n, options))
-    for _ in range(step):  # a resumed run continues the schedule where it stopped
-        schedule.step()
+    with warnings.catch_warnings():  # fast-forwarding the schedule before any optimiser step is intended here
+        warnings.simplefilter("ignore", UserWarning)
+        for _ in range(step):  # a resumed run continues the schedule where it stopped
+            schedule.step()
     validation = validation_batches(options)
     pool = None
     if options.pool:

@@ -193,7 +193,8 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
         if gain is None:
             with contextlib.nullcontext(client) if client else dask_client(workers=workers) as c:
                 gain = c.submit(_auto_gain, store_url, centres[len(centres) // 2], options.window, meta.reset).result()
-        plan = Plan(store_url, out, options.method, options.weights, options.window, options.every, float(gain),
+        weights = getattr(method, "weights", options.weights)  # the file actually used: the shipped one by default
+        plan = Plan(store_url, out, options.method, weights, options.window, options.every, float(gain),
                     scale, meta.cfa, meta.reset, options.tile, uuid.uuid4().hex)
         done = _prepare_output(plan, options.resume, centres, grid, (meta.height * scale, meta.width * scale))
         groups = task_groups(len(centres), getattr(method, "batch", 1), (len(grid), len(grid[0])), done)
