@@ -1,10 +1,9 @@
 """Integration: the three colours' temporal-pixel features -> HR RGB residual.
 
-Step 4 of Algorithm 1. The colours' features (with the sensor's reset mode, which changes
-what a firing rate means, and the demosaicked TFP images of :func:`cscsr.base_image.lr_images`)
-are fused by a convolution, reconstructed by ResBlocks with a
-long skip, and enlarged by pixel shuffle in x2 steps; a head after each step gives RGB, so
-one set of weights serves x2 and x4.
+Step 4 of Algorithm 1. The colours' features, the sensor's reset mode (which changes what a
+firing rate means) and the demosaicked TFP images of :func:`cscsr.base_image.lr_images` are
+fused by a convolution, reconstructed by ResBlocks with a long skip, and enlarged by pixel
+shuffle in x2 steps; a head after each step gives RGB, so one set of weights serves x2 and x4.
 """
 
 import torch
@@ -13,8 +12,6 @@ from torch import nn
 from cscsr.blocks import ResBlock
 
 SCALES = (2, 4)
-
-
 LR_IMAGES = 6  # channels of the TFP images the trunk sees: RGB over the whole clip and over its middle
 # Without them the trunk's only input was the temporal branches' features, random at first: in
 # 200 steps (lite, batch 4, LR 24x24, Adam 1e-3) it gained +0.01 dB over the base; with them +0.28 dB.
