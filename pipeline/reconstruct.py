@@ -190,9 +190,9 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
         if client is None and scheduler_address(scheduler):  # a long-lived cluster: connect once, before any output
             client = stack.enter_context(dask_client(scheduler=scheduler))
         gain = options.gain or meta.gain
-        if gain is None:
-            with contextlib.nullcontext(client) if client else dask_client(workers=workers) as c:
-                gain = c.submit(_auto_gain, store_url, centres[len(centres) // 2], options.window, meta.reset).result()
+        if gain is None:  # one window: on the cluster if there is one, else here (not worth a cluster of its own)
+            args = (store_url, centres[len(centres) // 2], options.window, meta.reset)
+            gain = client.submit(_auto_gain, *args).result() if client else _auto_gain(*args)
         weights = getattr(method, "weights", options.weights)  # the file actually used: the shipped one by default
         plan = Plan(store_url, out, options.method, weights, options.window, options.every, float(gain),
                     scale, meta.cfa, meta.reset, options.tile, uuid.uuid4().hex)

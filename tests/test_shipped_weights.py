@@ -12,9 +12,11 @@ from pipeline.reconstruct import ReconstructOptions, reconstruct
 from pipeline.simulate import SimulateOptions, simulate
 from tests.test_simulate import chunk_files, picture
 
+MARGIN_DB = 0.5  # measured: +0.99 dB over TFI on this clip (PSNR 21.72 vs 20.73, SSIM 0.670 vs 0.642)
+
 
 @pytest.fixture(scope="module")
-def held_out(tmp_path_factory, client) -> str:
+def held_out(tmp_path_factory) -> str:
     """A held-out picture (coffee: never in training) moving, LR 48x48 at x4, zero reset, truth at 3 windows."""
     folder = tmp_path_factory.mktemp("held_out")
     iio.imwrite(folder / "coffee.png", picture("coffee", 192))
@@ -48,5 +50,3 @@ def test_the_shipped_weights_beat_the_classic_methods(held_out, client, tmp_path
     assert rows["cscsr"]["psnr"] > max(rows["tfp"]["psnr"], rows["tfi"]["psnr"]) + MARGIN_DB
     assert rows["cscsr"]["ssim"] > max(rows["tfp"]["ssim"], rows["tfi"]["ssim"])
 
-
-MARGIN_DB = 0.5  # measured: +0.99 dB over TFI on this clip (PSNR 21.72 vs 20.73, SSIM 0.670 vs 0.642)
