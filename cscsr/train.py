@@ -52,9 +52,15 @@ class TrainOptions:
     validation_clips: int = 8
     distinct_batches: int = 0  # 0: a new batch every step; n: cycle through n batches (tiny data, for tests)
     pool: int = 0  # 0: every clip simulated for its step; n: n clips simulated up front, drawn under 8 orientations
+    motion: str = "joint"  # the network's ablation switches (cscsr.config): "joint" or "assembled" motion,
+    flow_guidance: bool = True  # and flow-guided fusion on or off
+
+    def network(self):
+        """The configuration this run trains: the named one with its ablation switches applied."""
+        return named(self.config).ablate(motion=self.motion, flow_guidance=self.flow_guidance)
 
     def check(self) -> "TrainOptions":
-        named(self.config)
+        self.network()
         for label, value in (("steps", self.steps), ("batch", self.batch), ("checkpoint_every", self.checkpoint_every),
                              ("validate_every", self.validate_every), ("warmup", self.warmup),
                              ("decay_every", self.decay_every)):
@@ -196,7 +202,7 @@ def load_checkpoint(path: Path, model: CSCSR, optimiser: torch.optim.Optimizer, 
     tensors, metadata = read_checkpoint(path)
     recorded = json.loads(metadata["options"])
     changed = [k for k in ("config", "batch", "lr_side", "seed", "learning_rate", "flow_weight", "scale4_share", "clip",
-                           "distinct_batches", "pool", "warmup")
+                           "distinct_batches", "pool", "warmup", "motion", "flow_guidance")
                if recorded.get(k, getattr(TrainOptions, k)) != asdict(options)[k]]
     if changed:
         raise InputError(f"cannot resume {path}: it was trained with other options ({', '.join(changed)})")
@@ -222,7 +228,7 @@ def train(options: TrainOptions, out: str | os.PathLike, *, resume: bool = False
         raise InputError(f"cannot resume: {checkpoint} does not exist")
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(options.seed)
-    model = CSCSR(named(options.config)).train()
+    model = CSCSR(options.network()).train()
     optimiser = torch.optim.Adam(model.parameters(), lr=options.learning_rate)
     step = load_checkpoint(checkpoint, model, optimiser, options) if resume else 0
     for group in optimiser.param_groups:  # the schedule scales the configured rate, not a restored one

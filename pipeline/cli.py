@@ -220,6 +220,9 @@ def train(out: Annotated[str, typer.Argument(help="Folder for checkpoints, log.j
           seed: Annotated[int, typer.Option(help="Seed of the clips and the initial weights.")] = 0,
           pool: Annotated[int, typer.Option(help="Clips simulated up front and reused under 8 flips and turns "
                                                  "(0: a fresh clip every time).")] = 0,
+          motion: Annotated[str, typer.Option(help="Ablation: joint or assembled motion estimation.")] = "joint",
+          flow_guidance: Annotated[bool, typer.Option("--flow-guidance/--no-flow-guidance",
+                                                      help="Ablation: fuse time points aligned by flow, or not.")] = True,
           checkpoint_every: Annotated[int, typer.Option(help="Steps between checkpoints.")] = 100,
           validate_every: Annotated[int, typer.Option(help="Steps between validation PSNR lines.")] = 250,
           threads: Annotated[Optional[int], typer.Option(help="Torch threads (default: every core).")] = None,
@@ -233,6 +236,7 @@ def train(out: Annotated[str, typer.Argument(help="Folder for checkpoints, log.j
         torch.set_num_threads(threads)
     options = TrainOptions(config=config, steps=steps, batch=batch, lr_side=lr_side, learning_rate=learning_rate,
                            warmup=warmup, decay_every=decay_every, seed=seed, pool=pool,
+                           motion=motion, flow_guidance=flow_guidance,
                            checkpoint_every=checkpoint_every, validate_every=validate_every)
     final = run(options, out, resume=resume, log=lambda line: stdout.print(line, highlight=False),
                 command="cscsr train " + " ".join(sys.argv[2:]))

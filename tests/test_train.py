@@ -76,6 +76,22 @@ def test_a_resumed_run_may_anneal_with_a_shorter_decay(tmp_path):
         TrainOptions(decay_every=0).check()
 
 
+def test_an_ablation_run_trains_and_records_the_switched_network(tmp_path, cli):
+    """--motion assembled / --no-flow-guidance train that network; the weights rebuild it; resume keeps it."""
+    result = cli("train", tmp_path / "noflow", "--steps", "2", "--batch", "2", "--lr-side", "16",
+                 "--validate-every", "2", "--warmup", "2", "--no-flow-guidance", "--threads", "1")
+    assert result.exit_code == 0, result.stdout
+    model, metadata = load_model(tmp_path / "noflow" / "cscsr-lite.safetensors")
+    assert model.config.flow_guidance is False and model.motion is None
+    assert json.loads(metadata["options"])["flow_guidance"] is False
+    options = TrainOptions(steps=2, motion="assembled", **TINY)
+    model, _ = load_model(train(options, tmp_path / "assembled", log=lambda line: None))
+    assert model.config.motion == "assembled" and model.config.flow_guidance
+    with pytest.raises(InputError, match=r"other options \(motion\)"):
+        train(TrainOptions(steps=4, **TINY), tmp_path / "assembled", resume=True, log=lambda line: None)
+    assert cli("train", tmp_path / "bad", "--motion", "sideways").exit_code == 1 and not (tmp_path / "bad").exists()
+
+
 def test_export_weights_from_a_checkpoint(tmp_path, cli):
     train(TrainOptions(steps=2, **TINY), tmp_path / "run", log=lambda line: None)
     result = cli("export-weights", tmp_path / "run", tmp_path / "w.safetensors")
