@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cscsr.config import named
+from cscsr.config import CSCSRConfig, named
 from cscsr.network import CSCSR
 from cscsr.training_data import TRAIN_PICTURES, Clip, batch_arrays, random_clip, reoriented
 from cscsr.weights_io import save_weights
@@ -55,7 +55,7 @@ class TrainOptions:
     motion: str = "joint"  # the network's ablation switches (cscsr.config): "joint" or "assembled" motion,
     flow_guidance: bool = True  # and flow-guided fusion on or off
 
-    def network(self):
+    def network(self) -> CSCSRConfig:
         """The configuration this run trains: the named one with its ablation switches applied."""
         return named(self.config).ablate(motion=self.motion, flow_guidance=self.flow_guidance)
 
@@ -283,8 +283,6 @@ def _about(step: int, options: TrainOptions, command: str) -> dict:
 
 def export_weights(folder: str | os.PathLike, dest: str | os.PathLike, command: str = "") -> int:
     """The latest checkpoint of a training folder as a weights file (a run need not be finished)."""
-    from cscsr.config import CSCSRConfig
-
     checkpoint = Path(folder) / "checkpoint.safetensors"
     if not checkpoint.exists():
         raise InputError(f"{checkpoint} does not exist: nothing trained there yet")
