@@ -20,6 +20,21 @@ err = Console(stderr=True)
 stdout = Console()
 
 
+def command_line(context: typer.Context) -> str:
+    """The running command as one would retype it: its name, arguments, and every option not at its default."""
+    words = ["cscsr", context.info_name]
+    for param in context.command.params:
+        value = context.params.get(param.name)
+        if param.param_type_name == "argument":
+            words.append(str(value))
+        elif value != param.default and value is not None:
+            if param.is_flag:
+                words.append(param.opts[0] if value else param.secondary_opts[0])
+            else:
+                words += [param.opts[0], str(value)]
+    return " ".join(words)
+
+
 def one_line_errors(command):
     """Turn any exception into ``error: <one line>`` and exit status 1."""
 
@@ -206,7 +221,8 @@ def model_info(config: Annotated[str, typer.Option(help="Named configuration: li
 
 
 @command()
-def train(out: Annotated[str, typer.Argument(help="Folder for checkpoints, log.jsonl and the final weights.")],
+def train(context: typer.Context,
+          out: Annotated[str, typer.Argument(help="Folder for checkpoints, log.jsonl and the final weights.")],
           config: Annotated[str, typer.Option(help="Network configuration: lite or full.")] = "lite",
           steps: Annotated[int, typer.Option(help="Optimiser steps in all (a resumed run continues to this).")] = 20000,
           batch: Annotated[int, typer.Option(help="Clips per step.")] = 8,
@@ -239,7 +255,7 @@ def train(out: Annotated[str, typer.Argument(help="Folder for checkpoints, log.j
                            motion=motion, flow_guidance=flow_guidance,
                            checkpoint_every=checkpoint_every, validate_every=validate_every)
     final = run(options, out, resume=resume, log=lambda line: stdout.print(line, highlight=False),
-                command="cscsr train " + " ".join(sys.argv[2:]))
+                command=command_line(context))
     stdout.print(f"weights: {final}")
 
 

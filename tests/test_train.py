@@ -84,6 +84,8 @@ def test_an_ablation_run_trains_and_records_the_switched_network(tmp_path, cli):
     model, metadata = load_model(tmp_path / "noflow" / "cscsr-lite.safetensors")
     assert model.config.flow_guidance is False and model.motion is None
     assert json.loads(metadata["options"])["flow_guidance"] is False
+    assert metadata["command"] == (f"cscsr train {tmp_path / 'noflow'} --steps 2 --batch 2 --lr-side 16 --warmup 2 "
+                                   "--no-flow-guidance --validate-every 2 --threads 1")  # options in --help's order
     options = TrainOptions(steps=2, motion="assembled", **TINY)
     model, _ = load_model(train(options, tmp_path / "assembled", log=lambda line: None))
     assert model.config.motion == "assembled" and model.config.flow_guidance
