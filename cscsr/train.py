@@ -71,6 +71,10 @@ class TrainOptions:
         return self
 
 
+# Options a resumed run may change; every other one shapes the weights, the clips or the schedule so far.
+MAY_CHANGE_ON_RESUME = frozenset({"steps", "decay_every", "checkpoint_every", "validate_every", "validation_clips"})
+
+
 def scale_of(step: int, options: TrainOptions) -> int:
     return 4 if np.random.default_rng([options.seed, step, 999]).random() < options.scale4_share else 2
 
@@ -201,9 +205,8 @@ def model_weights(tensors: dict) -> dict:
 def load_checkpoint(path: Path, model: CSCSR, optimiser: torch.optim.Optimizer, options: TrainOptions) -> int:
     tensors, metadata = read_checkpoint(path)
     recorded = json.loads(metadata["options"])
-    changed = [k for k in ("config", "batch", "lr_side", "seed", "learning_rate", "flow_weight", "scale4_share", "clip",
-                           "distinct_batches", "pool", "warmup", "motion", "flow_guidance")
-               if recorded.get(k, getattr(TrainOptions, k)) != asdict(options)[k]]
+    changed = [k for k, value in asdict(options).items()
+               if k not in MAY_CHANGE_ON_RESUME and recorded.get(k, getattr(TrainOptions, k)) != value]
     if changed:
         raise InputError(f"cannot resume {path}: it was trained with other options ({', '.join(changed)})")
     model.load_state_dict(model_weights(tensors))
