@@ -1,0 +1,84 @@
+"""Ceilings of the test-set quality table: what perfect intensities would give.
+
+What: on the held-out test set (``cscsr make-testset``: astronaut, coffee, chelsea, x4,
+alpha 0.6 / 0.8 / 1.0, three truth frames each), PSNR and SSIM of two references made from
+the ground truth instead of spikes (``stages.references``): the exact LR picture enlarged
+bicubically; the exact LR mosaic demosaicked (VNG) and enlarged, which is TFP / TFI with no
+spike noise and no motion blur; and that mosaic as a static scene's long-run firing rate
+reads it through the noiseless sensor, the ceiling of any per-pixel estimator (TFP, TFI) on
+the test set's zero-reset data, whose firing period quantises intensity. The quality table's
+methods read against them: a method above the per-pixel ceiling uses context (neighbours,
+motion) that TFP and TFI do not.
+
+Optionally (``--summary OUT/summary.csv`` of ``cscsr evaluate-testset``) the methods' rows
+are printed beside the ceilings. Deterministic: one evaluation, no timing.
+
+Run: ``python benchmarks/quality_ceiling.py [--testset DIR] [--summary CSV]`` (without
+``--testset`` it makes the test set under ``benchmarks/results/testset`` first, ~2 min).
+"""
+
+import argparse
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+
+from _common import RESULTS, markdown_table, save_results
+from pipeline.spike_store import open_spike_store
+from pipeline.testset import make_testset
+from stages.metrics import psnr, ssim
+from stages.references import exact_lr_bicubic, exact_mosaic_demosaicked, steady_state_mosaic
+
+REFERENCES = {  # name -> f(truth, cfa, scale, alpha, reset)
+    "exact LR picture, bicubic": lambda truth, cfa, scale, alpha, reset: exact_lr_bicubic(truth, scale),
+    "exact LR mosaic, VNG, bicubic": lambda truth, cfa, scale, alpha, reset: exact_mosaic_demosaicked(truth, cfa, scale),
+    "static long-run rate (per-pixel ceiling)": steady_state_mosaic,
+}
+
+
+def ceilings(testset: Path) -> list[dict]:
+    """One row per reference and alpha (and 'all'): mean PSNR / SSIM over the truth frames."""
+    manifest = json.loads((testset / "manifest.json").read_text())
+    scores = []  # (reference, alpha, psnr, ssim)
+    for item in manifest["items"]:
+        store = open_spike_store(str(testset / item["store"]))
+        truth = store.group["truth"][:]
+        for name, reference in REFERENCES.items():
+            for frame in truth:
+                estimate = reference(frame, manifest["cfa"], manifest["scale"], item["alpha"], manifest["reset"])
+                scores.append((name, item["alpha"], psnr(estimate, frame), ssim(estimate, frame)))
+    rows = []
+    for name in REFERENCES:
+        for alpha in (*sorted({s[1] for s in scores}), "all"):
+            chosen = [s for s in scores if s[0] == name and (alpha == "all" or s[1] == alpha)]
+            rows.append({"method": name, "alpha": alpha, "psnr": float(np.mean([s[2] for s in chosen])),
+                         "ssim": float(np.mean([s[3] for s in chosen])), "images": len(chosen)})
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--testset", type=Path, help="a test set made by cscsr make-testset (default: make one)")
+    parser.add_argument("--summary", type=Path, help="summary.csv of cscsr evaluate-testset, printed beside")
+    args = parser.parse_args()
+    testset = args.testset or RESULTS / "testset"
+    if not (testset / "manifest.json").exists():
+        make_testset(str(testset), overwrite=True, progress=False)
+    rows = ceilings(testset)
+    if args.summary:
+        with args.summary.open() as handle:
+            rows = [{"method": r["method"], "alpha": r["alpha"], "psnr": float(r["psnr"]), "ssim": float(r["ssim"])}
+                    for r in csv.DictReader(handle)] + rows
+    alphas = [a for a in dict.fromkeys(str(r["alpha"]) for r in rows) if a != "all"]
+    table = []
+    for method in dict.fromkeys(r["method"] for r in rows):
+        mine = {str(r["alpha"]): r for r in rows if r["method"] == method}
+        table.append([method, *(f"{mine[a]['psnr']:.2f}" for a in alphas),
+                      f"{mine['all']['psnr']:.2f}", f"{mine['all']['ssim']:.3f}"])
+    print(markdown_table(["method", *(f"α {a}" for a in alphas), "mean PSNR", "mean SSIM"], table))
+    save_results("quality_ceiling", {"testset": str(testset), "rows": rows})
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,52 @@
+"""Stages: the test set's ceilings (references made from the truth), against the sensor itself."""
+
+import numpy as np
+import pytest
+
+from stages.colour import rate_to_rgb
+from stages.errors import InputError
+from stages.metrics import psnr
+from stages.references import exact_lr_bicubic, exact_mosaic_demosaicked, steady_state_mosaic
+from stages.sensor import SensorModel, area_downsample, cfa_sample, fire, increments, initial_state
+from stages.tfp import tfp_rate
+from tests.test_sensor import smooth_rgb
+
+COLOUR = (200, 100, 30)
+
+
+@pytest.mark.parametrize("cfa", ["rggb", "gbrg"])
+def test_a_flat_colour_is_its_own_exact_references(cfa):
+    truth = np.empty((64, 64, 3), np.uint8)
+    truth[...] = COLOUR
+    np.testing.assert_array_equal(exact_lr_bicubic(truth, 4), truth)
+    np.testing.assert_array_equal(exact_mosaic_demosaicked(truth, cfa, 4), truth)  # red and blue in their places
+    np.testing.assert_array_equal(steady_state_mosaic(truth, cfa, 4, 0.8, "subtract"), truth)
+
+
+@pytest.mark.parametrize("brightness", [0.6, 1.0])
+def test_zero_reset_reads_every_intensity_of_one_period_alike(brightness):
+    """I = 0.749: every 2nd frame at alpha 1, every 3rd at alpha 0.6; both read back as rho = 2/3 -> 170."""
+    truth = np.full((32, 32, 3), 191, np.uint8)
+    assert np.unique(steady_state_mosaic(truth, "rggb", 4, brightness, "zero")).tolist() == [170]
+
+
+def test_the_per_pixel_ceiling_is_what_the_sensor_gives_a_static_scene():
+    """The long-run TFP of a static picture through the simulated zero-reset sensor equals the ceiling."""
+    brightness, scale, cfa, frames = 0.8, 4, "rggb", 2520  # 2520: a whole number of every period 1..10
+    truth = np.round(smooth_rgb(128, 128, seed=4) * 255).astype(np.uint8)  # (128, 128, 3)
+    mosaic = cfa_sample(area_downsample(truth.astype(np.float32) / 255, scale), cfa)  # (32, 32)
+    model = SensorModel(brightness=brightness, reset="zero", seed=2)
+    fired = fire(increments(model, np.broadcast_to(mosaic, (frames, *mosaic.shape)), 0),
+                 initial_state(model, *mosaic.shape), reset="zero")
+    measured = rate_to_rgb(tfp_rate(fired.packed, mosaic.shape[1], reset="zero"), cfa, gain=1 / brightness, scale=scale)
+    ceiling = steady_state_mosaic(truth, cfa, scale, brightness, "zero")
+    assert np.mean(np.abs(measured.astype(int) - ceiling) <= 1) > 0.99
+    assert psnr(exact_mosaic_demosaicked(truth, cfa, scale), truth) > psnr(ceiling, truth) + 1  # the period costs
+
+
+def test_bad_reset_or_brightness_is_refused():
+    truth = np.zeros((8, 8, 3), np.uint8)
+    with pytest.raises(InputError, match="unknown reset 'sideways'"):
+        steady_state_mosaic(truth, "rggb", 2, 0.8, "sideways")
+    with pytest.raises(InputError, match="brightness must be in"):
+        steady_state_mosaic(truth, "rggb", 2, 0.0, "zero")
