@@ -1,14 +1,15 @@
 """Ceilings of the test-set quality table: what perfect intensities would give.
 
 What: on the held-out test set (``cscsr make-testset``: astronaut, coffee, chelsea, x4,
-alpha 0.6 / 0.8 / 1.0, three truth frames each), PSNR and SSIM of two references made from
+alpha 0.6 / 0.8 / 1.0, three truth frames each), PSNR and SSIM of four references made from
 the ground truth instead of spikes (``stages.references``): the exact LR picture enlarged
 bicubically; the exact LR mosaic demosaicked (VNG) and enlarged, which is TFP / TFI with no
-spike noise and no motion blur; and that mosaic as a static scene's long-run firing rate
-reads it through the noiseless sensor, the ceiling of any per-pixel estimator (TFP, TFI) on
-the test set's zero-reset data, whose firing period quantises intensity. The quality table's
-methods read against them: a method above the per-pixel ceiling uses context (neighbours,
-motion) that TFP and TFI do not.
+spike noise and no motion blur; that mosaic as a still scene's long-run firing rate reads it
+through the test set's noiseless zero-reset sensor, whose firing period quantises intensity
+(TFP's reading: the ceiling of TFP and TFI); and each period read as the mean intensity of
+the pixels that have it in these very pictures (an oracle fitted per alpha: the bound on any
+estimator of a still pixel from its own spikes). A method above the last uses context
+(neighbours, motion) that per-pixel estimators do not.
 
 Optionally (``--summary OUT/summary.csv`` of ``cscsr evaluate-testset``) the methods' rows
 are printed beside the ceilings. Deterministic: one evaluation, no timing.
@@ -28,25 +29,36 @@ from _common import RESULTS, markdown_table, save_results
 from pipeline.spike_store import open_spike_store
 from pipeline.testset import make_testset
 from stages.metrics import psnr, ssim
-from stages.references import exact_lr_bicubic, exact_mosaic_demosaicked, steady_state_mosaic
+from stages.references import (exact_lr_bicubic, exact_mosaic_demosaicked, mean_level_per_period, read_periods,
+                               steady_state_mosaic)
 
-REFERENCES = {  # name -> f(truth, cfa, scale, alpha, reset)
-    "exact LR picture, bicubic": lambda truth, cfa, scale, alpha, reset: exact_lr_bicubic(truth, scale),
-    "exact LR mosaic, VNG, bicubic": lambda truth, cfa, scale, alpha, reset: exact_mosaic_demosaicked(truth, cfa, scale),
-    "static long-run rate (per-pixel ceiling)": steady_state_mosaic,
+REFERENCES = {  # name -> f(truth, cfa, scale, alpha, reset, levels)
+    "exact LR picture, bicubic": lambda truth, cfa, scale, alpha, reset, levels: exact_lr_bicubic(truth, scale),
+    "exact LR mosaic, VNG, bicubic":
+        lambda truth, cfa, scale, alpha, reset, levels: exact_mosaic_demosaicked(truth, cfa, scale),
+    "still scene, long-run rate as TFP reads it":
+        lambda truth, cfa, scale, alpha, reset, levels: steady_state_mosaic(truth, cfa, scale, alpha, reset),
+    "still scene, best reading of each period (oracle)":
+        lambda truth, cfa, scale, alpha, reset, levels: read_periods(truth, cfa, scale, alpha, levels),
 }
 
 
 def ceilings(testset: Path) -> list[dict]:
     """One row per reference and alpha (and 'all'): mean PSNR / SSIM over the truth frames."""
     manifest = json.loads((testset / "manifest.json").read_text())
+    if manifest["reset"] != "zero":
+        raise SystemExit(f"{testset}: the period ceilings assume the zero reset, not {manifest['reset']!r}")
+    cfa, scale = manifest["cfa"], manifest["scale"]
+    truths = {item["store"]: open_spike_store(str(testset / item["store"])).group["truth"][:]
+              for item in manifest["items"]}
+    levels = {alpha: mean_level_per_period([t for item in manifest["items"] if item["alpha"] == alpha
+                                            for t in truths[item["store"]]], cfa, scale, alpha)
+              for alpha in {item["alpha"] for item in manifest["items"]}}  # fitted per alpha over every picture
     scores = []  # (reference, alpha, psnr, ssim)
     for item in manifest["items"]:
-        store = open_spike_store(str(testset / item["store"]))
-        truth = store.group["truth"][:]
         for name, reference in REFERENCES.items():
-            for frame in truth:
-                estimate = reference(frame, manifest["cfa"], manifest["scale"], item["alpha"], manifest["reset"])
+            for frame in truths[item["store"]]:
+                estimate = reference(frame, cfa, scale, item["alpha"], manifest["reset"], levels[item["alpha"]])
                 scores.append((name, item["alpha"], psnr(estimate, frame), ssim(estimate, frame)))
     rows = []
     for name in REFERENCES:

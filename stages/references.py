@@ -1,6 +1,6 @@
 """Reference pictures made from the ground truth, not from spikes: what a method could reach.
 
-The quality table needs ceilings to read a gap against. Two, both from the HR truth:
+The quality table needs ceilings to read a gap against, all from the HR truth:
 
 - ``exact_lr_bicubic``: the exact LR picture (area mean of each s x s block), enlarged
   bicubically. What any method gets that recovers the LR scene perfectly, then enlarges it.
@@ -10,8 +10,11 @@ The quality table needs ceilings to read a gap against. Two, both from the HR tr
 - ``steady_state_mosaic``: the same mosaic read the way a perfect per-pixel estimator reads
   a static scene through the noiseless sensor, from its long-run firing rate. With the
   paper's zero reset a pixel fires every ``ceil(θ/(α·I))`` frames, so every intensity of one
-  period reads the same (at α = 1, all of I in [0.5, 1) reads 2/3): this is the ceiling of
-  TFP and TFI on such data, and what only spatial and temporal context can beat.
+  period reads the same (at α = 1, all of I in [0.5, 1) reads 2/3 as TFP reads it): the
+  ceiling of TFP and TFI on such data.
+- ``read_periods`` with ``mean_level_per_period``: each period read as the mean intensity of
+  the pixels that have it in the very pictures scored, the best any estimator of a still pixel
+  from its own spikes can do; only spatial and temporal context can beat it.
 """
 
 import numpy as np
@@ -20,6 +23,8 @@ from stages.colour import demosaic, upsample
 from stages.errors import InputError
 from stages.sensor import area_downsample, cfa_sample
 from stages.tfp import RESETS, undo_zero_reset
+
+NEVER = 1 << 40  # the period of a pixel that never fires
 
 
 def _unit(truth: np.ndarray) -> np.ndarray:
@@ -41,6 +46,18 @@ def exact_mosaic_demosaicked(truth: np.ndarray, cfa: str, scale: int) -> np.ndar
     return _uint8(upsample(demosaic(mosaic, cfa), scale))
 
 
+def zero_reset_periods(truth: np.ndarray, cfa: str, scale: int, brightness: float) -> np.ndarray:
+    """(s*H, s*W, 3) uint8 HR truth -> (H, W) int64: frames between spikes of each LR pixel of the still scene.
+
+    The noiseless zero-reset sensor at ``brightness`` α (θ = 1) fires every ceil(1/(α·I)) frames;
+    a dark pixel never fires (``NEVER``).
+    """
+    if not 0 < brightness <= 1:
+        raise InputError(f"brightness must be in (0, 1], got {brightness!r}")
+    rate = np.float64(brightness) * cfa_sample(area_downsample(_unit(truth), scale), cfa)  # (H, W) α·I
+    return np.where(rate > 0, np.ceil(1 / np.maximum(rate, 1 / NEVER)), NEVER).astype(np.int64)
+
+
 def steady_state_mosaic(truth: np.ndarray, cfa: str, scale: int, brightness: float, reset: str) -> np.ndarray:
     """(s*H, s*W, 3) uint8 HR truth -> (s*H, s*W, 3) uint8: its LR mosaic as a static scene's long-run rate reads it.
 
@@ -50,10 +67,33 @@ def steady_state_mosaic(truth: np.ndarray, cfa: str, scale: int, brightness: flo
     """
     if reset not in RESETS:
         raise InputError(f"unknown reset {reset!r}: expected one of {', '.join(RESETS)}")
-    if not 0 < brightness <= 1:
-        raise InputError(f"brightness must be in (0, 1], got {brightness!r}")
-    rate = np.float32(brightness) * cfa_sample(area_downsample(_unit(truth), scale), cfa)  # (H, W) spikes per frame
-    if reset == "zero":
-        period = np.ceil(1 / np.maximum(rate, np.float32(1e-12)))  # frames between spikes
-        rate = undo_zero_reset(np.where(rate > 0, 1 / period, 0).astype(np.float32))
-    return _uint8(upsample(demosaic(rate / np.float32(brightness), cfa), scale))
+    if reset == "subtract":
+        if not 0 < brightness <= 1:
+            raise InputError(f"brightness must be in (0, 1], got {brightness!r}")
+        return exact_mosaic_demosaicked(truth, cfa, scale)
+    period = zero_reset_periods(truth, cfa, scale, brightness)  # (H, W)
+    intensity = undo_zero_reset((1 / period).astype(np.float32)) / np.float32(brightness)
+    return _uint8(upsample(demosaic(intensity, cfa), scale))
+
+
+def mean_level_per_period(truths: list[np.ndarray], cfa: str, scale: int, brightness: float) -> dict[int, float]:
+    """Period -> mean LR intensity of the pixels with that period over ``truths``.
+
+    The least-squares reading of each period for exactly these pictures: an oracle, fitted to
+    the truth, that bounds every estimator reading a still pixel's period alone.
+    """
+    periods = np.concatenate([zero_reset_periods(t, cfa, scale, brightness).ravel() for t in truths])
+    levels = np.concatenate([cfa_sample(area_downsample(_unit(t), scale), cfa).ravel() for t in truths])
+    found, index = np.unique(periods, return_inverse=True)
+    means = np.bincount(index, weights=levels) / np.bincount(index)
+    return dict(zip(found.tolist(), means.tolist()))
+
+
+def read_periods(truth: np.ndarray, cfa: str, scale: int, brightness: float, levels: dict[int, float]) -> np.ndarray:
+    """(s*H, s*W, 3) uint8 HR truth -> (s*H, s*W, 3) uint8: each LR pixel's period read as ``levels[period]``."""
+    period = zero_reset_periods(truth, cfa, scale, brightness)  # (H, W)
+    missing = set(np.unique(period).tolist()) - set(levels)
+    if missing:
+        raise InputError(f"no level for period(s) {sorted(missing)[:5]}: fit the levels on this picture too")
+    intensity = np.vectorize(levels.__getitem__, otypes=[np.float32])(period)
+    return _uint8(upsample(demosaic(intensity, cfa), scale))

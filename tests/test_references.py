@@ -6,7 +6,8 @@ import pytest
 from stages.colour import rate_to_rgb
 from stages.errors import InputError
 from stages.metrics import psnr
-from stages.references import exact_lr_bicubic, exact_mosaic_demosaicked, steady_state_mosaic
+from stages.references import (exact_lr_bicubic, exact_mosaic_demosaicked, mean_level_per_period, read_periods,
+                               steady_state_mosaic)
 from stages.sensor import SensorModel, area_downsample, cfa_sample, fire, increments, initial_state
 from stages.tfp import tfp_rate
 from tests.test_sensor import smooth_rgb
@@ -42,6 +43,19 @@ def test_the_per_pixel_ceiling_is_what_the_sensor_gives_a_static_scene():
     ceiling = steady_state_mosaic(truth, cfa, scale, brightness, "zero")
     assert np.mean(np.abs(measured.astype(int) - ceiling) <= 1) > 0.99
     assert psnr(exact_mosaic_demosaicked(truth, cfa, scale), truth) > psnr(ceiling, truth) + 1  # the period costs
+
+
+def test_the_best_reading_of_a_period_is_the_mean_intensity_that_has_it():
+    """At alpha 1, I = 0.749 and I = 0.6 both fire every 2nd frame: read alike, as their mean; 0.2 every 5th."""
+    truth = np.empty((32, 64, 3), np.uint8)
+    truth[:, :32], truth[:, 32:48], truth[:, 48:] = 191, 153, 51  # 0.749, 0.6, 0.2
+    levels = mean_level_per_period([truth], "rggb", 4, 1.0)
+    assert sorted(levels) == [2, 5]
+    assert levels[2] == pytest.approx((2 * 191 + 153) / 3 / 255) and levels[5] == pytest.approx(51 / 255)
+    read = read_periods(truth, "rggb", 4, 1.0, levels)
+    assert np.abs(read[8:-8, 8:32].astype(int) - round(levels[2] * 255)).max() <= 1  # away from borders and seams
+    with pytest.raises(InputError, match=r"no level for period\(s\) \[5\]"):
+        read_periods(truth, "rggb", 4, 1.0, {2: 0.7})
 
 
 def test_bad_reset_or_brightness_is_refused():
