@@ -35,6 +35,16 @@ def _uint8(rgb: np.ndarray) -> np.ndarray:
     return np.round(np.clip(rgb, 0, 1) * 255).astype(np.uint8)
 
 
+def _lr_mosaic(truth: np.ndarray, cfa: str, scale: int) -> np.ndarray:
+    """(s*H, s*W, 3) uint8 HR truth -> (H, W) float32 exact LR mosaic in [0, 1]."""
+    return cfa_sample(area_downsample(_unit(truth), scale), cfa)
+
+
+def _check_brightness(brightness: float) -> None:
+    if not 0 < brightness <= 1:
+        raise InputError(f"brightness must be in (0, 1], got {brightness!r}")
+
+
 def exact_lr_bicubic(truth: np.ndarray, scale: int) -> np.ndarray:
     """(s*H, s*W, 3) uint8 HR truth -> (s*H, s*W, 3) uint8: its exact LR picture enlarged bicubically."""
     return _uint8(upsample(area_downsample(_unit(truth), scale), scale))
@@ -42,8 +52,7 @@ def exact_lr_bicubic(truth: np.ndarray, scale: int) -> np.ndarray:
 
 def exact_mosaic_demosaicked(truth: np.ndarray, cfa: str, scale: int) -> np.ndarray:
     """(s*H, s*W, 3) uint8 HR truth -> (s*H, s*W, 3) uint8: its exact LR mosaic through ``cfa``, VNG, bicubic."""
-    mosaic = cfa_sample(area_downsample(_unit(truth), scale), cfa)  # (H, W)
-    return _uint8(upsample(demosaic(mosaic, cfa), scale))
+    return _uint8(upsample(demosaic(_lr_mosaic(truth, cfa, scale), cfa), scale))
 
 
 def zero_reset_periods(truth: np.ndarray, cfa: str, scale: int, brightness: float) -> np.ndarray:
@@ -52,9 +61,8 @@ def zero_reset_periods(truth: np.ndarray, cfa: str, scale: int, brightness: floa
     The noiseless zero-reset sensor at ``brightness`` α (θ = 1) fires every ceil(1/(α·I)) frames;
     a dark pixel never fires (``NEVER``).
     """
-    if not 0 < brightness <= 1:
-        raise InputError(f"brightness must be in (0, 1], got {brightness!r}")
-    rate = np.float64(brightness) * cfa_sample(area_downsample(_unit(truth), scale), cfa)  # (H, W) α·I
+    _check_brightness(brightness)
+    rate = np.float64(brightness) * _lr_mosaic(truth, cfa, scale)  # (H, W) α·I
     return np.where(rate > 0, np.ceil(1 / np.maximum(rate, 1 / NEVER)), NEVER).astype(np.int64)
 
 
@@ -68,8 +76,7 @@ def steady_state_mosaic(truth: np.ndarray, cfa: str, scale: int, brightness: flo
     if reset not in RESETS:
         raise InputError(f"unknown reset {reset!r}: expected one of {', '.join(RESETS)}")
     if reset == "subtract":
-        if not 0 < brightness <= 1:
-            raise InputError(f"brightness must be in (0, 1], got {brightness!r}")
+        _check_brightness(brightness)
         return exact_mosaic_demosaicked(truth, cfa, scale)
     period = zero_reset_periods(truth, cfa, scale, brightness)  # (H, W)
     intensity = undo_zero_reset((1 / period).astype(np.float32)) / np.float32(brightness)
@@ -80,10 +87,10 @@ def mean_level_per_period(truths: list[np.ndarray], cfa: str, scale: int, bright
     """Period -> mean LR intensity of the pixels with that period over ``truths``.
 
     The least-squares reading of each period for exactly these pictures: an oracle, fitted to
-    the truth, that bounds every estimator reading a still pixel's period alone.
+    the truth, about the best any estimator reading a still pixel's period alone can do.
     """
     periods = np.concatenate([zero_reset_periods(t, cfa, scale, brightness).ravel() for t in truths])
-    levels = np.concatenate([cfa_sample(area_downsample(_unit(t), scale), cfa).ravel() for t in truths])
+    levels = np.concatenate([_lr_mosaic(t, cfa, scale).ravel() for t in truths])
     found, index = np.unique(periods, return_inverse=True)
     means = np.bincount(index, weights=levels) / np.bincount(index)
     return dict(zip(found.tolist(), means.tolist()))

@@ -31,8 +31,8 @@ def test_zero_reset_reads_every_intensity_of_one_period_alike(brightness):
     assert np.unique(steady_state_mosaic(truth, "rggb", 4, brightness, "zero")).tolist() == [170]
 
 
-def test_the_per_pixel_ceiling_is_what_the_sensor_gives_a_static_scene():
-    """The long-run TFP of a static picture through the simulated zero-reset sensor equals the ceiling."""
+def test_tfp_s_long_run_reading_is_what_the_sensor_gives_a_still_scene():
+    """The long-run TFP of a still picture through the simulated zero-reset sensor equals the reference."""
     brightness, scale, cfa, frames = 0.8, 4, "rggb", 2520  # 2520: a whole number of every period 1..10
     truth = np.round(smooth_rgb(128, 128, seed=4) * 255).astype(np.uint8)  # (128, 128, 3)
     mosaic = cfa_sample(area_downsample(truth.astype(np.float32) / 255, scale), cfa)  # (32, 32)
