@@ -27,20 +27,19 @@ import numpy as np
 
 from _common import RESULTS, markdown_table, save_results
 from pipeline.spike_store import open_spike_store
-from pipeline.testset import make_testset
+from pipeline.testset import average_per_alpha, make_testset
 from stages.metrics import psnr, ssim
 from stages.references import (exact_lr_bicubic, exact_mosaic_demosaicked, mean_level_per_period, read_periods,
                                steady_state_mosaic)
 
-REFERENCES = {  # name -> f(truth, cfa, scale, alpha, reset, levels)
-    "exact LR picture, bicubic": lambda truth, cfa, scale, alpha, reset, levels: exact_lr_bicubic(truth, scale),
-    "exact LR mosaic, VNG, bicubic":
-        lambda truth, cfa, scale, alpha, reset, levels: exact_mosaic_demosaicked(truth, cfa, scale),
-    "still scene, long-run rate as TFP reads it":
-        lambda truth, cfa, scale, alpha, reset, levels: steady_state_mosaic(truth, cfa, scale, alpha, reset),
-    "still scene, best reading of each period (oracle)":
-        lambda truth, cfa, scale, alpha, reset, levels: read_periods(truth, cfa, scale, alpha, levels),
-}
+def references(truth: np.ndarray, cfa: str, scale: int, alpha: float, levels: dict[int, float]) -> dict:
+    """Name -> the reference picture made from one (s*H, s*W, 3) uint8 truth frame."""
+    return {
+        "exact LR picture, bicubic": exact_lr_bicubic(truth, scale),
+        "exact LR mosaic, VNG, bicubic": exact_mosaic_demosaicked(truth, cfa, scale),
+        "still scene, long-run rate as TFP reads it": steady_state_mosaic(truth, cfa, scale, alpha, "zero"),
+        "still scene, best reading of each period (oracle)": read_periods(truth, cfa, scale, alpha, levels),
+    }
 
 
 def ceilings(testset: Path) -> list[dict]:
@@ -54,19 +53,10 @@ def ceilings(testset: Path) -> list[dict]:
     levels = {alpha: mean_level_per_period([t for item in manifest["items"] if item["alpha"] == alpha
                                             for t in truths[item["store"]]], cfa, scale, alpha)
               for alpha in {item["alpha"] for item in manifest["items"]}}  # fitted per alpha over every picture
-    scores = []  # (reference, alpha, psnr, ssim)
-    for item in manifest["items"]:
-        for name, reference in REFERENCES.items():
-            for frame in truths[item["store"]]:
-                estimate = reference(frame, cfa, scale, item["alpha"], manifest["reset"], levels[item["alpha"]])
-                scores.append((name, item["alpha"], psnr(estimate, frame), ssim(estimate, frame)))
-    rows = []
-    for name in REFERENCES:
-        for alpha in (*sorted({s[1] for s in scores}), "all"):
-            chosen = [s for s in scores if s[0] == name and (alpha == "all" or s[1] == alpha)]
-            rows.append({"method": name, "alpha": alpha, "psnr": float(np.mean([s[2] for s in chosen])),
-                         "ssim": float(np.mean([s[3] for s in chosen])), "images": len(chosen)})
-    return rows
+    scores = [{"method": name, "alpha": item["alpha"], "psnr": psnr(estimate, frame), "ssim": ssim(estimate, frame)}
+              for item in manifest["items"] for frame in truths[item["store"]]
+              for name, estimate in references(frame, cfa, scale, item["alpha"], levels[item["alpha"]]).items()]
+    return average_per_alpha(scores, ("psnr", "ssim"))
 
 
 def main() -> None:

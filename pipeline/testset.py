@@ -100,19 +100,23 @@ def evaluate_testset(testset: str, methods: list[str], out: str, *, weights: str
             rows = evaluate(f"{testset.rstrip('/')}/{item.name}.zarr", methods, f"{out.rstrip('/')}/{item.name}",
                             weights=weights, client=client, progress=progress)
             per_item += [row | {"picture": item.picture, "alpha": item.alpha} for row in rows]
-    summary = []
-    alphas = sorted({item.alpha for item in chosen})
-    for method in methods:
-        for alpha in (*alphas, "all"):
-            rows = [r for r in per_item if r["method"] == method and (alpha == "all" or r["alpha"] == alpha)]
-            summary.append({"method": method, "alpha": alpha, "psnr": float(np.mean([r["psnr"] for r in rows])),
-                            "ssim": float(np.mean([r["ssim"] for r in rows])),
-                            "seconds_per_image": float(np.mean([r["seconds_per_image"] for r in rows]))})
+    summary = average_per_alpha(per_item, ("psnr", "ssim", "seconds_per_image"))
     with out_fs.open(f"{out_root}/summary.csv", "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=list(summary[0]))
         writer.writeheader()
         writer.writerows(summary)
     write_image(f"{out.rstrip('/')}/crops.png", _crops(testset, out, methods, chosen))
+    return summary
+
+
+def average_per_alpha(rows: list[dict], keys: tuple[str, ...]) -> list[dict]:
+    """Rows with ``method``, ``alpha`` and ``keys`` -> their means per (method, alpha), plus an 'all' row per method."""
+    summary = []
+    alphas = sorted({r["alpha"] for r in rows})
+    for method in dict.fromkeys(r["method"] for r in rows):
+        for alpha in (*alphas, "all"):
+            chosen = [r for r in rows if r["method"] == method and (alpha == "all" or r["alpha"] == alpha)]
+            summary.append({"method": method, "alpha": alpha} | {k: float(np.mean([r[k] for r in chosen])) for k in keys})
     return summary
 
 

@@ -61,8 +61,13 @@ def zero_reset_periods(truth: np.ndarray, cfa: str, scale: int, brightness: floa
     The noiseless zero-reset sensor at ``brightness`` α (θ = 1) fires every ceil(1/(α·I)) frames;
     a dark pixel never fires (``NEVER``).
     """
+    return _periods(_lr_mosaic(truth, cfa, scale), brightness)
+
+
+def _periods(mosaic: np.ndarray, brightness: float) -> np.ndarray:
+    """(H, W) LR intensities -> (H, W) int64 frames between spikes (see :func:`zero_reset_periods`)."""
     _check_brightness(brightness)
-    rate = np.float64(brightness) * _lr_mosaic(truth, cfa, scale)  # (H, W) α·I
+    rate = np.float64(brightness) * mosaic  # (H, W) α·I
     return np.where(rate > 0, np.ceil(1 / np.maximum(rate, 1 / NEVER)), NEVER).astype(np.int64)
 
 
@@ -89,8 +94,8 @@ def mean_level_per_period(truths: list[np.ndarray], cfa: str, scale: int, bright
     The least-squares reading of each period for exactly these pictures: an oracle, fitted to
     the truth, about the best any estimator reading a still pixel's period alone can do.
     """
-    periods = np.concatenate([zero_reset_periods(t, cfa, scale, brightness).ravel() for t in truths])
     levels = np.concatenate([_lr_mosaic(t, cfa, scale).ravel() for t in truths])
+    periods = _periods(levels, brightness)
     found, index = np.unique(periods, return_inverse=True)
     means = np.bincount(index, weights=levels) / np.bincount(index)
     return dict(zip(found.tolist(), means.tolist()))
