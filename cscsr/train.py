@@ -71,8 +71,10 @@ class TrainOptions:
         return self
 
 
-# Options a resumed run may change; every other one shapes the weights, the clips or the schedule so far.
-MAY_CHANGE_ON_RESUME = frozenset({"steps", "decay_every", "checkpoint_every", "validate_every", "validation_clips"})
+# Options a resumed run may change; every other one shapes the weights, the clips or the schedule so far. A larger
+# pool brings fresh clips to a run that has seen its pool many times (clip i keeps its seed; its scale may change).
+MAY_CHANGE_ON_RESUME = frozenset({"steps", "decay_every", "checkpoint_every", "validate_every", "validation_clips",
+                                  "pool"})
 
 
 def scale_of(step: int, options: TrainOptions) -> int:

@@ -235,7 +235,7 @@ def train(context: typer.Context,
                                                         "schedule: an annealing phase).")] = 7500,
           seed: Annotated[int, typer.Option(help="Seed of the clips and the initial weights.")] = 0,
           pool: Annotated[int, typer.Option(help="Clips simulated up front and reused under 8 flips and turns "
-                                                 "(0: a fresh clip every time).")] = 0,
+                                                 "(0: a fresh clip every time); may grow on --resume.")] = 0,
           motion: Annotated[str, typer.Option(help="Ablation: joint or assembled motion estimation.")] = "joint",
           flow_guidance: Annotated[bool, typer.Option("--flow-guidance/--no-flow-guidance",
                                                       help="Ablation: fuse time points aligned by flow, or not.")] = True,

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from cscsr.train import TrainOptions, losses, make_batch, to_tensors, train
+from cscsr.network import CSCSR
+from cscsr.train import TrainOptions, load_checkpoint, losses, make_batch, to_tensors, train
 from cscsr.training_data import TEST_PICTURES, TRAIN_PICTURES, random_clip
 from cscsr.weights_io import load_model
 from stages.errors import InputError
@@ -74,6 +75,20 @@ def test_a_resumed_run_may_anneal_with_a_shorter_decay(tmp_path):
     assert rates == pytest.approx([base, base, base * 0.9**3])  # after steps 2, 4 (7,500-step decay), then 6 (2-step)
     with pytest.raises(InputError, match="decay_every must be >= 1"):
         TrainOptions(decay_every=0).check()
+
+
+def test_a_resumed_run_may_grow_its_pool_but_not_change_its_crops(tmp_path):
+    """--pool may grow on --resume (fresh clips for a run that has seen its pool many times); --lr-side may not."""
+    train(TrainOptions(steps=2, **TINY), tmp_path / "run", log=lambda line: None)
+    checkpoint = tmp_path / "run" / "checkpoint.safetensors"
+
+    def resume(options):
+        model = CSCSR(options.network())
+        return load_checkpoint(checkpoint, model, torch.optim.Adam(model.parameters()), options)
+
+    assert resume(TrainOptions(steps=4, pool=16, **TINY)) == 2
+    with pytest.raises(InputError, match=r"other options \(lr_side\)"):
+        resume(TrainOptions(steps=4, **{**TINY, "lr_side": 18}))
 
 
 def test_an_ablation_run_trains_and_records_the_switched_network(tmp_path, cli):
