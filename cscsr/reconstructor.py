@@ -14,6 +14,7 @@ import torch
 from cscsr.integration import SCALES
 from cscsr.weights_io import default_weights, load_model
 from stages.bits import unpack_rows
+from stages.cfa import flip_horizontally, flip_vertically, transpose
 from stages.colour import expose
 from stages.errors import InputError
 from stages.reconstruct import Window
@@ -29,6 +30,8 @@ class NetworkReconstructor:
     name: str = "cscsr"
     halo: int = HALO
     batch: int = 4  # windows per forward pass (frames of one tile)
+    self_ensemble: bool = False  # average over the 8 flips and quarter turns, as in training (8x the time): the
+    # network is not exactly equivariant, and its errors under different turns partly cancel (EDSR's "+")
 
     def check(self, window: int, scale: int, cfa: str) -> None:
         config = self.model.config
@@ -49,9 +52,27 @@ class NetworkReconstructor:
         spikes = np.stack([unpack_rows(w.packed, w.width) for w in windows])  # (B, N, h, w) uint8
         with one_thread_on_cpu(self.device), torch.inference_mode():
             x = torch.from_numpy(spikes).to(self.device, torch.float32)
-            rate = self.model(x, first.cfa, first.reset == "zero", first.scale)["image"]  # (B, 3, sH, sW)
+            views = range(8) if self.self_ensemble else (0,)
+            rate = sum(self._seen_under(k, x, first) for k in views) / len(views)  # (B, 3, sH, sW)
             rate = rate.permute(0, 2, 3, 1).float().cpu().numpy()
         return [expose(r, first.gain) for r in rate]
+
+    def _seen_under(self, orientation: int, spikes: torch.Tensor, window: Window) -> torch.Tensor:
+        """The network's output for the windows turned by ``orientation`` (bits as in training:
+        transpose, flip left-right, flip upside down), turned back. (B, N, h, w) -> (B, 3, sH, sW)."""
+        cfa = window.cfa
+        if orientation & 1:
+            spikes, cfa = spikes.transpose(-1, -2), transpose(cfa)
+        if orientation & 2:
+            spikes, cfa = spikes.flip(-1), flip_horizontally(cfa, spikes.shape[-1])
+        if orientation & 4:
+            spikes, cfa = spikes.flip(-2), flip_vertically(cfa, spikes.shape[-2])
+        image = self.model(spikes.contiguous(), cfa, window.reset == "zero", window.scale)["image"]
+        if orientation & 4:
+            image = image.flip(-2)
+        if orientation & 2:
+            image = image.flip(-1)
+        return image.transpose(-1, -2) if orientation & 1 else image
 
 
 @contextlib.contextmanager
@@ -69,9 +90,12 @@ def one_thread_on_cpu(device: torch.device):
         torch.set_num_threads(previous)
 
 
-def load_reconstructor(weights: str | None, device: str | None = None) -> NetworkReconstructor:
-    """The network from ``weights`` (default: the shipped ``lite`` weights), on a GPU if there is one."""
+def load_reconstructor(weights: str | None, device: str | None = None, *,
+                       self_ensemble: bool = False) -> NetworkReconstructor:
+    """The network from ``weights`` (default: the shipped ``lite`` weights), on a GPU if there is one;
+    with ``self_ensemble``, every window is reconstructed under the 8 flips and quarter turns and averaged."""
     path = weights or str(default_weights("lite"))
     device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
     model, _ = load_model(path, device)
-    return NetworkReconstructor(model, device, str(path))
+    return NetworkReconstructor(model, device, str(path), "cscsr-ensemble" if self_ensemble else "cscsr",
+                                self_ensemble=self_ensemble)

@@ -169,7 +169,7 @@ def simulate(src: Annotated[str, typer.Argument(help="A video, a folder of frame
 @command()
 def reconstruct(store: Annotated[str, typer.Argument(help="Spike store URL.")],
                 out: Annotated[str, typer.Argument(help="HR video store to write (any URL).")],
-                method: Annotated[str, typer.Option(help="tfp, tfi or cscsr.")] = "tfp",
+                method: Annotated[str, typer.Option(help="tfp, tfi, cscsr or cscsr-ensemble.")] = "tfp",
                 every: Annotated[int, typer.Option(help="One output frame every K spike frames.")] = 41,
                 window: Annotated[int, typer.Option(help="Spike frames per output frame (odd).")] = 41,
                 gain: Annotated[Optional[float], typer.Option(help="Rate-to-intensity gain (default: store's, else auto).")] = None,
@@ -192,7 +192,7 @@ def reconstruct(store: Annotated[str, typer.Argument(help="Spike store URL.")],
 
 @command()
 def evaluate(store: Annotated[str, typer.Argument(help="Simulated spike store (with truth).")],
-             methods: Annotated[str, typer.Option(help="Comma-separated methods: tfp, tfi, cscsr.")] = "tfp,tfi",
+             methods: Annotated[str, typer.Option(help="Comma-separated methods: tfp, tfi, cscsr, cscsr-ensemble.")] = "tfp,tfi",
              out_dir: Annotated[str, typer.Option("--out", help="Folder for reconstructions, CSVs and the picture.")] = "evaluation",
              weights: Annotated[Optional[str], typer.Option(help="Network weights for cscsr.")] = None,
              workers: Workers = None, scheduler: Scheduler = None):
@@ -304,7 +304,7 @@ def watch(inbox: Annotated[str, typer.Argument(help="Where recordings land (any 
           outbox: Annotated[str, typer.Argument(help="Local folder for outputs and the ledger.")],
           interval: Annotated[str, typer.Option(help="Time between passes: 30s, 10m, 1h.")] = "10m",
           once: Annotated[bool, typer.Option("--once", help="One pass, then exit (for cron).")] = False,
-          method: Annotated[str, typer.Option(help="tfp, tfi or cscsr.")] = "tfp",
+          method: Annotated[str, typer.Option(help="tfp, tfi, cscsr or cscsr-ensemble.")] = "tfp",
           weights: Annotated[Optional[str], typer.Option(help="Network weights for cscsr.")] = None,
           every: Annotated[int, typer.Option(help="One output frame every K spike frames.")] = 41,
           tile: Annotated[int, typer.Option(help="Tile side in LR pixels.")] = 256,

@@ -30,7 +30,7 @@ from pipeline.storage import claim_output, exists
 from pipeline.video_store import TileWriter, committed_mask, create_video_store, open_video_store
 from stages.colour import auto_gain
 from stages.errors import InputError
-from stages.reconstruct import METHODS, Window, classic
+from stages.reconstruct import METHODS, NETWORKS, Window, classic
 from stages.tfp import tfp_rate
 from stages.tiles import Tile, tile_grid
 
@@ -89,11 +89,11 @@ def output_centres(n_frames: int, window: int, every: int) -> list[int]:
 @functools.lru_cache(maxsize=4)
 def reconstructor(method: str, weights: str | None):
     """Built once per worker process (this cache lives in the worker) and reused by its tasks:
-    for ``cscsr``, the network is loaded from its weights once, onto the worker's GPU if any."""
-    if method == "cscsr":
+    for the network, it is loaded from its weights once, onto the worker's GPU if any."""
+    if method in NETWORKS:
         from cscsr.reconstructor import load_reconstructor
 
-        return load_reconstructor(weights)
+        return load_reconstructor(weights, self_ensemble=method == "cscsr-ensemble")
     return classic(method)
 
 

@@ -69,13 +69,14 @@ class RateReconstructor:
 
 
 CLASSIC = {"tfp": RateReconstructor("tfp", tfp_rate), "tfi": RateReconstructor("tfi", tfi_rate)}
-METHODS = ("tfp", "tfi", "cscsr")
+NETWORKS = ("cscsr", "cscsr-ensemble")  # the network; the same averaged over the 8 flips and quarter turns
+METHODS = ("tfp", "tfi", *NETWORKS)
 
 
 def classic(method: str) -> Reconstructor:
     """The classic reconstructor called ``method``; an error naming the known ones otherwise."""
-    if method == "cscsr":
-        raise InputError("cscsr is a network, not a classic method: load it with cscsr.reconstructor")
+    if method in NETWORKS:
+        raise InputError(f"{method} is a network, not a classic method: load it with cscsr.reconstructor")
     if method not in CLASSIC:
         raise InputError(f"unknown method {method!r}: expected one of {', '.join(METHODS)}")
     return CLASSIC[method]

@@ -224,3 +224,22 @@ def test_tiles_with_the_halo_agree_with_the_whole_frame(lite):
     difference = np.abs(whole.astype(int) - tiled)
     # measured with ~0.5 px random flows: 97.8 % within 1 grey level, mean 0.25, max 6
     assert np.mean(difference <= 1) > 0.95 and difference.mean() < 0.5 and difference.max() <= 12
+
+
+def test_the_self_ensemble_turns_with_the_recording(lite):
+    """cscsr-ensemble averages the network over the 8 flips and quarter turns: a recording turned a
+    quarter (spikes and CFA name together) gives the same picture turned, to rounding; the plain
+    network does not (it is not exactly equivariant, which is why averaging helps)."""
+    spikes = clip(32, 32, seed=3).numpy().astype(np.uint8)[0]  # (41, 32, 32)
+    turned = np.ascontiguousarray(spikes.swapaxes(-1, -2)[..., ::-1])  # a quarter turn: rggb reads grbg
+
+    def pictures(self_ensemble: bool) -> tuple[np.ndarray, np.ndarray]:
+        method = NetworkReconstructor(lite, torch.device("cpu"), "test", self_ensemble=self_ensemble)
+        upright = method(Window(pack_rows(spikes), 32, "rggb", "subtract", 2.0, 2))
+        return np.ascontiguousarray(upright.swapaxes(0, 1)[:, ::-1]), method(
+            Window(pack_rows(turned), 32, "grbg", "subtract", 2.0, 2))
+
+    expected, got = pictures(self_ensemble=True)
+    assert np.abs(expected.astype(int) - got).max() <= 1
+    expected, got = pictures(self_ensemble=False)
+    assert np.abs(expected.astype(int) - got).max() > 4

@@ -245,6 +245,31 @@ def test_cscsr_on_the_cluster_matches_the_network_run_directly(recording, client
     assert chunk_files(str(tmp_path / "one.zarr")) == chunk_files(out)
 
 
+def test_cscsr_ensemble_on_the_cluster_matches_the_self_ensemble_run_directly(recording, client, random_weights,
+                                                                             tmp_path):
+    """--method cscsr-ensemble: the network averaged over 8 flips and turns, the same bytes on two
+    workers as the reconstructor run in this process, and not the plain network's bytes."""
+    import torch
+
+    from cscsr.reconstructor import load_reconstructor
+    from pipeline.spike_store import open_spike_store
+    from stages.reconstruct import Window
+
+    out = str(tmp_path / "ensemble.zarr")
+    reconstruct(recording, out, ReconstructOptions(method="cscsr-ensemble", weights=random_weights, every=41),
+                client=client, progress=False)
+    frames, centres, attrs = video(out)
+    assert attrs["state"] == "complete" and attrs["method"] == "cscsr-ensemble"
+
+    store = open_spike_store(recording)
+    windows = [Window(store.read(c - 20, c + 21), 32, store.meta.cfa, store.meta.reset, attrs["gain"], 4)
+               for c in centres]
+    ensemble = load_reconstructor(random_weights, torch.device("cpu"), self_ensemble=True)
+    assert np.array_equal(frames, np.stack(ensemble.many(windows)))
+    plain = load_reconstructor(random_weights, torch.device("cpu"))
+    assert not np.array_equal(frames, np.stack(plain.many(windows)))
+
+
 def test_cscsr_refusals(cli, recording, random_weights, tmp_path):
     out = tmp_path / "out.zarr"
     assert_refused(cli("reconstruct", recording, out, "--method", "cscsr", "--weights", tmp_path / "none.safetensors",
