@@ -249,8 +249,6 @@ def test_cscsr_ensemble_on_the_cluster_matches_the_self_ensemble_run_directly(re
                                                                              tmp_path):
     """--method cscsr-ensemble: the network averaged over 8 flips and turns, the same bytes on two
     workers as the reconstructor run in this process, and not the plain network's bytes."""
-    import torch
-
     from cscsr.reconstructor import load_reconstructor
     from pipeline.spike_store import open_spike_store
     from stages.reconstruct import Window
@@ -264,9 +262,9 @@ def test_cscsr_ensemble_on_the_cluster_matches_the_self_ensemble_run_directly(re
     store = open_spike_store(recording)
     windows = [Window(store.read(c - 20, c + 21), 32, store.meta.cfa, store.meta.reset, attrs["gain"], 4)
                for c in centres]
-    ensemble = load_reconstructor(random_weights, torch.device("cpu"), self_ensemble=True)
+    ensemble = load_reconstructor(random_weights, "cpu", self_ensemble=True)
     assert np.array_equal(frames, np.stack(ensemble.many(windows)))
-    plain = load_reconstructor(random_weights, torch.device("cpu"))
+    plain = load_reconstructor(random_weights, "cpu")
     assert not np.array_equal(frames, np.stack(plain.many(windows)))
 
 
