@@ -27,11 +27,15 @@ class NetworkReconstructor:
     model: torch.nn.Module
     device: torch.device
     weights: str
-    name: str = "cscsr"
     halo: int = HALO
     batch: int = 4  # windows per forward pass (frames of one tile)
     self_ensemble: bool = False  # average over the 8 flips and quarter turns, as in training (8x the time): the
     # network is not exactly equivariant, and its errors under different turns partly cancel (EDSR's "+")
+
+    @property
+    def name(self) -> str:
+        """The method's name, as ``--method`` takes it."""
+        return "cscsr-ensemble" if self.self_ensemble else "cscsr"
 
     def check(self, window: int, scale: int, cfa: str) -> None:
         config = self.model.config
@@ -97,5 +101,4 @@ def load_reconstructor(weights: str | None, device: str | None = None, *,
     path = weights or str(default_weights("lite"))
     device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
     model, _ = load_model(path, device)
-    return NetworkReconstructor(model, device, str(path), "cscsr-ensemble" if self_ensemble else "cscsr",
-                                self_ensemble=self_ensemble)
+    return NetworkReconstructor(model, device, str(path), self_ensemble=self_ensemble)
