@@ -52,6 +52,7 @@ class TrainOptions:
     validation_clips: int = 8
     distinct_batches: int = 0  # 0: a new batch every step; n: cycle through n batches (tiny data, for tests)
     pool: int = 0  # 0: every clip simulated for its step; n: n clips simulated up front, drawn under 8 orientations
+    init: str = ""  # a weights file to start from instead of random weights (fine-tuning, e.g. on larger crops)
     motion: str = "joint"  # the network's ablation switches (cscsr.config): "joint" or "assembled" motion,
     flow_guidance: bool = True  # and flow-guided fusion on or off
 
@@ -231,9 +232,12 @@ def train(options: TrainOptions, out: str | os.PathLike, *, resume: bool = False
         raise InputError(f"{out} already exists: pass --resume to continue its training")
     if resume and not checkpoint.exists():
         raise InputError(f"cannot resume: {checkpoint} does not exist")
+    start = initial_weights(options) if options.init and not resume else None  # refused before any output
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(options.seed)
     model = CSCSR(options.network()).train()
+    if start is not None:
+        model.load_state_dict(start)
     optimiser = torch.optim.Adam(model.parameters(), lr=options.learning_rate)
     step = load_checkpoint(checkpoint, model, optimiser, options) if resume else 0
     for group in optimiser.param_groups:  # the schedule scales the configured rate, not a restored one
@@ -278,8 +282,24 @@ def train(options: TrainOptions, out: str | os.PathLike, *, resume: bool = False
     return final
 
 
+def initial_weights(options: TrainOptions) -> dict:
+    """The state dict of ``options.init``, refused unless it holds the network this run trains."""
+    from cscsr.weights_io import load_model
+
+    model, _ = load_model(options.init)
+    if model.config != options.network():
+        raise InputError(f"cannot start from {options.init}: it holds CSCSR {model.config.name!r} "
+                         f"({model.config.to_json()}), this run trains {options.network().to_json()}")
+    return model.state_dict()
+
+
 def _about(step: int, options: TrainOptions, command: str) -> dict:
-    return {"steps": str(step), "command": command, "options": json.dumps(asdict(options)),
+    start = {}
+    if options.init:
+        from cscsr.weights_io import read_metadata
+
+        start = {"initialised_from": f"{options.init} ({read_metadata(options.init).get('steps', '?')} steps)"}
+    return {**start, "steps": str(step), "command": command, "options": json.dumps(asdict(options)),
             "data": "simulated on the fly: dead leaves and scikit-image pictures "
                     f"({', '.join(TRAIN_PICTURES)}), random camera paths, alpha 0.6-1.0, both resets, "
                     "realistic noise on half, four CFA phases, x2 and x4"

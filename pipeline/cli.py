@@ -236,6 +236,8 @@ def train(context: typer.Context,
           seed: Annotated[int, typer.Option(help="Seed of the clips and the initial weights.")] = 0,
           pool: Annotated[int, typer.Option(help="Clips simulated up front and reused under 8 flips and turns "
                                                  "(0: a fresh clip every time); may grow on --resume.")] = 0,
+          init: Annotated[Optional[str], typer.Option(help="Start from the weights in this file instead of random ones "
+                                                           "(fine-tuning, e.g. on larger --lr-side crops).")] = None,
           motion: Annotated[str, typer.Option(help="Ablation: joint or assembled motion estimation.")] = "joint",
           flow_guidance: Annotated[bool, typer.Option("--flow-guidance/--no-flow-guidance",
                                                       help="Ablation: fuse time points aligned by flow, or not.")] = True,
@@ -251,7 +253,7 @@ def train(context: typer.Context,
     if threads:
         torch.set_num_threads(threads)
     options = TrainOptions(config=config, steps=steps, batch=batch, lr_side=lr_side, learning_rate=learning_rate,
-                           warmup=warmup, decay_every=decay_every, seed=seed, pool=pool,
+                           warmup=warmup, decay_every=decay_every, seed=seed, pool=pool, init=init or "",
                            motion=motion, flow_guidance=flow_guidance,
                            checkpoint_every=checkpoint_every, validate_every=validate_every)
     final = run(options, out, resume=resume, log=lambda line: stdout.print(line, highlight=False),

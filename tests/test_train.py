@@ -91,6 +91,26 @@ def test_a_resumed_run_may_grow_its_pool_but_not_change_its_crops(tmp_path):
         resume(TrainOptions(steps=4, **{**TINY, "lr_side": 18}))
 
 
+def test_a_run_may_start_from_weights_of_the_same_network(tmp_path):
+    """--init fine-tunes (e.g. on larger crops): the run starts from the file's weights; another network is refused."""
+    first = train(TrainOptions(steps=2, **TINY), tmp_path / "first", log=lambda line: None)
+    frozen = TrainOptions(steps=2, learning_rate=0.0, init=str(first), seed=5, **{**TINY, "lr_side": 18})
+    model, metadata = load_model(train(frozen, tmp_path / "tuned", log=lambda line: None))
+    start, _ = load_model(first)
+    assert all(torch.equal(a, b) for a, b in zip(model.state_dict().values(), start.state_dict().values()))
+    assert metadata["initialised_from"] == f"{first} (2 steps)"
+    moved, _ = load_model(train(TrainOptions(steps=2, init=str(first), seed=5, **TINY), tmp_path / "moved",
+                                log=lambda line: None))
+    assert not all(torch.equal(a, b) for a, b in zip(moved.state_dict().values(), start.state_dict().values()))
+    other = TrainOptions(steps=2, motion="assembled", init=str(first), **TINY)
+    with pytest.raises(InputError, match="cannot start from .* it holds CSCSR 'lite'"):
+        train(other, tmp_path / "other", log=lambda line: None)
+    with pytest.raises(InputError, match="none.safetensors not found"):
+        train(TrainOptions(steps=2, init=str(tmp_path / "none.safetensors"), **TINY), tmp_path / "none",
+              log=lambda line: None)
+    assert not (tmp_path / "other").exists() and not (tmp_path / "none").exists()
+
+
 def test_an_ablation_run_trains_and_records_the_switched_network(tmp_path, cli):
     """--motion assembled / --no-flow-guidance train that network; the weights rebuild it; resume keeps it."""
     result = cli("train", tmp_path / "noflow", "--steps", "2", "--batch", "2", "--lr-side", "16",
