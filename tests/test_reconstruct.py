@@ -268,21 +268,22 @@ def test_cscsr_ensemble_on_the_cluster_matches_the_self_ensemble_run_directly(re
     assert not np.array_equal(frames, np.stack(plain.many(windows)))
 
 
-def test_cscsr_refusals(cli, recording, random_weights, tmp_path):
+@pytest.mark.parametrize("method", ["cscsr", "cscsr-ensemble"])
+def test_network_refusals(method, cli, recording, random_weights, tmp_path):
     out = tmp_path / "out.zarr"
-    assert_refused(cli("reconstruct", recording, out, "--method", "cscsr", "--weights", tmp_path / "none.safetensors",
+    assert_refused(cli("reconstruct", recording, out, "--method", method, "--weights", tmp_path / "none.safetensors",
                        "--workers", 1), "weights file", "not found")
-    assert_refused(cli("reconstruct", recording, out, "--method", "cscsr", "--weights", random_weights,
+    assert_refused(cli("reconstruct", recording, out, "--method", method, "--weights", random_weights,
                        "--window", 21, "--workers", 1), "takes windows of 41 frames")
-    assert_refused(cli("reconstruct", recording, out, "--method", "cscsr", "--weights", random_weights,
+    assert_refused(cli("reconstruct", recording, out, "--method", method, "--weights", random_weights,
                        "--scale", 3, "--workers", 1), "upsamples by 2 or 4")
     np.save(tmp_path / "mono.npy", np.zeros((41, 8, 8), np.uint8))
     assert cli("ingest", tmp_path / "mono.npy", tmp_path / "mono.zarr").exit_code == 0
-    assert_refused(cli("reconstruct", tmp_path / "mono.zarr", out, "--method", "cscsr", "--weights", random_weights,
+    assert_refused(cli("reconstruct", tmp_path / "mono.zarr", out, "--method", method, "--weights", random_weights,
                        "--workers", 1), "mono")
     assert not out.exists()
     out.mkdir()
-    assert_refused(cli("reconstruct", recording, out, "--method", "cscsr", "--weights", tmp_path / "none.safetensors",
+    assert_refused(cli("reconstruct", recording, out, "--method", method, "--weights", tmp_path / "none.safetensors",
                        "--overwrite", "--workers", 1), "not found")
     assert out.exists()  # a refused --overwrite leaves the old output alone
 
