@@ -12,7 +12,7 @@ PSNR minus the best classic method's (goal >= 2 dB, printed as PASS/FAIL, never 
 
 Run: ``python benchmarks/quality_table.py [--testset DIR] [--repeats 3] [--methods ...]
 [--weights FILE]`` (without ``--testset`` it makes the test set under
-``benchmarks/results/testset`` first, ~2 min; then about 3 minutes a repeat).
+``benchmarks/results/testset`` first, ~2 min; then about 2 minutes a repeat).
 """
 
 import argparse
@@ -28,14 +28,17 @@ CLASSIC = ("tfp", "tfi")
 GOAL_DB = 2.0
 
 
+def _scores(rows: list[dict]) -> list[tuple]:
+    return [(r["method"], r["alpha"], r["psnr"], r["ssim"]) for r in rows]
+
+
 def repeated(testset: Path, methods: list[str], weights: str, repeats: int) -> tuple[list[dict], dict]:
     """(the rows of the first repeat, method -> seconds per image of every repeat); quality must not vary."""
     first, seconds = None, {}
     for repeat in range(repeats):
         with tempfile.TemporaryDirectory() as out:
             rows = evaluate_testset(str(testset), methods, out, weights=weights, workers=1, progress=False)
-        quality = [(r["method"], r["alpha"], r["psnr"], r["ssim"]) for r in rows]
-        if first is not None and quality != [(r["method"], r["alpha"], r["psnr"], r["ssim"]) for r in first]:
+        if first is not None and _scores(rows) != _scores(first):
             raise SystemExit(f"repeat {repeat + 1} scored differently from the first: the evaluation is not deterministic")
         first = first or rows
         for r in rows:

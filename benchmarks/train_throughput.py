@@ -1,8 +1,8 @@
 """Training throughput of CSCSR, in clips per second, beside the cost of simulating a clip.
 
 What: for each configuration and LR crop side, ``--repeats`` timed optimiser steps (after two
-warm-up steps) of exactly what ``cscsr train`` does per step (``cscsr.train.losses``: forward,
-L1 image and flow losses, backward, gradient clipping, Adam) on a batch of ``--batch`` x4
+warm-up steps) of exactly what ``cscsr train`` does per step (``cscsr.train.optimiser_step``:
+forward, L1 image and flow losses, backward, gradient clipping, Adam) on a batch of ``--batch`` x4
 clips from a pool, median. References in the same run: the forward pass alone on the same
 batch (``torch.inference_mode``; a step costs about three of them) and the simulation of one
 clip (``cscsr.training_data.random_clip``, on one core), which is why ``cscsr train --pool``
@@ -22,7 +22,7 @@ import torch
 from _common import load_average, markdown_table, median, save_results
 from cscsr.config import named
 from cscsr.network import CSCSR
-from cscsr.train import losses, to_tensors
+from cscsr.train import TrainOptions, optimiser_step, to_tensors
 from cscsr.training_data import batch_arrays, random_clip
 
 
@@ -44,13 +44,10 @@ def one_case(config: str, side: int, batch: int, repeats: int, device: str) -> d
     torch.manual_seed(0)
     model = CSCSR(named(config)).to(device).train()
     optimiser = torch.optim.Adam(model.parameters(), lr=1e-4)
+    options = TrainOptions(config=config, batch=batch, lr_side=side)
 
     def step() -> None:
-        optimiser.zero_grad(set_to_none=True)
-        loss, _ = losses(model, tensors, 0.1)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 0.1)
-        optimiser.step()
+        optimiser_step(model, optimiser, tensors, options)
 
     def forward() -> None:
         with torch.inference_mode():

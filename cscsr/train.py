@@ -151,6 +151,17 @@ def losses(model: CSCSR, batch: dict, flow_weight: float) -> tuple[torch.Tensor,
     return total, parts
 
 
+def optimiser_step(model: CSCSR, optimiser: torch.optim.Optimizer, batch: dict,
+                   options: TrainOptions) -> tuple[torch.Tensor, dict]:
+    """One step on ``batch``: the losses, their gradients (norm clipped to ``options.clip``), Adam."""
+    optimiser.zero_grad(set_to_none=True)
+    loss, parts = losses(model, batch, options.flow_weight)
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(model.parameters(), options.clip)
+    optimiser.step()
+    return loss, parts
+
+
 def psnr_intensity(rate: torch.Tensor, truth: torch.Tensor, alpha: torch.Tensor) -> float:
     """PSNR of intensities I = rate / alpha clipped to [0, 1], as the images would be written."""
     a = (rate / alpha[:, None, None, None]).clamp(0, 1)
@@ -256,12 +267,7 @@ def train(options: TrainOptions, out: str | os.PathLike, *, resume: bool = False
     batches = _prefetch(step, options, pool)
     started, seen, recent = time.perf_counter(), 0, []
     while step < options.steps:
-        batch = to_tensors(next(batches))
-        optimiser.zero_grad(set_to_none=True)
-        loss, parts = losses(model, batch, options.flow_weight)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), options.clip)
-        optimiser.step()
+        loss, parts = optimiser_step(model, optimiser, to_tensors(next(batches)), options)
         schedule.step()
         step += 1
         seen += options.batch
