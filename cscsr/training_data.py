@@ -24,8 +24,8 @@ from stages.motion import CameraPath, render
 from stages.sensor import SensorModel, area_downsample, cfa_sample, fire, increments, initial_state
 from stages.bits import unpack_rows
 
-TRAIN_PICTURES = ("rocket", "hubble_deep_field", "immunohistochemistry", "retina", "colorwheel", "logo",
-                  "brick", "grass", "gravel", "camera", "coins", "moon", "page", "text")
+TRAIN_PICTURES = ("rocket", "motorcycle_left", "motorcycle_right", "hubble_deep_field", "immunohistochemistry",
+                  "retina", "colorwheel", "logo", "brick", "grass", "gravel", "camera", "coins", "moon", "page", "text")
 TEST_PICTURES = ("astronaut", "coffee", "chelsea")  # never seen in training
 FRAMES, MIDDLE, SPAN = 41, 20, 9
 MAX_SPEED = 0.15  # LR px per frame (RMS), the fastest training motion (the test set moves at 0.125)
@@ -68,9 +68,16 @@ def dead_leaves(rng: np.random.Generator, size: int) -> np.ndarray:
 
 
 def bundled_picture(name: str) -> np.ndarray:
-    """A scikit-image picture as (H, W, 3) float32; grey ones get a random-free fixed tint later."""
+    """A scikit-image picture as (H, W, 3) float32; grey ones are tinted later (``tint``).
+
+    The two views of the stereo motorcycle (natural colour, like the test pictures) are
+    pictures of their own: the same scene from two viewpoints.
+    """
     from skimage import data
 
+    if name.startswith("motorcycle_"):
+        left, right, _ = data.stereo_motorcycle()
+        return to_unit_rgb(left if name == "motorcycle_left" else right)
     return to_unit_rgb(getattr(data, name)())
 
 

@@ -8,7 +8,7 @@ import torch
 
 from cscsr.network import CSCSR
 from cscsr.train import TrainOptions, load_checkpoint, losses, make_batch, to_tensors, train
-from cscsr.training_data import TEST_PICTURES, TRAIN_PICTURES, random_clip
+from cscsr.training_data import TEST_PICTURES, TRAIN_PICTURES, bundled_picture, random_clip
 from cscsr.weights_io import load_model
 from stages.errors import InputError
 
@@ -24,6 +24,16 @@ def test_a_clip_is_reproducible_and_consistent():
     # the spikes measure the truth: the mean rate is the mean truth (in rate units), within noise
     assert abs(a.spikes.mean() - a.truth.mean()) < 0.08
     assert not set(TEST_PICTURES) & set(TRAIN_PICTURES)
+
+
+def test_every_training_picture_is_installed_and_distinct():
+    pictures = {name: bundled_picture(name) for name in TRAIN_PICTURES}
+    for name, picture in pictures.items():
+        assert picture.ndim == 3 and picture.shape[2] == 3 and min(picture.shape[:2]) >= 172, name
+        assert picture.dtype == np.float32 and 0 <= picture.min() and picture.max() <= 1, name
+    # the stereo pair is two viewpoints of one scene, not one picture twice
+    left, right = pictures["motorcycle_left"], pictures["motorcycle_right"]
+    assert left.shape == right.shape and 0.02 < np.abs(left - right).mean() < 0.3
 
 
 def test_the_loss_falls_and_the_weights_reload(tmp_path):
