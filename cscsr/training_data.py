@@ -27,6 +27,7 @@ from stages.bits import unpack_rows
 TRAIN_PICTURES = ("rocket", "motorcycle_left", "motorcycle_right", "hubble_deep_field", "immunohistochemistry",
                   "retina", "colorwheel", "logo", "brick", "grass", "gravel", "camera", "coins", "moon", "page", "text")
 TEST_PICTURES = ("astronaut", "coffee", "chelsea")  # never seen in training
+_STEREO_VIEWS = {"motorcycle_left": 0, "motorcycle_right": 1}  # index in skimage.data.stereo_motorcycle()
 FRAMES, MIDDLE, SPAN = 41, 20, 9
 MAX_SPEED = 0.15  # LR px per frame (RMS), the fastest training motion (the test set moves at 0.125)
 
@@ -75,9 +76,8 @@ def bundled_picture(name: str) -> np.ndarray:
     """
     from skimage import data
 
-    if name.startswith("motorcycle_"):
-        left, right, _ = data.stereo_motorcycle()
-        return to_unit_rgb(left if name == "motorcycle_left" else right)
+    if name in _STEREO_VIEWS:
+        return to_unit_rgb(data.stereo_motorcycle()[_STEREO_VIEWS[name]])
     return to_unit_rgb(getattr(data, name)())
 
 
