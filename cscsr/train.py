@@ -122,9 +122,12 @@ def clip_pool(options: TrainOptions) -> dict[int, list]:
     return pool
 
 
+_WORKER_PICTURES: dict = {}  # a pool worker's decoded pictures, read once per process, not once per clip
+
+
 def _pool_clip(args) -> Clip:
     seed, lr_side, scale = args
-    return random_clip(seed, lr_side=lr_side, scale=scale, pictures=TRAIN_PICTURES)
+    return random_clip(seed, lr_side=lr_side, scale=scale, pictures=TRAIN_PICTURES, cache=_WORKER_PICTURES)
 
 
 def validation_batches(options: TrainOptions) -> list[dict]:
