@@ -36,12 +36,13 @@ def markdown_table(headers: list[str], rows: list[list]) -> str:
     return "\n".join(lines)
 
 
-def save_results(name: str, data: dict) -> Path:
-    """Write ``benchmarks/results/NAME.json`` with the machine's description beside the data."""
-    RESULTS.mkdir(parents=True, exist_ok=True)
+def save_results(name: str, data: dict, folder: Path = RESULTS) -> Path:
+    """Write ``benchmarks/results/NAME.json`` (or in ``folder``) with the machine's description beside the data."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
     machine = {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform(),
                "load_average_at_end": os.getloadavg()}
-    path = RESULTS / f"{name}.json"
+    path = folder / f"{name}.json"
     path.write_text(json.dumps({"benchmark": name, "machine": machine, **data}, indent=2) + "\n")
     return path
 

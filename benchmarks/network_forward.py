@@ -29,6 +29,7 @@ import sys
 from _common import ROOT, load_average, markdown_table, save_results
 
 SIZES = {"64x64": (64, 64), "180x320": (180, 320), "256x256 tile": (256, 256)}
+GPU_SIZES = {"180x320": (180, 320), "1000x1000": (1000, 1000)}  # the camera's own size
 PAPER_SECONDS = 1.032
 
 
@@ -66,6 +67,7 @@ def one_case(config: str, height: int, width: int, repeats: int, device: str, dt
 
     before = rss_mib()
     if device == "cuda":
+        torch.backends.cudnn.benchmark = True
         torch.cuda.reset_peak_memory_stats()
     forward()
     times = []
@@ -99,6 +101,7 @@ def main() -> None:
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--quick", action="store_true", help="64x64 only, one repeat (a smoke run)")
+    parser.add_argument("--out", default=None, help="folder for the JSON results (default benchmarks/results)")
     parser.add_argument("--case", help=argparse.SUPPRESS)
     args = parser.parse_args()
     import os
@@ -107,7 +110,7 @@ def main() -> None:
     if args.case:
         print(json.dumps(one_case(**json.loads(args.case))))
         return
-    sizes = {"64x64": SIZES["64x64"]} if args.quick else SIZES
+    sizes = {"64x64": SIZES["64x64"]} if args.quick else GPU_SIZES if args.device == "cuda" else SIZES
     repeats = 1 if args.quick else args.repeats
     dtypes = ["fp32", "bf16"] if args.device == "cuda" else ["fp32"]
     results = []
@@ -117,7 +120,10 @@ def main() -> None:
                 case = {"config": config, "height": h, "width": w, "repeats": repeats, "device": args.device,
                         "dtype": dtype, "threads": threads}
                 run = subprocess.run([sys.executable, __file__, "--case", json.dumps(case)], cwd=ROOT,
-                                     capture_output=True, text=True, check=True)
+                                     capture_output=True, text=True)
+                if run.returncode:
+                    print(f"{config} {label} {dtype}: failed: {run.stderr.strip().splitlines()[-1:]}", flush=True)
+                    continue
                 results.append(json.loads(run.stdout.strip().splitlines()[-1]))
                 r = results[-1]
                 print(f"{config} {label} {dtype}: {r['seconds']:.3f} s", flush=True)
@@ -130,7 +136,8 @@ def main() -> None:
     print(markdown_table(["config", "LR size", "dtype", "forward s (median)", "vs TFP", "peak RSS MiB",
                           "FLOPs / output px", "GFLOPs", "params (net + flow)"], rows))
     save_results(f"network_forward_{args.device}", {"threads": threads, "repeats": repeats, "cases": results,
-                                                    "paper_seconds_180x320": PAPER_SECONDS})
+                                                    "paper_seconds_180x320": PAPER_SECONDS},
+                 **({"folder": args.out} if args.out else {}))
 
 
 if __name__ == "__main__":

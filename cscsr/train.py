@@ -4,7 +4,9 @@ Each step draws a batch from its own seed (``[seed, step, i]``), so a resumed ru
 exactly the clips an uninterrupted one would. Loss: L1 on the HR rate image plus
 ``flow_weight`` times L1 of the two key flows against the simulator's exact flows (the
 motion is synthetic, so its truth is known). Adam with the sibling paper's step decay, gradients clipped.
-Batches are prepared by a background thread while the network trains on the previous one.
+Batches are prepared by background threads while the network trains on the previous one; on a
+GPU the clips themselves are synthesised there (``cscsr.synthesis``), with bf16 autocast on
+request, and ``time_budget`` ends a run cleanly before a command limit.
 A checkpoint (weights and optimiser state, safetensors: no pickle) is written atomically
 every ``checkpoint_every`` steps; the validation PSNR (fixed held-out clips) is logged to
 ``log.jsonl`` and printed on the progress line.
@@ -13,7 +15,6 @@ every ``checkpoint_every`` steps; the validation PSNR (fixed held-out clips) is 
 import json
 import math
 import os
-import queue
 import threading
 import time
 import warnings
@@ -25,7 +26,8 @@ import torch
 
 from cscsr.config import CSCSRConfig, named
 from cscsr.network import CSCSR
-from cscsr.training_data import TRAIN_PICTURES, Clip, batch_arrays, random_clip, reoriented
+from cscsr.training_data import (DEAD_LEAVES_SHARE, TRAIN_PICTURES, Clip, batch_arrays, check_not_test_pictures,
+                                 picture_files, random_clip, random_plan, reoriented)
 from cscsr.weights_io import save_weights
 from stages.errors import InputError
 
@@ -55,6 +57,13 @@ class TrainOptions:
     init: str = ""  # a weights file to start from instead of random weights (fine-tuning, e.g. on larger crops)
     motion: str = "joint"  # the network's ablation switches (cscsr.config): "joint" or "assembled" motion,
     flow_guidance: bool = True  # and flow-guided fusion on or off
+    pictures: str = ""  # folders of training pictures, joined by os.pathsep ("": the bundled pictures)
+    dead_leaves: float = DEAD_LEAVES_SHARE  # share of clips showing dead leaves instead of a picture
+    device: str = "cpu"  # "cpu", "cuda" or "cuda:N"; on a GPU clips are synthesised there (cscsr.synthesis)
+    precision: str = "fp32"  # "fp32" or "bf16" (autocast; weights and optimiser stay fp32)
+    synthesis: str = "auto"  # clips by "numpy" (stages, the simulator of record) or "torch" (cscsr.synthesis, on
+    # the device; the same clips); "auto": torch on a GPU, numpy on the CPU
+    time_budget: float = 0.0  # seconds from the start of the run: stop cleanly with a checkpoint before it (0: none)
 
     def network(self) -> CSCSRConfig:
         """The configuration this run trains: the named one with its ablation switches applied."""
@@ -69,13 +78,45 @@ class TrainOptions:
                 raise InputError(f"{label} must be >= 1, got {value}")
         if self.lr_side < 16 or self.lr_side % 2:
             raise InputError(f"lr_side must be even and >= 16, got {self.lr_side}")
+        if self.precision not in PRECISIONS:
+            raise InputError(f"unknown precision {self.precision!r}: expected one of {', '.join(PRECISIONS)}")
+        if not (math.isfinite(self.time_budget) and self.time_budget >= 0):
+            raise InputError(f"time_budget must be a finite number of seconds >= 0, got {self.time_budget}")
+        if not (math.isfinite(self.dead_leaves) and 0 <= self.dead_leaves <= 1):
+            raise InputError(f"dead_leaves must be a share in [0, 1], got {self.dead_leaves}")
+        try:
+            device = torch.device(self.device)
+        except RuntimeError:
+            raise InputError(f"unknown device {self.device!r}: expected cpu, cuda or cuda:N") from None
+        if device.type not in ("cpu", "cuda"):
+            raise InputError(f"unknown device {self.device!r}: expected cpu, cuda or cuda:N")
+        if device.type == "cuda" and not torch.cuda.is_available():
+            raise InputError(f"device {self.device!r} asked for, but torch sees no CUDA GPU here")
+        if self.synthesis not in SYNTHESES:
+            raise InputError(f"unknown synthesis {self.synthesis!r}: expected one of {', '.join(SYNTHESES)}")
+        if self.pool and self.on_device_synthesis:
+            raise InputError("--pool is for numpy synthesis on the CPU: on-device synthesis makes every clip fresh")
         return self
+
+    @property
+    def on_device_synthesis(self) -> bool:
+        """Clips made by ``cscsr.synthesis`` on the training device rather than by numpy (auto: on a GPU)."""
+        if self.synthesis == "auto":
+            return torch.device(self.device).type != "cpu"
+        return self.synthesis == "torch"
+
+    def picture_folders(self) -> list[str]:
+        return [f for f in self.pictures.split(os.pathsep) if f]
+
 
 
 # Options a resumed run may change; every other one shapes the weights, the clips or the schedule so far. A larger
 # pool brings fresh clips to a run that has seen its pool many times (clip i keeps its seed; its scale may change).
+# The device, precision and time budget do not change the clips or the schedule: a run moves between machines.
 MAY_CHANGE_ON_RESUME = frozenset({"steps", "decay_every", "checkpoint_every", "validate_every", "validation_clips",
-                                  "pool"})
+                                  "pool", "device", "precision", "time_budget", "synthesis", "init"})
+PRECISIONS = ("fp32", "bf16")
+SYNTHESES = ("auto", "numpy", "torch")
 
 
 def scale_of(step: int, options: TrainOptions) -> int:
@@ -87,17 +128,25 @@ def learning_rate_factor(step: int, options: TrainOptions) -> float:
     return min(1.0, (step + 1) / options.warmup) * 0.9 ** (step // options.decay_every)
 
 
-def make_batch(step: int, options: TrainOptions, cache: dict, pool: dict | None = None) -> dict:
+def make_batch(step: int, options: TrainOptions, cache: dict, pool: dict | None = None,
+               pictures: tuple[str, ...] = TRAIN_PICTURES):
+    """Step ``step``'s batch: numpy arrays (``batch_arrays``), or for on-device synthesis the CPU's share of it
+    (``cscsr.synthesis.PreparedBatch``, the same clips' plans)."""
     if options.distinct_batches:
         step = 1 + (step - 1) % options.distinct_batches
     scale = scale_of(step, options)
+    if options.on_device_synthesis:
+        from cscsr.synthesis import prepare
+
+        return prepare([random_plan([options.seed, step, i], lr_side=options.lr_side, scale=scale, pictures=pictures,
+                                    cache=cache, dead_leaves_share=options.dead_leaves) for i in range(options.batch)])
     if pool:
         rng = np.random.default_rng([options.seed, step, 998])
         clips = pool[scale]
         return batch_arrays([reoriented(clips[i], int(k)) for i, k in
                              zip(rng.integers(len(clips), size=options.batch), rng.integers(8, size=options.batch))])
-    clips = [random_clip([options.seed, step, i], lr_side=options.lr_side, scale=scale, pictures=TRAIN_PICTURES,
-                         cache=cache) for i in range(options.batch)]
+    clips = [random_clip([options.seed, step, i], lr_side=options.lr_side, scale=scale, pictures=pictures,
+                         cache=cache, dead_leaves_share=options.dead_leaves) for i in range(options.batch)]
     return batch_arrays(clips)
 
 
@@ -137,18 +186,32 @@ def validation_batches(options: TrainOptions) -> list[dict]:
             for i, a in enumerate(alphas)]
 
 
-def to_tensors(batch: dict) -> dict:
-    return {"spikes": torch.from_numpy(batch["spikes"]).float(), "truth": torch.from_numpy(batch["truth"]),
-            "flows": torch.from_numpy(batch["flows"]), "zero_reset": torch.from_numpy(batch["zero_reset"]),
-            "alpha": torch.from_numpy(batch["alpha"]).float(), "cfa": batch["cfa"], "scale": batch["scale"]}
+def to_tensors(batch, device: str = "cpu") -> dict:
+    """A batch (numpy arrays, or a ``PreparedBatch`` to synthesise) as tensors on ``device``."""
+    from cscsr.synthesis import PreparedBatch, synthesise
+
+    if isinstance(batch, PreparedBatch):
+        return synthesise(batch, device)
+    arrays = {"spikes": torch.from_numpy(batch["spikes"]).float(), "truth": torch.from_numpy(batch["truth"]),
+              "flows": torch.from_numpy(batch["flows"]), "zero_reset": torch.from_numpy(batch["zero_reset"]),
+              "alpha": torch.from_numpy(batch["alpha"]).float()}
+    return {**{k: v.to(device) for k, v in arrays.items()}, "cfa": batch["cfa"], "scale": batch["scale"]}
 
 
-def losses(model: CSCSR, batch: dict, flow_weight: float) -> tuple[torch.Tensor, dict]:
-    out = model(batch["spikes"], batch["cfa"], batch["zero_reset"], batch["scale"])
-    image = (out["image"] - batch["truth"]).abs().mean()
+def autocast(options: TrainOptions):
+    """bf16 autocast on the run's device when ``--precision bf16``, else nothing."""
+    device = torch.device(options.device).type
+    return torch.autocast(device, torch.bfloat16, enabled=options.precision == "bf16")
+
+
+def losses(model: CSCSR, batch: dict, flow_weight: float,
+           options: TrainOptions | None = None) -> tuple[torch.Tensor, dict]:
+    with autocast(options or TrainOptions()):
+        out = model(batch["spikes"], batch["cfa"], batch["zero_reset"], batch["scale"])
+    image = (out["image"].float() - batch["truth"]).abs().mean()
     total, parts = image, {"l1": image.item()}
     if out["flows"] is not None and flow_weight > 0:
-        flow = sum((f - batch["flows"][:, k]).abs().mean() for k, f in enumerate(out["flows"])) / 2
+        flow = sum((f.float() - batch["flows"][:, k]).abs().mean() for k, f in enumerate(out["flows"])) / 2
         total = total + flow_weight * flow
         parts["flow"] = flow.item()
     return total, parts
@@ -158,7 +221,7 @@ def optimiser_step(model: CSCSR, optimiser: torch.optim.Optimizer, batch: dict,
                    options: TrainOptions) -> tuple[torch.Tensor, dict]:
     """One step on ``batch``: the losses, their gradients (norm clipped to ``options.clip``), Adam."""
     optimiser.zero_grad(set_to_none=True)
-    loss, parts = losses(model, batch, options.flow_weight)
+    loss, parts = losses(model, batch, options.flow_weight, options)
     loss.backward()
     torch.nn.utils.clip_grad_norm_(model.parameters(), options.clip)
     optimiser.step()
@@ -173,13 +236,13 @@ def psnr_intensity(rate: torch.Tensor, truth: torch.Tensor, alpha: torch.Tensor)
     return 10 * math.log10(1 / max(mse, 1e-12))
 
 
-def validate(model: CSCSR, batches: list[dict]) -> tuple[float, float]:
-    """Mean PSNR of the network and of its TFP base image on the validation clips."""
+def validate(model: CSCSR, batches: list[dict], device: str = "cpu") -> tuple[float, float]:
+    """Mean PSNR of the network and of its TFP base image on the validation clips (fp32 on any device)."""
     model.eval()
     scores, bases = [], []
     with torch.inference_mode():
         for batch in batches:
-            t = to_tensors(batch)
+            t = to_tensors(batch, device)
             out = model(t["spikes"], t["cfa"], t["zero_reset"], t["scale"])
             scores.append(psnr_intensity(out["image"], t["truth"], t["alpha"]))
             bases.append(psnr_intensity(out["base"], t["truth"], t["alpha"]))
@@ -192,11 +255,11 @@ def validate(model: CSCSR, batches: list[dict]) -> tuple[float, float]:
 def save_checkpoint(path: Path, model: CSCSR, optimiser: torch.optim.Optimizer, step: int, options: TrainOptions) -> None:
     from safetensors.torch import save_file
 
-    tensors = {f"model.{k}": v.detach().contiguous() for k, v in model.state_dict().items()}
+    tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
     state = optimiser.state_dict()
     for index, values in state["state"].items():
         for key, value in values.items():
-            tensors[f"optimiser.{index}.{key}"] = torch.as_tensor(value).contiguous()
+            tensors[f"optimiser.{index}.{key}"] = torch.as_tensor(value).detach().cpu().contiguous()
     metadata = {"step": str(step), "options": json.dumps(asdict(options), sort_keys=True),
                 "config": model.config.to_json(), "param_groups": json.dumps(state["param_groups"])}
     partial = path.with_suffix(".partial")
@@ -238,7 +301,13 @@ def load_checkpoint(path: Path, model: CSCSR, optimiser: torch.optim.Optimizer, 
 
 def train(options: TrainOptions, out: str | os.PathLike, *, resume: bool = False, log=print,
           command: str = "") -> Path:
-    """Train into folder ``out``; returns the path of the final weights file."""
+    """Train into folder ``out``; returns the path of the final weights file.
+
+    With ``options.time_budget`` the run stops early, cleanly, when the next steps and the final
+    checkpoint, validation and weights would not fit before the budget: a command limit (a GPU
+    lease's 10 minutes) then ends a run that ``--resume`` continues exactly.
+    """
+    began = time.perf_counter()
     options = options.check()
     out = Path(out)
     checkpoint = out / "checkpoint.safetensors"
@@ -247,11 +316,17 @@ def train(options: TrainOptions, out: str | os.PathLike, *, resume: bool = False
     if resume and not checkpoint.exists():
         raise InputError(f"cannot resume: {checkpoint} does not exist")
     start = initial_weights(options) if options.init and not resume else None  # refused before any output
+    pictures = training_pictures(options)  # refused before any output too
     out.mkdir(parents=True, exist_ok=True)
+    device = torch.device(options.device)
+    if device.type == "cuda":
+        torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True
+        torch.backends.cudnn.benchmark = True
     torch.manual_seed(options.seed)
     model = CSCSR(options.network()).train()
     if start is not None:
         model.load_state_dict(start)
+    model.to(device)
     optimiser = torch.optim.Adam(model.parameters(), lr=options.learning_rate)
     step = load_checkpoint(checkpoint, model, optimiser, options) if resume else 0
     for group in optimiser.param_groups:  # the schedule scales the configured rate, not a restored one
@@ -267,18 +342,26 @@ def train(options: TrainOptions, out: str | os.PathLike, *, resume: bool = False
     if options.pool:
         log(f"simulating a pool of {options.pool} clips")
         pool = clip_pool(options)
-    batches = _prefetch(step, options, pool)
+    batches = _prefetch(step, options, pool, pictures)
     started, seen, recent = time.perf_counter(), 0, []
+    budget = Budget(options.time_budget, began)
     while step < options.steps:
-        loss, parts = optimiser_step(model, optimiser, to_tensors(next(batches)), options)
+        tick = time.perf_counter()
+        loss, parts = optimiser_step(model, optimiser, to_tensors(next(batches), options.device), options)
         schedule.step()
         step += 1
         seen += options.batch
         recent = (recent + [loss.item()])[-50:]
-        if step % options.checkpoint_every == 0 or step == options.steps:
+        budget.stepped(time.perf_counter() - tick)
+        stopping = budget.exhausted()
+        if step % options.checkpoint_every == 0 or step == options.steps or stopping:
+            tick = time.perf_counter()
             save_checkpoint(checkpoint, model, optimiser, step, options)
-        if step % options.validate_every == 0 or step == options.steps:
-            score, base = validate(model, validation)
+            budget.finished("checkpoint", time.perf_counter() - tick)
+        if step % options.validate_every == 0 or step == options.steps or stopping:
+            tick = time.perf_counter()
+            score, base = validate(model, validation, options.device)
+            budget.finished("validation", time.perf_counter() - tick)
             rate = seen / (time.perf_counter() - started)
             entry = {"step": step, "loss": float(np.mean(recent)), **parts, "val_psnr": score, "val_base_psnr": base,
                      "samples_per_s": rate, "lr": schedule.get_last_lr()[0], "time": time.time()}
@@ -286,9 +369,46 @@ def train(options: TrainOptions, out: str | os.PathLike, *, resume: bool = False
                 f.write(json.dumps(entry) + "\n")
             log(f"step {step}/{options.steps}  loss {entry['loss']:.4f}  val {score:.2f} dB (TFP base {base:.2f} dB)"
                 f"  {rate:.2f} samples/s")
+        if stopping:
+            log(f"stopped at step {step} of {options.steps}: the time budget of {options.time_budget:.0f} s is "
+                f"nearly spent; --resume continues")
+            break
+    batches.close()
     final = out / f"cscsr-{options.config}.safetensors"
     save_weights(model, final, **_about(step, options, command))
     return final
+
+
+class Budget:
+    """When to stop a run with a time budget: before the next step, the final checkpoint, validation and
+    weights could overrun it. Costs are the slowest seen so far (a first guess before any is seen)."""
+
+    def __init__(self, seconds: float, began: float):
+        self.deadline = began + seconds if seconds else math.inf
+        self.costs = {"step": 0.0, "checkpoint": 5.0, "validation": 10.0}
+
+    def stepped(self, seconds: float) -> None:
+        self.finished("step", seconds)
+
+    def finished(self, what: str, seconds: float) -> None:
+        self.costs[what] = max(self.costs[what] if what == "step" else 0.0, seconds)
+
+    def exhausted(self) -> bool:
+        needed = 2 * self.costs["step"] + 1.5 * (self.costs["checkpoint"] + self.costs["validation"]) + 5
+        return time.perf_counter() + needed > self.deadline
+
+
+def training_pictures(options: TrainOptions) -> tuple[str, ...]:
+    """The pictures a run trains on: the files in ``options.pictures``'s folders, else the bundled ones.
+
+    Refused if any of them is a held-out test picture.
+    """
+    folders = options.picture_folders()
+    if not folders:
+        return TRAIN_PICTURES
+    names = picture_files(folders)
+    check_not_test_pictures(names)
+    return names
 
 
 def initial_weights(options: TrainOptions) -> dict:
@@ -309,14 +429,18 @@ def _about(step: int, options: TrainOptions, command: str) -> dict:
 
         start = {"initialised_from": f"{options.init} ({read_metadata(options.init).get('steps', '?')} steps)"}
     return {**start, "steps": str(step), "command": command, "options": json.dumps(asdict(options)),
-            "data": "simulated on the fly: dead leaves and scikit-image pictures "
-                    f"({', '.join(TRAIN_PICTURES)}), random camera paths, alpha 0.6-1.0, both resets, "
+            "data": f"simulated on the fly{' on the GPU' if options.on_device_synthesis else ''}: dead leaves "
+                    f"({options.dead_leaves:.0%} of clips) and "
+                    + (f"the pictures in {', '.join(options.picture_folders())}" if options.pictures else
+                       f"scikit-image pictures ({', '.join(TRAIN_PICTURES)})") + ", random camera paths, alpha 0.6-1.0, both resets, "
                     "realistic noise on half, four CFA phases, x2 and x4"
                     + (f"; a pool of {options.pool} clips under 8 flips and turns" if options.pool else "")}
 
 
-def export_weights(folder: str | os.PathLike, dest: str | os.PathLike, command: str = "") -> int:
-    """The latest checkpoint of a training folder as a weights file (a run need not be finished)."""
+def export_weights(folder: str | os.PathLike, dest: str | os.PathLike, command: str = "",
+                   storage: str = "float32") -> int:
+    """The latest checkpoint of a training folder as a weights file (a run need not be finished);
+    ``storage="float16"`` halves the file (what comes back from a GPU lease)."""
     checkpoint = Path(folder) / "checkpoint.safetensors"
     if not checkpoint.exists():
         raise InputError(f"{checkpoint} does not exist: nothing trained there yet")
@@ -325,20 +449,55 @@ def export_weights(folder: str | os.PathLike, dest: str | os.PathLike, command: 
     model.load_state_dict(model_weights(tensors))
     options = TrainOptions(**json.loads(metadata["options"]))
     step = int(metadata["step"])
-    save_weights(model, dest, **_about(step, options, command or "cscsr train (exported from a checkpoint)"))
+    save_weights(model, dest, storage=storage,
+                 **_about(step, options, command or "cscsr train (exported from a checkpoint)"))
     return step
 
 
-def _prefetch(step: int, options: TrainOptions, pool: dict | None = None, depth: int = 2):
-    """Batches for steps step+1, step+2, ... made by a background thread."""
-    ready: queue.Queue = queue.Queue(depth)
+def _prefetch(step: int, options: TrainOptions, pool: dict | None = None,
+              pictures: tuple[str, ...] = TRAIN_PICTURES, depth: int = 2):
+    """Batches for steps step+1, step+2, ... made in the background, in order.
 
-    def work():
-        cache, n = {}, step
-        while n < options.steps:
-            n += 1
-            ready.put(make_batch(n, options, cache, pool))
+    On the CPU one thread (the cores train). With on-device synthesis the CPU's share of each batch
+    (scene crops, dead leaves, plans, sensor draws: about 15 ms a clip, most of it Python) is spread
+    over worker processes, so that the GIL does not hold back the GPU.
+    """
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 
-    threading.Thread(target=work, daemon=True).start()
-    while True:
-        yield ready.get()
+    if options.on_device_synthesis:
+        processes = max(1, min(12, (os.cpu_count() or 1) - 2))
+        workers = ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("spawn"),
+                                      initializer=_start_batch_worker, initargs=(options, pictures))
+        make, ahead = _worker_batch, depth * processes
+    else:
+        cache: dict = {}
+        workers = ThreadPoolExecutor(1, thread_name_prefix="batches")
+        make, ahead = (lambda n: make_batch(n, options, cache, pool, pictures)), depth
+    pending: list = []
+    n = step
+    try:
+        while True:
+            while n < options.steps and len(pending) < ahead:
+                n += 1
+                pending.append(workers.submit(make, n))
+            if not pending:
+                return
+            yield pending.pop(0).result()
+    finally:  # a run stopped early (time budget) leaves no batches being made behind it
+        workers.shutdown(wait=False, cancel_futures=True)
+
+
+_WORKER: dict = {}  # a batch worker process's options, pictures and decoded-picture cache
+
+
+def _start_batch_worker(options: TrainOptions, pictures: tuple[str, ...]) -> None:
+    import cv2
+
+    cv2.setNumThreads(1)
+    torch.set_num_threads(1)
+    _WORKER.update(options=options, pictures=pictures, cache={})
+
+
+def _worker_batch(step: int):
+    return make_batch(step, _WORKER["options"], _WORKER["cache"], None, _WORKER["pictures"])

@@ -5,10 +5,11 @@ picture moving along a smooth random camera path (``stages.motion``), the HR pic
 the middle frame in rate units α·I/θ, and the exact LR flows from the middle frame to
 frames 11 and 29 (motion supervision). The sensor is the project's simulator
 (``stages.sensor``, Algorithm 2): brightness α in [0.6, 1.0], random initial integrator
-state, either reset, light realistic noise on half the clips, any of the four CFA phases.
+state, either reset, light realistic noise on half the clips (shot noise and dark current; no threshold
+mismatch), any of the four CFA phases.
 
 Pictures come from what is installed, nothing downloaded: scikit-image's bundled pictures
-and procedurally generated "dead leaves" images (occluding discs of random colours and
+(or any folders of picture files, ``picture_files``) and procedurally generated "dead leaves" images (occluding discs of random colours and
 textures, the classic synthetic set for restoration). Test pictures are kept apart from
 training ones (``TEST_PICTURES``); validation uses dead leaves from their own seeds.
 Everything is a function of the seed, so a clip is reproducible bit for bit.
@@ -21,14 +22,17 @@ import numpy as np
 from stages.cfa import BAYER_PATTERNS, flip_horizontally, flip_vertically, transpose
 from stages.frames import to_unit_rgb
 from stages.motion import CameraPath, render
-from stages.sensor import SensorModel, area_downsample, cfa_sample, fire, increments, initial_state
 from stages.bits import unpack_rows
+from stages.errors import InputError
+from stages.sensor import SensorModel, area_downsample, cfa_sample, fire, increments, initial_state
 
 TRAIN_PICTURES = ("rocket", "motorcycle_left", "motorcycle_right", "hubble_deep_field", "immunohistochemistry",
                   "retina", "colorwheel", "logo", "brick", "grass", "gravel", "camera", "coins", "moon", "page", "text")
 TEST_PICTURES = ("astronaut", "coffee", "chelsea")  # never seen in training
 _STEREO_VIEWS = {"motorcycle_left": 0, "motorcycle_right": 1}  # index in skimage.data.stereo_motorcycle()
 FRAMES, MIDDLE, SPAN = 41, 20, 9
+DEAD_LEAVES_SHARE = 0.4  # clips of dead leaves rather than a picture
+PICTURE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 MAX_SPEED = 0.15  # LR px per frame (RMS), the fastest training motion (the test set moves at 0.125)
 
 
@@ -81,6 +85,54 @@ def bundled_picture(name: str) -> np.ndarray:
     return to_unit_rgb(getattr(data, name)())
 
 
+def picture(name: str) -> np.ndarray:
+    """A training picture by name: a bundled scikit-image picture, or the path of an image file."""
+    if name in TRAIN_PICTURES or name in TEST_PICTURES:
+        return bundled_picture(name)
+    import imageio.v3 as iio
+
+    return to_unit_rgb(iio.imread(name))
+
+
+def picture_files(folders) -> tuple[str, ...]:
+    """Every image file under the given folders (recursively, sorted): the names ``--pictures`` trains on.
+
+    Refused: a folder that does not exist or holds no pictures, and any file whose pixels are one of
+    the held-out test pictures (the test set must stay unseen, whatever a folder holds).
+    """
+    from pathlib import Path
+
+    files = []
+    for folder in folders:
+        root = Path(folder)
+        if not root.is_dir():
+            raise InputError(f"picture folder {folder} does not exist")
+        found = sorted(str(f) for f in root.rglob("*") if f.suffix.lower() in PICTURE_SUFFIXES and f.is_file())
+        if not found:
+            raise InputError(f"picture folder {folder} holds no pictures ({', '.join(PICTURE_SUFFIXES)})")
+        files += found
+    return tuple(files)
+
+
+def check_not_test_pictures(names: tuple[str, ...]) -> None:
+    """InputError if any named picture file holds the pixels of a test picture (any size, same picture)."""
+    import cv2
+
+    def signature(image: np.ndarray) -> np.ndarray:
+        return cv2.resize(np.ascontiguousarray(image, np.float32), (16, 16), interpolation=cv2.INTER_AREA)
+
+    tests = {name: signature(bundled_picture(name)) for name in TEST_PICTURES}
+    for name in names:
+        if name in TEST_PICTURES:
+            raise InputError(f"{name} is a test picture: it must stay out of training")
+        if name in TRAIN_PICTURES:
+            continue
+        image = signature(picture(name))
+        for test, reference in tests.items():
+            if np.abs(image - reference).mean() < 0.02:
+                raise InputError(f"{name} looks like the test picture {test!r}: it must stay out of training")
+
+
 def tint(rng: np.random.Generator, image: np.ndarray) -> np.ndarray:
     """Give a grey picture colour: a random mix of two colours by its intensity."""
     if not np.allclose(image[..., 0], image[..., 1]):
@@ -90,15 +142,16 @@ def tint(rng: np.random.Generator, image: np.ndarray) -> np.ndarray:
     return (low + (high - low) * grey).astype(np.float32)
 
 
-def source_picture(rng: np.random.Generator, pictures: tuple[str, ...], hr_side: int, cache: dict) -> np.ndarray:
+def source_picture(rng: np.random.Generator, pictures: tuple[str, ...], hr_side: int, cache: dict,
+                   dead_leaves_share: float = DEAD_LEAVES_SHARE) -> np.ndarray:
     """A random HR crop (side ``hr_side``) of a random picture, rescaled, flipped, rotated; or dead leaves."""
     import cv2
 
-    if not pictures or rng.random() < 0.4:
+    if not pictures or rng.random() < dead_leaves_share:
         return dead_leaves(rng, hr_side)
     name = pictures[rng.integers(len(pictures))]
     if name not in cache:
-        cache[name] = bundled_picture(name)
+        cache[name] = picture(name)
     image = tint(rng, cache[name])
     factor = rng.uniform(0.35, 1.0)
     factor = max(factor, hr_side / min(image.shape[:2]))
@@ -112,44 +165,93 @@ def source_picture(rng: np.random.Generator, pictures: tuple[str, ...], hr_side:
     return np.ascontiguousarray(crop[:, ::-1] if rng.random() < 0.5 else crop)
 
 
+@dataclass(frozen=True)
+class ClipPlan:
+    """Every random choice of one clip, drawn on the CPU; ``simulate_clip`` (numpy, the simulator of
+    record) and ``cscsr.synthesis`` (torch, on the training device) both carry it out."""
+
+    picture: np.ndarray  # (hr_side, hr_side, 3) float32: the padded scene, hr_side = scale * (lr_side + 2 * margin)
+    path: CameraPath  # the scene's motion on the HR grid
+    sensor: SensorModel
+    cfa: str
+    lr_side: int
+    scale: int
+
+    @property
+    def margin(self) -> int:
+        """LR pixels of scene around the clip on each side: the borders never show reflected content."""
+        return (self.picture.shape[0] // self.scale - self.lr_side) // 2
+
+    @property
+    def zero_reset(self) -> bool:
+        return self.sensor.reset == "zero"
+
+    def flows(self) -> np.ndarray:
+        """(2, 2, lr, lr) float32 exact LR flows from the middle frame to frames MIDDLE -/+ SPAN, (x, y)."""
+        crop = slice(self.margin, self.margin + self.lr_side)
+        lr_path = self.path.scaled(1 / self.scale)
+        return np.stack([lr_path.flow(MIDDLE, MIDDLE + d)[crop, crop].transpose(2, 0, 1)
+                         for d in (-SPAN, SPAN)]).astype(np.float32)
+
+
+def plan_clip(picture: np.ndarray, rng: np.random.Generator, *, lr_side: int, scale: int, alpha: float,
+              cfa: str, zero_reset: bool, noise: str, speed: float) -> ClipPlan:
+    """The camera path and sensor of a clip of ``picture`` (HR side = scale * (lr_side + 2 * margin))."""
+    hr_side = picture.shape[0]
+    seed = int(rng.integers(2**31))
+    path = CameraPath.random(FRAMES, hr_side, hr_side, seed=seed, speed=speed * scale,
+                             deform=float(rng.uniform(0, 0.5)) * scale if rng.random() < 0.3 else 0.0)
+    sensor = SensorModel(brightness=alpha, threshold=1.0, reset="zero" if zero_reset else "subtract",
+                         noise=noise, seed=int(rng.integers(2**31)))
+    return ClipPlan(picture, path, sensor, cfa, lr_side, scale)
+
+
 def simulate_clip(picture: np.ndarray, rng: np.random.Generator, *, lr_side: int, scale: int, alpha: float,
                   cfa: str, zero_reset: bool, noise: str, speed: float) -> Clip:
-    """A picture (HR side = scale * (lr_side + 2 * margin)) moving on a random path -> one clip.
+    """A picture (HR side = scale * (lr_side + 2 * margin)) moving on a random path -> one clip."""
+    return run_plan(plan_clip(picture, rng, lr_side=lr_side, scale=scale, alpha=alpha, cfa=cfa,
+                              zero_reset=zero_reset, noise=noise, speed=speed))
+
+
+def run_plan(plan: ClipPlan) -> Clip:
+    """A clip planned by ``plan_clip``, simulated with ``stages`` (numpy): the simulator of record.
 
     The path moves the whole padded picture; the clip is its centre, so the borders never show
     reflected content and the flows are exact everywhere in the crop.
     """
-    hr_side = picture.shape[0]
-    big = hr_side // scale
-    margin = (big - lr_side) // 2
-    seed = int(rng.integers(2**31))
-    path = CameraPath.random(FRAMES, hr_side, hr_side, seed=seed, speed=speed * scale,
-                             deform=float(rng.uniform(0, 0.5)) * scale if rng.random() < 0.3 else 0.0)
-    lr_path = path.scaled(1 / scale)
+    scale, lr_side, margin = plan.scale, plan.lr_side, plan.margin
     crop = slice(margin, margin + lr_side)
     hr_crop = slice(margin * scale, (margin + lr_side) * scale)
-    mosaics = np.stack([cfa_sample(area_downsample(render(picture, path, t), scale), cfa)[crop, crop]
-                        for t in range(FRAMES)])
-    sensor = SensorModel(brightness=alpha, threshold=1.0, reset="zero" if zero_reset else "subtract",
-                         noise=noise, seed=int(rng.integers(2**31)))
+    mosaics = np.stack([cfa_sample(area_downsample(render(plan.picture, plan.path, t), scale), plan.cfa)[crop, crop]
+                        for t in range(FRAMES)])  # (41, lr, lr)
+    sensor = plan.sensor
     fired = fire(increments(sensor, mosaics, 0), initial_state(sensor, lr_side, lr_side), reset=sensor.reset)
-    truth = alpha * render(picture, path, MIDDLE)[hr_crop, hr_crop]
-    flows = [lr_path.flow(MIDDLE, MIDDLE + d)[crop, crop] for d in (-SPAN, SPAN)]
+    truth = sensor.brightness * render(plan.picture, plan.path, MIDDLE)[hr_crop, hr_crop]
     return Clip(unpack_rows(fired.packed, lr_side), np.ascontiguousarray(truth.transpose(2, 0, 1), np.float32),
-                np.stack([f.transpose(2, 0, 1) for f in flows]).astype(np.float32), cfa, zero_reset, alpha, scale)
+                plan.flows(), plan.cfa, plan.zero_reset, sensor.brightness, scale)
+
+
+def random_plan(seed, *, lr_side: int, scale: int, pictures: tuple[str, ...] = TRAIN_PICTURES,
+                cache: dict | None = None, alpha: float | None = None,
+                dead_leaves_share: float = DEAD_LEAVES_SHARE) -> ClipPlan:
+    """A training clip's plan: everything drawn from ``seed`` (an int or a sequence of ints)."""
+    rng = np.random.default_rng(seed)
+    margin = max(4, lr_side // 4) // 2 * 2
+    picture = source_picture(rng, pictures, scale * (lr_side + 2 * margin), {} if cache is None else cache,
+                             dead_leaves_share)
+    return plan_clip(picture, rng, lr_side=lr_side, scale=scale,
+                     alpha=float(rng.uniform(0.6, 1.0)) if alpha is None else alpha,
+                     cfa=BAYER_PATTERNS[rng.integers(4)], zero_reset=bool(rng.random() < 0.5),
+                     noise="realistic" if rng.random() < 0.5 else "none",
+                     speed=float(rng.uniform(0, MAX_SPEED)))
 
 
 def random_clip(seed, *, lr_side: int, scale: int, pictures: tuple[str, ...] = TRAIN_PICTURES,
-                cache: dict | None = None, alpha: float | None = None) -> Clip:
+                cache: dict | None = None, alpha: float | None = None,
+                dead_leaves_share: float = DEAD_LEAVES_SHARE) -> Clip:
     """A training clip: everything drawn from ``seed`` (an int or a sequence of ints)."""
-    rng = np.random.default_rng(seed)
-    margin = max(4, lr_side // 4) // 2 * 2
-    picture = source_picture(rng, pictures, scale * (lr_side + 2 * margin), {} if cache is None else cache)
-    return simulate_clip(picture, rng, lr_side=lr_side, scale=scale,
-                         alpha=float(rng.uniform(0.6, 1.0)) if alpha is None else alpha,
-                         cfa=BAYER_PATTERNS[rng.integers(4)], zero_reset=bool(rng.random() < 0.5),
-                         noise="realistic" if rng.random() < 0.5 else "none",
-                         speed=float(rng.uniform(0, MAX_SPEED)))
+    return run_plan(random_plan(seed, lr_side=lr_side, scale=scale, pictures=pictures, cache=cache, alpha=alpha,
+                                dead_leaves_share=dead_leaves_share))
 
 
 def reoriented(clip: Clip, orientation: int) -> Clip:

@@ -27,13 +27,40 @@ CONVENTIONS = {
 SHIPPED = Path(__file__).parent / "weights"
 
 
-def save_weights(model, path: str | os.PathLike, **about: str) -> None:
-    """Write ``model``'s parameters and configuration; ``about`` adds free-text metadata."""
+STORAGE = {"float32": torch.float32, "float16": torch.float16, "bfloat16": torch.bfloat16}
+
+
+def save_weights(model, path: str | os.PathLike, storage: str = "float32", **about: str) -> None:
+    """Write ``model``'s parameters and configuration; ``about`` adds free-text metadata.
+
+    ``storage`` "float16" or "bfloat16" halves the file (recorded in the metadata); loading
+    converts back to float32. Refused if a parameter would not survive the conversion.
+    """
     from safetensors.torch import save_file
 
-    metadata = {**CONVENTIONS, "config": model.config.to_json(), **{k: str(v) for k, v in about.items()}}
-    tensors = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
+    if storage not in STORAGE:
+        raise InputError(f"unknown weights storage {storage!r}: expected one of {', '.join(STORAGE)}")
+    metadata = {**CONVENTIONS, "config": model.config.to_json(), "storage": storage,
+                **{k: str(v) for k, v in about.items()}}
+    tensors = {}
+    for name, value in model.state_dict().items():
+        value = value.detach().cpu()
+        if value.is_floating_point():
+            stored = value.to(STORAGE[storage])
+            if not torch.isfinite(stored).all():
+                raise InputError(f"parameter {name} does not fit in {storage} (values up to "
+                                 f"{value.abs().max().item():.3g}): store the weights as float32")
+            value = stored
+        tensors[name] = value.contiguous()
     save_file(tensors, str(path), metadata=metadata)
+
+
+def annotate(source: str | os.PathLike, dest: str | os.PathLike, **about: str) -> None:
+    """Copy a weights file, tensors as stored, with metadata added or replaced (e.g. a training record)."""
+    from safetensors.torch import load_file, save_file
+
+    metadata = {**read_metadata(source), **{k: str(v) for k, v in about.items()}}
+    save_file(load_file(str(source)), str(dest), metadata=metadata)
 
 
 def read_metadata(path: str | os.PathLike) -> dict[str, str]:
@@ -88,7 +115,7 @@ def load_model(path: str | os.PathLike, device: str | torch.device = "cpu"):
         what = (f"missing {missing[0]}" if missing else f"unexpected {extra[0]}" if extra else
                 f"{wrong[0]} is {tuple(tensors[wrong[0]].shape)}, expected {tuple(expected[wrong[0]].shape)}")
         raise InputError(f"{path} does not match its configuration {config.name!r}: {what}")
-    model.load_state_dict(tensors)
+    model.load_state_dict({k: v.to(expected[k].dtype) for k, v in tensors.items()})  # half storage -> float32
     return model.to(device).eval(), metadata
 
 

@@ -243,6 +243,15 @@ def train(context: typer.Context,
                                                       help="Ablation: fuse time points aligned by flow, or not.")] = True,
           checkpoint_every: Annotated[int, typer.Option(help="Steps between checkpoints.")] = 100,
           validate_every: Annotated[int, typer.Option(help="Steps between validation PSNR lines.")] = 250,
+          pictures: Annotated[Optional[list[str]], typer.Option(
+              help="A folder of training pictures (repeat for more; default: the bundled pictures).")] = None,
+          dead_leaves: Annotated[float, typer.Option(help="Share of clips showing dead leaves.")] = 0.4,
+          device: Annotated[str, typer.Option(help="cpu or cuda (cuda: clips synthesised on the GPU).")] = "cpu",
+          precision: Annotated[str, typer.Option(help="fp32 or bf16 (autocast).")] = "fp32",
+          synthesis: Annotated[str, typer.Option(help="Clips by numpy or torch (on the device; the same clips); "
+                                                      "auto: torch on a GPU.")] = "auto",
+          time_budget: Annotated[float, typer.Option(help="Stop cleanly, checkpointed, before this many seconds "
+                                                          "(0: no limit); --resume continues.")] = 0.0,
           threads: Annotated[Optional[int], typer.Option(help="Torch threads (default: every core).")] = None,
           resume: Annotated[bool, typer.Option("--resume", help="Continue from OUT/checkpoint.safetensors.")] = False):
     """Train the CSCSR network on clips simulated on the fly; resumable."""
@@ -254,7 +263,9 @@ def train(context: typer.Context,
         torch.set_num_threads(threads)
     options = TrainOptions(config=config, steps=steps, batch=batch, lr_side=lr_side, learning_rate=learning_rate,
                            warmup=warmup, decay_every=decay_every, seed=seed, pool=pool, init=init or "",
-                           motion=motion, flow_guidance=flow_guidance,
+                           motion=motion, flow_guidance=flow_guidance, pictures=os.pathsep.join(pictures or []),
+                           dead_leaves=dead_leaves, device=device, precision=precision, time_budget=time_budget,
+                           synthesis=synthesis,
                            checkpoint_every=checkpoint_every, validate_every=validate_every)
     final = run(options, out, resume=resume, log=lambda line: stdout.print(line, highlight=False),
                 command=command_line(context))
@@ -263,11 +274,12 @@ def train(context: typer.Context,
 
 @command("export-weights")
 def export_weights(folder: Annotated[str, typer.Argument(help="A cscsr train folder.")],
-                   dest: Annotated[str, typer.Argument(help="Weights file to write (.safetensors).")]):
+                   dest: Annotated[str, typer.Argument(help="Weights file to write (.safetensors).")],
+                   half: Annotated[bool, typer.Option("--half", help="Store float16 (half the size).")] = False):
     """The latest checkpoint of a training run as a weights file for --weights."""
     from cscsr.train import export_weights as run
 
-    step = run(folder, dest)
+    step = run(folder, dest, storage="float16" if half else "float32")
     stdout.print(f"{dest}: weights after {step} steps")
 
 

@@ -1,0 +1,166 @@
+"""Training clips synthesised in torch, batched, on the training device: no CPU pool on a GPU.
+
+The CPU draws each clip's plan (``cscsr.training_data.random_plan``: the scene crop, the camera
+path, the sensor) and the cheap per-pixel randomness of the numpy simulator of record
+(initial integrator state, dark current, the shot-noise normals, all from the same
+``default_rng`` streams as ``stages.sensor``) and the exact flows (closed form, at LR). The
+device does the heavy part for the whole batch:
+
+    scene (B, 3, S, S)                                       S = scale * (lr + 2 * margin)
+      -> warp along the path, frames 0..40  (B, 3, s*lr, s*lr) per frame, clip's area only
+         (M_t(p) = c + A(t)(p - c) + T(t) + U(t, p), bicubic, reflect-101, clipped to [0, 1])
+      -> area downsample x s                (B, 3, lr, lr)
+      -> CFA mosaic                         (B, lr, lr)     -> (B, 41, lr, lr)
+      -> increments round(clip(a*I/theta)*2^24) (+ dark current and shot noise)
+      -> integrate and fire, zero or subtract reset per clip  (B, 41, lr, lr) 0/1
+    truth = alpha * frame 20 at HR          (B, 3, s*lr, s*lr)
+
+Given the same mosaics, increments and spikes are bit-identical to ``stages.sensor`` (tested on
+the CPU, both resets, with noise). Rendering uses ``grid_sample`` where the simulator uses
+``cv2.remap`` (which rounds sampling positions to 1/32 px): frames agree to about 1e-3, so a
+clip's spikes are the simulator's up to the rare pixel where that difference crosses a
+threshold (tested on statistics).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from cscsr.training_data import FRAMES, MIDDLE, ClipPlan
+from stages.cfa import colour_index
+from stages.sensor import UNITS, dark_increments, initial_state
+
+_SHOT_STREAM = 2  # stages.sensor's stream of shot-noise normals: default_rng([seed, 2, frame])
+
+
+@dataclass(frozen=True)
+class SensorDraws:
+    """A clip's per-pixel random numbers, drawn on the CPU exactly as ``stages.sensor`` draws them."""
+
+    state: np.ndarray  # (lr, lr) int64 initial accumulator
+    dark: np.ndarray | None  # (lr, lr) float32 dark increment per frame in theta; None without noise
+    shot: np.ndarray | None  # (41, lr, lr) float32 standard normals of the shot noise; None without noise
+
+
+def sensor_draws(plan: ClipPlan) -> SensorDraws:
+    sensor, side = plan.sensor, plan.lr_side
+    if sensor.noise == "none":
+        return SensorDraws(initial_state(sensor, side, side), None, None)
+    shot = np.empty((FRAMES, side, side), np.float32)
+    for t in range(FRAMES):
+        np.random.default_rng([sensor.seed, _SHOT_STREAM, t]).standard_normal(dtype=np.float32, out=shot[t])
+    return SensorDraws(initial_state(sensor, side, side), dark_increments(sensor, side, side), shot)
+
+
+@dataclass(frozen=True)
+class PreparedBatch:
+    """What the CPU hands the device for one batch: plans, their draws and their flows."""
+
+    plans: list
+    draws: list
+    flows: np.ndarray  # (B, 2, 2, lr, lr) float32
+
+
+def prepare(plans: list[ClipPlan]) -> PreparedBatch:
+    """The CPU's share of a batch (a background thread runs it while the device trains)."""
+    scales, sides = {p.scale for p in plans}, {(p.lr_side, p.picture.shape[0]) for p in plans}
+    if len(scales) != 1 or len(sides) != 1:
+        raise ValueError(f"a batch needs one scale and one size, got scales {scales}, sizes {sides}")
+    return PreparedBatch(plans, [sensor_draws(p) for p in plans], np.stack([p.flows() for p in plans]))
+
+
+def synthesise(batch: PreparedBatch, device: torch.device | str) -> dict:
+    """The batch's clips as tensors on ``device``, keyed as the trainer's batches (``cscsr.train.to_tensors``)."""
+    plans = batch.plans
+    device = torch.device(device)
+    scale, side = plans[0].scale, plans[0].lr_side
+    scenes = torch.from_numpy(np.stack([p.picture for p in plans])).to(device).permute(0, 3, 1, 2)  # (B, 3, S, S)
+    alpha = torch.tensor([p.sensor.brightness for p in plans], dtype=torch.float64, device=device)  # (B,)
+    channel = torch.from_numpy(np.stack([colour_index(p.cfa, side, side) for p in plans]).astype(np.int64))
+    channel = channel.to(device)[:, None]  # (B, 1, lr, lr): 0 R, 1 G, 2 B
+
+    mosaics, truth = [], None
+    for t in range(FRAMES):
+        frame = render(scenes, plans, t)  # (B, 3, s*lr, s*lr)
+        if t == MIDDLE:
+            truth = (alpha[:, None, None, None].float() * frame).contiguous()
+        mosaics.append(F.avg_pool2d(frame, scale).gather(1, channel)[:, 0])  # (B, lr, lr)
+    mosaics = torch.stack(mosaics, 1)  # (B, 41, lr, lr)
+
+    q = increments(mosaics, plans, batch.draws, device)  # (B, 41, lr, lr) int64
+    state = torch.from_numpy(np.stack([d.state for d in batch.draws])).to(device)
+    zero = torch.tensor([p.zero_reset for p in plans], device=device)
+    spikes = fire(q, state, zero)
+    return {"spikes": spikes.float(), "truth": truth, "flows": torch.from_numpy(batch.flows).to(device),
+            "zero_reset": zero, "alpha": alpha.float(), "cfa": [p.cfa for p in plans], "scale": scale}
+
+
+def sample_grid(plans: list[ClipPlan], t: float, device: torch.device) -> torch.Tensor:
+    """(B, s*lr, s*lr, 2) grid_sample coordinates of frame t over each clip's area of its scene.
+
+    ``stages.motion.CameraPath.sample_map`` in float64, for the clip's pixels alone.
+    """
+    plan = plans[0]
+    size, first = plan.picture.shape[0], plan.margin * plan.scale
+    centre = (size - 1) / 2
+    pixels = torch.arange(first, first + plan.lr_side * plan.scale, dtype=torch.float64, device=device) - centre
+    y, x = torch.meshgrid(pixels, pixels, indexing="ij")  # (h, w) centred coordinates
+    affine = []
+    for p in plans:
+        matrix, shift = p.path._affine(t)
+        affine.append([*matrix.ravel(), *shift])
+    a, b, c, d, tx, ty = torch.tensor(affine, dtype=torch.float64, device=device).T[..., None, None]  # (B, 1, 1) each
+    qx, qy = a * x + b * y + tx, c * x + d * y + ty  # (B, h, w)
+    waves = max(len(p.path.deformation) for p in plans)
+    if waves:
+        table = np.zeros((len(plans), waves, 6))
+        for i, p in enumerate(plans):
+            if p.path.deformation:
+                table[i, : len(p.path.deformation)] = p.path.deformation
+        ax, ay, kx, ky, omega, phase = torch.tensor(table, device=device).permute(2, 0, 1)[..., None, None]
+        argument = kx * x + ky * y + (omega * t + phase)  # (B, waves, h, w)
+        qx = qx + (ax * torch.sin(argument)).sum(1)
+        qy = qy + (ay * torch.sin(argument)).sum(1)
+    # source pixel q + centre, normalised for align_corners=True: -1 at pixel 0, +1 at pixel size - 1
+    return (torch.stack([qx, qy], -1) / centre).float()
+
+
+def render(scenes: torch.Tensor, plans: list[ClipPlan], t: float) -> torch.Tensor:
+    """(B, 3, S, S) scenes -> (B, 3, s*lr, s*lr) latent frame t over each clip's area, in [0, 1]."""
+    grid = sample_grid(plans, t, scenes.device)
+    frame = F.grid_sample(scenes, grid, mode="bicubic", padding_mode="reflection", align_corners=True)
+    return frame.clamp(0, 1)
+
+
+def increments(mosaics: torch.Tensor, plans: list[ClipPlan], draws: list[SensorDraws],
+               device: torch.device) -> torch.Tensor:
+    """(B, 41, lr, lr) intensities -> int64 increments in units, as ``stages.sensor.increments``."""
+    gain = torch.tensor([p.sensor.brightness / p.sensor.threshold * UNITS for p in plans], dtype=torch.float64,
+                        device=device)[:, None, None, None]
+    signal = (mosaics.double() * gain).nan_to_num(0.0).clamp(0, UNITS)  # clip(a*I/theta, 0, 1) * UNITS
+    noisy = [i for i, d in enumerate(draws) if d.shot is not None]
+    if noisy:
+        dark = torch.from_numpy(np.stack([draws[i].dark for i in noisy])).to(device).double()[:, None] * UNITS
+        shot = torch.from_numpy(np.stack([draws[i].shot for i in noisy])).to(device).double()
+        per_electron = torch.tensor([UNITS / plans[i].sensor.electrons_per_threshold for i in noisy],
+                                    dtype=torch.float64, device=device)[:, None, None, None]
+        mean = signal[noisy] + dark
+        signal = signal.index_copy(0, torch.tensor(noisy, device=device),
+                                   (mean + torch.sqrt(mean * per_electron) * shot).round())
+    return signal.round().clamp(0, UNITS).long()
+
+
+def fire(q: torch.Tensor, state: torch.Tensor, zero_reset: torch.Tensor) -> torch.Tensor:
+    """Integrate and fire (B, N, H, W) increments from (B, H, W) states, threshold 2^24 units:
+    ``acc += q``, a spike at ``acc >= thr``, then 0 (zero reset) or ``acc - thr`` (subtract)."""
+    acc, zero = state.clone(), zero_reset[:, None, None]
+    spikes = torch.empty(q.shape, dtype=torch.bool, device=q.device)
+    for t in range(q.shape[1]):
+        acc = acc + q[:, t]
+        fired = acc >= UNITS
+        spikes[:, t] = fired
+        acc = torch.where(fired, torch.where(zero, torch.zeros_like(acc), acc - UNITS), acc)
+    return spikes
+
