@@ -2,7 +2,9 @@
 
 Loaded once per worker process by the pipeline and reused; windows of the same shape run
 as one batch under ``torch.inference_mode``, on the worker's GPU when it has one, else on
-one CPU thread per worker (so the bytes do not depend on the number of workers).
+one CPU thread per worker (so the bytes do not depend on the number of workers). On a GPU
+the windows of several tiles of the same shape go through together (:meth:`many_tiles`).
+``precision="bf16"`` runs the network under ``torch.autocast`` (bfloat16) on its device.
 """
 
 import contextlib
@@ -12,7 +14,7 @@ import numpy as np
 import torch
 
 from cscsr.integration import SCALES
-from cscsr.weights_io import default_weights, load_model
+from cscsr.weights_io import default_weights, load_model, resolve_weights
 from stages.bits import unpack_rows
 from stages.cfa import flip_horizontally, flip_vertically, transpose
 from stages.colour import expose
@@ -20,6 +22,7 @@ from stages.errors import InputError
 from stages.reconstruct import Window
 
 HALO = 32  # LR pixels: the flow pyramid sees far; tiles agree with the whole frame closely, not exactly
+PRECISIONS = ("fp32", "bf16")
 
 
 @dataclass
@@ -31,6 +34,8 @@ class NetworkReconstructor:
     batch: int = 4  # windows per forward pass (frames of one tile)
     self_ensemble: bool = False  # average over the 8 flips and quarter turns, as in training (8x the time): the
     # network is not exactly equivariant, and its errors under different turns partly cancel (EDSR's "+")
+    precision: str = "fp32"  # or "bf16": torch.autocast on the device
+    join_tiles: bool | None = None  # tiles of one shape in one pass (many_tiles); None: on a GPU only
 
     @property
     def name(self) -> str:
@@ -54,12 +59,42 @@ class NetworkReconstructor:
         """Windows of one tile (same shape, CFA, reset, gain, scale) -> (s*h, s*w, 3) uint8 each."""
         first = windows[0]
         spikes = np.stack([unpack_rows(w.packed, w.width) for w in windows])  # (B, N, h, w) uint8
-        with one_thread_on_cpu(self.device), torch.inference_mode():
+        with one_thread_on_cpu(self.device), torch.inference_mode(), self._autocast():
             x = torch.from_numpy(spikes).to(self.device, torch.float32)
             views = range(8) if self.self_ensemble else (0,)
             rate = sum(self._seen_under(k, x, first) for k in views) / len(views)  # (B, 3, sH, sW)
             rate = rate.permute(0, 2, 3, 1).float().cpu().numpy()
         return [expose(r, first.gain) for r in rate]
+
+    def many_tiles(self, tiles: list[list[Window]], most: int | None = None) -> list[list[np.ndarray]]:
+        """The windows of several tiles (each tile's as :meth:`many` takes them) -> each tile's images.
+
+        On a GPU the windows of all tiles of the same shape go through the network together, at most
+        ``most`` windows a pass (default: all), in tile order: fewer, fuller passes. On the CPU each
+        tile is one pass, exactly as :meth:`many` runs it alone, because torch's CPU kernels can round
+        differently for another batch size, and the bytes must not depend on how tasks are cut.
+        """
+        join = self.device.type != "cpu" if self.join_tiles is None else self.join_tiles
+        if not join:
+            return [self.many(windows) for windows in tiles]
+        images: list[list] = [[None] * len(windows) for windows in tiles]
+        by_shape: dict[tuple, list[tuple[int, int]]] = {}  # same input shape and reading -> (tile, frame) slots
+        for i, windows in enumerate(tiles):
+            for j, w in enumerate(windows):
+                by_shape.setdefault((w.packed.shape, w.width, w.cfa, w.reset, w.gain, w.scale), []).append((i, j))
+        for slots in by_shape.values():
+            step = most or len(slots)
+            for start in range(0, len(slots), step):
+                chunk = slots[start : start + step]
+                for (i, j), image in zip(chunk, self.many([tiles[i][j] for i, j in chunk])):
+                    images[i][j] = image
+        return images
+
+    def _autocast(self):
+        """bfloat16 autocast on the network's device for ``precision="bf16"``; nothing for fp32."""
+        if self.precision == "fp32":
+            return contextlib.nullcontext()
+        return torch.autocast(device_type=self.device.type, dtype=torch.bfloat16)
 
     def _seen_under(self, orientation: int, spikes: torch.Tensor, window: Window) -> torch.Tensor:
         """The network's output for the windows turned by ``orientation`` (bits as in training:
@@ -96,9 +131,10 @@ def one_thread_on_cpu(device: torch.device):
 
 def load_reconstructor(weights: str | None, device: str | None = None, *,
                        self_ensemble: bool = False) -> NetworkReconstructor:
-    """The network from ``weights`` (default: the shipped ``lite`` weights), on a GPU if there is one;
-    with ``self_ensemble``, every window is reconstructed under the 8 flips and quarter turns and averaged."""
-    path = weights or str(default_weights("lite"))
+    """The network from ``weights`` (a file, or "lite" or "full" for the shipped ones; default lite, the
+    faster on a CPU), on a GPU if there is one; with ``self_ensemble``, every window is reconstructed
+    under the 8 flips and quarter turns and averaged."""
+    path = resolve_weights(weights) if weights else default_weights("lite")
     device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
     model, _ = load_model(path, device)
     return NetworkReconstructor(model, device, str(path), self_ensemble=self_ensemble)

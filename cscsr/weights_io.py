@@ -63,9 +63,18 @@ def annotate(source: str | os.PathLike, dest: str | os.PathLike, **about: str) -
     save_file(load_file(str(source)), str(dest), metadata=metadata)
 
 
+def resolve_weights(path: str | os.PathLike) -> Path:
+    """A weights file, or the name of a shipped one ("lite", "full") where no file of that name exists."""
+    from cscsr.config import CONFIGS
+
+    if str(path) in CONFIGS and not Path(path).exists():
+        return default_weights(str(path))
+    return Path(path)
+
+
 def read_metadata(path: str | os.PathLike) -> dict[str, str]:
-    """The metadata of a safetensors file, read from its header alone."""
-    path = Path(path)
+    """The metadata of a safetensors file (or a shipped one by name), read from its header alone."""
+    path = resolve_weights(path)
     if not path.is_file():
         raise InputError(f"weights file {path} not found")
     with open(path, "rb") as f:
@@ -97,6 +106,7 @@ def load_model(path: str | os.PathLike, device: str | torch.device = "cpu"):
 
     from cscsr.network import CSCSR
 
+    path = resolve_weights(path)
     metadata = read_metadata(path)
     try:
         config = CSCSRConfig.from_json(metadata["config"])

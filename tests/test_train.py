@@ -204,3 +204,87 @@ def test_a_pool_is_reproducible_and_batches_come_from_it():
     assert np.array_equal(first["spikes"], repeat["spikes"]) and first["cfa"] == repeat["cfa"]
     sums = {float(c.truth.sum()) for c in pool[4]}
     assert all(round(float(t.sum()), 2) in {round(s, 2) for s in sums} for t in first["truth"])  # turned, not new
+
+
+# --- the GPU path, tested on the CPU ---------------------------------------------------------
+
+def test_on_device_synthesis_trains_on_the_same_clips():
+    numpy_batch = to_tensors(make_batch(3, TrainOptions(**TINY), {}))
+    torch_batch = to_tensors(make_batch(3, TrainOptions(synthesis="torch", **TINY), {}))
+    assert (numpy_batch["spikes"] == torch_batch["spikes"]).float().mean() > 0.999
+    assert torch.allclose(numpy_batch["truth"], torch_batch["truth"], atol=1e-3)
+    assert torch.equal(numpy_batch["flows"], torch_batch["flows"]) and numpy_batch["cfa"] == torch_batch["cfa"]
+
+
+def test_a_time_budget_stops_cleanly_and_resume_goes_on(tmp_path):
+    """A budget too short for a second step: the run stops after one, checkpointed, validated, with weights."""
+    lines = []
+    options = TrainOptions(steps=3, time_budget=1.0, synthesis="torch", precision="bf16", **TINY)
+    final = train(options, tmp_path / "run", log=lines.append)
+    assert any("stopped at step 1 of 3" in line for line in lines)
+    assert load_model(final)[1]["steps"] == "1"
+    log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert [e["step"] for e in log] == [1]
+    # the device, precision, synthesis and budget may change on --resume: the run moves between machines
+    final = train(TrainOptions(steps=3, **TINY), tmp_path / "run", resume=True, log=lines.append)
+    assert load_model(final)[1]["steps"] == "3"
+
+
+def test_training_pictures_come_from_folders_but_never_the_test_pictures(tmp_path, cli):
+    import imageio.v3 as iio
+    from skimage import data
+
+    pictures = tmp_path / "pictures"
+    (pictures / "sequence").mkdir(parents=True)
+    iio.imwrite(pictures / "rocket.png", data.rocket())
+    iio.imwrite(pictures / "sequence" / "frame_1.jpg", data.stereo_motorcycle()[0])
+    final = train(TrainOptions(steps=2, pictures=str(pictures), dead_leaves=0.0, **TINY), tmp_path / "run",
+                  log=lambda line: None)
+    assert str(pictures) in load_model(final)[1]["data"]
+
+    import cv2
+
+    leak = tmp_path / "leak"
+    leak.mkdir()
+    astronaut = cv2.resize(data.astronaut(), (300, 300), interpolation=cv2.INTER_AREA)  # resized, re-encoded
+    iio.imwrite(leak / "a.jpg", astronaut)
+    result = cli("train", tmp_path / "refused", "--pictures", pictures, "--pictures", leak, "--steps", "2")
+    assert result.exit_code != 0 and "test picture 'astronaut'" in result.stderr
+    assert not (tmp_path / "refused").exists()  # refused before any output
+    result = cli("train", tmp_path / "refused", "--pictures", tmp_path / "nowhere")
+    assert result.exit_code != 0 and "does not exist" in result.stderr
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"precision": "fp16"}, "unknown precision"), ({"device": "tpu"}, "unknown device"),
+    ({"synthesis": "jax"}, "unknown synthesis"), ({"time_budget": float("nan")}, "time_budget"),
+    ({"dead_leaves": 1.5}, "dead_leaves"), ({"pool": 4, "synthesis": "torch"}, "--pool"),
+])
+def test_bad_gpu_options_are_refused(change, message):
+    with pytest.raises(InputError, match=message):
+        TrainOptions(**{**TINY, **change}).check()
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without a GPU")
+def test_cuda_without_a_gpu_is_refused(tmp_path):
+    with pytest.raises(InputError, match="no CUDA GPU"):
+        train(TrainOptions(device="cuda", **TINY), tmp_path / "run", log=lambda line: None)
+    assert not (tmp_path / "run").exists()
+
+
+def test_half_weights_are_half_the_size_and_load_as_float32(tmp_path):
+    from cscsr.config import named
+    from cscsr.weights_io import read_metadata, save_weights
+
+    model = CSCSR(named("lite"))
+    save_weights(model, tmp_path / "full.safetensors")
+    save_weights(model, tmp_path / "half.safetensors", storage="float16")
+    assert (tmp_path / "half.safetensors").stat().st_size < 0.52 * (tmp_path / "full.safetensors").stat().st_size
+    assert read_metadata(tmp_path / "half.safetensors")["storage"] == "float16"
+    loaded, _ = load_model(tmp_path / "half.safetensors")
+    for (name, a), (_, b) in zip(model.state_dict().items(), loaded.state_dict().items()):
+        assert b.dtype == a.dtype and torch.equal(b, a.half().float()), name
+    with torch.no_grad():
+        next(model.parameters()).view(-1)[0] = 1e6  # beyond float16's range
+    with pytest.raises(InputError, match="does not fit in float16"):
+        save_weights(model, tmp_path / "overflow.safetensors", storage="float16")

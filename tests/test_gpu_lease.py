@@ -1,0 +1,53 @@
+"""The GPU lease script (benchmarks/gpu_lease.py), dry-run on the CPU with tiny settings."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+
+from cscsr.weights_io import read_metadata
+
+SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "gpu_lease.py"
+LEASE_FILES, LEASE_FILE_BYTES = 8, 16 * 2**20  # what may come back from a lease
+
+
+def lease(*args) -> str:
+    run = subprocess.run([sys.executable, str(SCRIPT), *map(str, args)], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    return run.stdout
+
+
+def test_pack_reencodes_pictures_and_thins_sequences(tmp_path):
+    rng = np.random.default_rng(0)
+    (tmp_path / "stills").mkdir()
+    iio.imwrite(tmp_path / "stills" / "big.png", rng.integers(0, 255, (800, 600, 3), dtype=np.uint8))
+    for i in range(7):
+        (tmp_path / "clips" / "walk").mkdir(parents=True, exist_ok=True)
+        iio.imwrite(tmp_path / "clips" / "walk" / f"{i:05d}.png", rng.integers(0, 255, (240, 320, 3), dtype=np.uint8))
+    report = json.loads(lease("pack", tmp_path / "stills", "--sequences", tmp_path / "clips", "--dest",
+                              tmp_path / "packed"))
+    assert report["pictures"] == 1 + 3  # frames 0, 3 and 6 of the sequence
+    assert iio.imread(tmp_path / "packed" / "stills" / "big.jpg").shape == (480, 360, 3)  # short side 360
+    assert sorted(p.name for p in (tmp_path / "packed" / "clips" / "walk").iterdir()) == [
+        "00000.jpg", "00003.jpg", "00006.jpg"]
+
+
+def test_check_and_two_training_slices_fit_what_a_lease_brings_back(tmp_path):
+    out, run = tmp_path / "out", tmp_path / "run"
+    lease("check", "--tiny", "--out", out)
+    check = json.loads((out / "check.json").read_text())
+    assert check["smoke"]["steps"] == 4 and check["synthesis"]["device_clips_per_s"] > 0
+
+    first = lease("train", "--tiny", "--out", out, "--run", run)
+    assert "starting" in first and (run / "checkpoint.safetensors").exists()
+    second = lease("train", "--tiny", "--out", out, "--run", run)  # the next command of the lease resumes
+    assert "resuming" in second
+    metadata = read_metadata(out / "cscsr-lite.safetensors")
+    assert metadata["storage"] == "float16" and metadata["steps"] == "8"
+    steps = [json.loads(line)["step"] for line in (out / "log.jsonl").read_text().splitlines()]
+    assert steps == [2, 4, 6, 8]
+    files = [f for f in out.rglob("*") if f.is_file()]
+    assert len(files) <= LEASE_FILES and all(f.stat().st_size <= LEASE_FILE_BYTES for f in files)
