@@ -18,7 +18,9 @@ on a GPU, the peak of allocated device memory. FLOPs come from
 The paper reports 1.032 s per 180x320 -> 720x1280 image for CSCSR on a GPU of its time.
 On a GPU (``--device cuda``) the same cases run in fp32 and bf16 (autocast).
 
-Run: ``python benchmarks/network_forward.py [--repeats 3] [--device cpu|cuda] [--quick]``.
+``--compile`` runs the network through ``torch.compile`` (the warm-up pass compiles; not timed).
+
+Run: ``python benchmarks/network_forward.py [--repeats 3] [--device cpu|cuda] [--compile] [--quick]``.
 """
 
 import argparse
@@ -33,7 +35,8 @@ GPU_SIZES = {"180x320": (180, 320), "1000x1000": (1000, 1000)}  # the camera's o
 PAPER_SECONDS = 1.032
 
 
-def one_case(config: str, height: int, width: int, repeats: int, device: str, dtype: str, threads: int) -> dict:
+def one_case(config: str, height: int, width: int, repeats: int, device: str, dtype: str, threads: int,
+             compile: bool = False) -> dict:
     """Runs inside the subprocess: time, peak memory and FLOPs of one configuration and size."""
     import resource
     import time
@@ -53,10 +56,11 @@ def one_case(config: str, height: int, width: int, repeats: int, device: str, dt
     spikes = (rng.random((41, height, width)) < 0.2).astype(np.uint8)
     x = torch.from_numpy(spikes).float()[None].to(device)
     model = CSCSR(named(config)).eval().to(device)
+    network = torch.compile(model) if compile else model
 
     def forward():
         with torch.inference_mode(), torch.autocast(device, torch.bfloat16, enabled=dtype == "bf16"):
-            out = model(x, "rggb", scale=4)["image"]
+            out = network(x, "rggb", scale=4)["image"]
         if device == "cuda":
             torch.cuda.synchronize()
         return out
@@ -89,7 +93,7 @@ def one_case(config: str, height: int, width: int, repeats: int, device: str, dt
         tfp(window)
         tfp_times.append(time.perf_counter() - start)
     counts = model.parameter_counts()
-    return {"config": config, "size": f"{height}x{width}", "device": device, "dtype": dtype,
+    return {"config": config, "size": f"{height}x{width}", "device": device, "dtype": dtype, "compile": compile,
             "seconds": float(np.median(times)), "tfp_seconds": float(np.median(tfp_times)),
             "peak_mib": peak, "rss_before_mib": before, "gflops": flops / 1e9, "flops_per_output_pixel": flops / (16 * height * width),
             "parameters": counts["network"], "flow_parameters": counts["flow"]}
@@ -101,6 +105,7 @@ def main() -> None:
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--quick", action="store_true", help="64x64 only, one repeat (a smoke run)")
+    parser.add_argument("--compile", action="store_true", help="torch.compile the network (the warm-up compiles)")
     parser.add_argument("--out", default=None, help="folder for the JSON results (default benchmarks/results)")
     parser.add_argument("--case", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -118,7 +123,7 @@ def main() -> None:
         for label, (h, w) in sizes.items():
             for dtype in dtypes:
                 case = {"config": config, "height": h, "width": w, "repeats": repeats, "device": args.device,
-                        "dtype": dtype, "threads": threads}
+                        "dtype": dtype, "threads": threads, "compile": args.compile}
                 run = subprocess.run([sys.executable, __file__, "--case", json.dumps(case)], cwd=ROOT,
                                      capture_output=True, text=True)
                 if run.returncode:
