@@ -18,7 +18,7 @@ demo: $(STAMP)
 	$(BIN)/cscsr demo --out demo-output
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -rfE --durations=15
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run_all.py

@@ -129,12 +129,14 @@ def one_thread_on_cpu(device: torch.device):
         torch.set_num_threads(previous)
 
 
-def load_reconstructor(weights: str | None, device: str | None = None, *,
-                       self_ensemble: bool = False) -> NetworkReconstructor:
+def load_reconstructor(weights: str | None, device: str | None = None, *, self_ensemble: bool = False,
+                       precision: str = "fp32") -> NetworkReconstructor:
     """The network from ``weights`` (a file, or "lite" or "full" for the shipped ones; default lite, the
     faster on a CPU), on a GPU if there is one; with ``self_ensemble``, every window is reconstructed
-    under the 8 flips and quarter turns and averaged."""
+    under the 8 flips and quarter turns and averaged; ``precision`` fp32, or bf16 (autocast)."""
+    if precision not in PRECISIONS:
+        raise InputError(f"--precision must be {' or '.join(PRECISIONS)}, got {precision!r}")
     path = resolve_weights(weights) if weights else default_weights("lite")
     device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
     model, _ = load_model(path, device)
-    return NetworkReconstructor(model, device, str(path), self_ensemble=self_ensemble)
+    return NetworkReconstructor(model, device, str(path), self_ensemble=self_ensemble, precision=precision)

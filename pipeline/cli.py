@@ -27,9 +27,12 @@ def command_line(context: typer.Context) -> str:
         value = context.params.get(param.name)
         if param.param_type_name == "argument":
             words.append(str(value))
-        elif value != param.default and value is not None:
+        elif value != param.default and value is not None and value not in ((), []):
             if param.is_flag:
                 words.append(param.opts[0] if value else param.secondary_opts[0])
+            elif isinstance(value, (list, tuple)):  # a repeated option, e.g. --pictures A --pictures B
+                for item in value:
+                    words += [param.opts[0], str(item)]
             else:
                 words += [param.opts[0], str(value)]
     return " ".join(words)
@@ -181,12 +184,19 @@ def reconstruct(store: Annotated[str, typer.Argument(help="Spike store URL.")],
                 overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace OUT if it exists.")] = False,
                 segment_tasks: Annotated[int, typer.Option(help="Tasks per segment: each segment runs in a fresh "
                                                                  "process and cluster, so memory stays bounded.")]
-                = 10_000):
-    """Reconstruct HR colour video from a spike store, over Dask."""
+                = 10_000,
+                precision: Annotated[str, typer.Option(help="The network's arithmetic: fp32, or bf16 (autocast on "
+                                                            "the worker's GPU or CPU); cscsr methods only.")] = "fp32",
+                gpu_batch: Annotated[int, typer.Option(help="Windows per task and per network pass on workers that "
+                                                            "advertise a GPU resource (dask worker --resources "
+                                                            "GPU=1).")] = 16):
+    """Reconstruct HR colour video from a spike store, over Dask (network tasks on GPU workers if there are any)."""
     from pipeline.reconstruct import ReconstructOptions, reconstruct as run
 
-    counts = run(store, out, ReconstructOptions(method, every, window, gain, scale, tile, weights, resume, overwrite,
-                                                segment_tasks), workers=workers, scheduler=scheduler)
+    options = ReconstructOptions(method=method, every=every, window=window, gain=gain, scale=scale, tile=tile,
+                                 weights=weights, resume=resume, overwrite=overwrite, segment_tasks=segment_tasks,
+                                 precision=precision, gpu_batch=gpu_batch)
+    counts = run(store, out, options, workers=workers, scheduler=scheduler)
     stdout.print(f"{out}: {counts['frames']} frames ({counts['tasks_run']} tasks run, {counts['tasks_skipped']} already committed)")
 
 

@@ -4,6 +4,7 @@ Workers are processes with one task thread each; the numerical libraries inside 
 (numba, OpenCV, torch) get ``cores // workers`` threads so that a 2-core laptop with two
 workers is not oversubscribed. An address comes from ``--scheduler`` or
 ``DASK_SCHEDULER_ADDRESS``; an unreachable one is a one-line error within seconds.
+Workers started with ``--resources GPU=1`` are GPU workers (:func:`gpu_workers`).
 """
 
 import contextlib
@@ -17,6 +18,7 @@ from distributed import Client, LocalCluster
 from stages.errors import InputError
 
 CONNECT_TIMEOUT = "5s"
+GPU = "GPU"  # the Dask worker resource a GPU worker advertises; network tasks ask for one
 
 
 # Dask's nanny starts workers with MALLOC_TRIM_THRESHOLD_=65536, which pins glibc's mmap
@@ -57,6 +59,12 @@ def dask_client(*, workers: int | None = None, scheduler: str | None = None) -> 
             LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
                          silence_logs=logging.ERROR, env=_thread_env(workers)) as cluster, Client(cluster) as client:
         yield client
+
+
+def gpu_workers(client: Client) -> int:
+    """How many of the cluster's workers advertise the ``GPU`` resource (``dask worker --resources GPU=1``)."""
+    workers = client.scheduler_info()["workers"].values()
+    return sum(1 for worker in workers if (worker.get("resources") or {}).get(GPU, 0) >= 1)
 
 
 def dashboard_link(client: Client) -> str | None:

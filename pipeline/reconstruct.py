@@ -1,12 +1,18 @@
 """``cscsr reconstruct``: spike store -> HR video store, over a Dask cluster.
 
 Output frame j is centred on spike frame ``c_j = W//2 + j*K`` and made from frames
-``[c_j - W//2, c_j + W//2]``. Each (frame, tile) is one task that reads its own window and
-halo straight from Zarr (no overlap graph), reconstructs, crops the halo and writes its own
-chunk, then records itself in ``committed``. Tasks are submitted in a bounded window. The
-reconstructor (a model, for ``cscsr``) is built once per worker process and reused. A job
-that starts its own local cluster runs its tasks in segments, each in a fresh process and
-cluster (``pipeline.segments``), so that memory stays bounded over millions of tasks.
+``[c_j - W//2, c_j + W//2]``. A task is a few consecutive output frames (the method's
+``batch``) of one tile; it reads its windows and halo straight from Zarr (no overlap graph),
+reconstructs, crops the halo and writes one chunk per (frame, tile), each then recorded in
+``committed``. Tasks are submitted in a bounded window. The reconstructor (a model, for
+``cscsr``) is built once per worker process and reused. A job that starts its own local
+cluster runs its tasks in segments, each in a fresh process and cluster
+(``pipeline.segments``), so that memory stays bounded over millions of tasks.
+
+GPU workers: when the cluster has workers that advertise the ``GPU`` resource (``dask worker
+--resources GPU=1``), network tasks ask for one (so they run there and only there) and each
+takes several tiles of the same shape (``gpu_batch`` windows in all), which the GPU runs as
+one batch; classic tasks run anywhere. Without such workers tasks are cut and placed as above.
 
 The gain is fixed for the whole recording before any task runs (``--gain``, else the store's,
 else automatic exposure of the middle window), so tiles and frames agree with each other.
@@ -21,7 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.batches import in_bounded_window, window_size
-from pipeline.cluster import dashboard_link, dask_client, scheduler_address
+from pipeline.cluster import GPU, dashboard_link, dask_client, gpu_workers, scheduler_address
+from pipeline.hold import hold_point
 from pipeline.lease import check_free, held
 from pipeline.progress import progress_bar
 from pipeline.segments import Outcome, in_segments
@@ -36,6 +43,9 @@ from stages.tiles import Tile, tile_grid
 
 SEGMENT_TASKS = 10_000  # minutes of work on any real frame size; a fresh process and cluster cost ~5 s
 DEFAULT_TILE = 256  # LR pixels: a 1000x1000 frame becomes 16 tasks of 1024x1024 HR
+GPU_BATCH = 16  # windows per network pass on a GPU worker: 4 frames x 4 tiles of 320x320 LR (tile 256 + halos),
+# about 25 GB of GPU memory for the lite network in fp32 (measured 15.4 GB for one 1000x1000 window)
+PRECISIONS = ("fp32", "bf16")
 
 
 @dataclass(frozen=True)
@@ -50,6 +60,8 @@ class ReconstructOptions:
     resume: bool = False
     overwrite: bool = False
     segment_tasks: int = SEGMENT_TASKS  # tasks per fresh cluster when the job starts its own (bounded memory)
+    precision: str = "fp32"  # the network's: fp32, or bf16 (autocast on the worker's device)
+    gpu_batch: int = GPU_BATCH  # windows per task and per network pass on GPU workers
 
 
 @dataclass(frozen=True)
@@ -72,12 +84,14 @@ class Plan:
     reset: str
     tile: int  # LR tile side
     run: str  # unique per call: worker-side caches of opened stores never outlive their run
+    precision: str | None = None  # the network's (None for classic methods)
+    gpu_batch: int = GPU_BATCH  # most windows per network pass, where a reconstructor joins tiles (GPU)
 
     def attrs(self) -> dict:
         """What the output store records (and ``--resume`` checks)."""
-        return {"method": self.method, "weights": self.weights, "window": self.window, "every": self.every,
-                "gain": self.gain, "scale": self.scale, "source": self.spikes, "cfa": self.cfa, "reset": self.reset,
-                "tile_lr": self.tile}
+        return {"method": self.method, "weights": self.weights, "precision": self.precision, "window": self.window,
+                "every": self.every, "gain": self.gain, "scale": self.scale, "source": self.spikes, "cfa": self.cfa,
+                "reset": self.reset, "tile_lr": self.tile}
 
 
 def output_centres(n_frames: int, window: int, every: int) -> list[int]:
@@ -87,13 +101,13 @@ def output_centres(n_frames: int, window: int, every: int) -> list[int]:
 
 
 @functools.lru_cache(maxsize=4)
-def reconstructor(method: str, weights: str | None):
+def reconstructor(method: str, weights: str | None, precision: str | None = "fp32"):
     """Built once per worker process (this cache lives in the worker) and reused by its tasks:
     for the network, it is loaded from its weights once, onto the worker's GPU if any."""
     if method in NETWORKS:
         from cscsr.reconstructor import load_reconstructor
 
-        return load_reconstructor(weights, self_ensemble=method == "cscsr-ensemble")
+        return load_reconstructor(weights, self_ensemble=method == "cscsr-ensemble", precision=precision or "fp32")
     return classic(method)
 
 
@@ -104,36 +118,53 @@ def _opened(spikes: str, out: str, run: str):
     return open_spike_store(spikes).spikes, TileWriter(out)
 
 
-def _reconstruct_tile(plan: Plan, frames: tuple[tuple[int, int], ...], tile: Tile, ty: int, tx: int) -> int:
-    """Task: for each (output frame, centre) read the window + halo of one tile; reconstruct the
-    windows as one batch; crop, write and commit each frame's tile."""
+def _reconstruct_tiles(plan: Plan, frames: tuple[tuple[int, int], ...],
+                       tiles: tuple[tuple[int, int, Tile], ...]) -> int:
+    """Task: for each tile (ty, tx, tile) and each (output frame, centre), read the window + halo;
+    reconstruct each tile's windows as one batch (on a GPU, the windows of all tiles of one shape
+    together); crop, write and commit each frame's tile."""
+    hold_point()  # inert unless a fault test asks (pipeline.hold)
     half = plan.window // 2
     spikes, writer = _opened(plan.spikes, plan.out, plan.run)
-    method = reconstructor(plan.method, plan.weights)
-    width = tile.rx1 - tile.rx0
-    region = (slice(tile.ry0, tile.ry1), slice(tile.rx0 // 8, -(-tile.rx1 // 8)))
-    windows = [Window(read_frames(spikes, plan.spikes, c - half, c + half + 1, region), width, plan.cfa, plan.reset,
-                      plan.gain, plan.scale) for _, c in frames]
-    ys, xs = tile.crop(plan.scale)
-    for (index, _), image in zip(frames, method.many(windows)):
-        writer.write(index, (ty, tx), (tile.y0 * plan.scale, tile.x0 * plan.scale), image[ys, xs])
-    return len(frames)
+    method = reconstructor(plan.method, plan.weights, plan.precision)
+    windows = []
+    for _, _, tile in tiles:
+        region = (slice(tile.ry0, tile.ry1), slice(tile.rx0 // 8, -(-tile.rx1 // 8)))
+        windows.append([Window(read_frames(spikes, plan.spikes, c - half, c + half + 1, region), tile.rx1 - tile.rx0,
+                               plan.cfa, plan.reset, plan.gain, plan.scale) for _, c in frames])
+    for (ty, tx, tile), images in zip(tiles, method.many_tiles(windows, plan.gpu_batch)):
+        ys, xs = tile.crop(plan.scale)
+        for (index, _), image in zip(frames, images):
+            writer.write(index, (ty, tx), (tile.y0 * plan.scale, tile.x0 * plan.scale), image[ys, xs])
+    return len(frames) * len(tiles)
 
 
-def task_groups(n_frames: int, batch: int, tiles: tuple[int, int], done: np.ndarray) -> Iterator[tuple[range, int, int]]:
-    """(frames, ty, tx) of every task still to run: a tile of ``batch`` consecutive output frames.
+def tile_blocks(grid: list[list[Tile]], per_task: int) -> list[tuple[tuple[int, int], ...]]:
+    """The tiles (ty, tx) that go into one task together: ``per_task`` tiles of the same read shape
+    (so that they can run as one batch), in the grid's order of their first tiles. One tile per
+    task gives the grid in row-major order."""
+    by_shape: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for ty, row in enumerate(grid):
+        for tx, tile in enumerate(row):
+            by_shape.setdefault((tile.ry1 - tile.ry0, tile.rx1 - tile.rx0), []).append((ty, tx))
+    blocks = [tuple(tiles[i : i + per_task]) for tiles in by_shape.values() for i in range(0, len(tiles), per_task)]
+    return sorted(blocks)
 
-    Groups are fixed by frame number, not by what is left, so a resumed job runs every batch
-    exactly as an uninterrupted one would (a batch's numbers can depend on its size); a group
-    with any frame not committed runs whole. Generated as consumed: a terabyte capture has
-    millions of tasks, and the job's process should not hold them all.
+
+def task_groups(n_frames: int, batch: int, blocks: list[tuple[tuple[int, int], ...]],
+                done: np.ndarray) -> Iterator[tuple[range, tuple[tuple[int, int], ...]]]:
+    """(frames, tiles) of every task still to run: ``batch`` consecutive output frames of a block of tiles.
+
+    Groups are fixed by frame number and tile block, not by what is left, so a resumed job runs
+    every batch exactly as an uninterrupted one would (a batch's numbers can depend on its size);
+    a group with any (frame, tile) not committed runs whole. Generated as consumed: a terabyte
+    capture has millions of tasks, and the job's process should not hold them all.
     """
     for start in range(0, n_frames, batch):
         frames = range(start, min(start + batch, n_frames))
-        for ty in range(tiles[0]):
-            for tx in range(tiles[1]):
-                if not done[frames.start : frames.stop, ty, tx].all():
-                    yield frames, ty, tx
+        for block in blocks:
+            if not all(done[frames.start : frames.stop, ty, tx].all() for ty, tx in block):
+                yield frames, block
 
 
 def _auto_gain(spikes: str, centre: int, window: int, reset: str) -> float:
@@ -160,6 +191,13 @@ def check_options(options: ReconstructOptions, n_frames: int) -> None:
         raise InputError("--resume and --overwrite contradict each other: choose one")
     if options.segment_tasks < 1:
         raise InputError(f"--segment-tasks must be >= 1, got {options.segment_tasks}")
+    if options.precision not in PRECISIONS:
+        raise InputError(f"--precision must be {' or '.join(PRECISIONS)}, got {options.precision!r}")
+    if options.precision != "fp32" and options.method not in NETWORKS:
+        raise InputError(f"--precision {options.precision} is for the network (--method cscsr or cscsr-ensemble); "
+                         f"{options.method} has no network to run in it")
+    if options.gpu_batch < 1:
+        raise InputError(f"--gpu-batch must be >= 1, got {options.gpu_batch}")
 
 
 def reconstruct(store_url: str, out: str, options: ReconstructOptions = ReconstructOptions(), *,
@@ -175,7 +213,9 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
     meta = store.meta
     check_options(options, store.n_frames)
     scale = options.scale or int(store.attrs.get("scale", 4))
-    method = reconstructor(options.method, options.weights)  # loads and checks the weights here too
+    network = options.method in NETWORKS
+    precision = options.precision if network else None
+    method = reconstructor(options.method, options.weights, precision)  # loads and checks the weights here too
     method.check(options.window, scale, meta.cfa)
     if options.resume and not exists(out):
         raise InputError(f"cannot resume: {out} does not exist")
@@ -195,10 +235,14 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
             gain = client.submit(_auto_gain, *args).result() if client else _auto_gain(*args)
         weights = getattr(method, "weights", options.weights)  # the file actually used: the shipped one by default
         plan = Plan(store_url, out, options.method, weights, options.window, options.every, float(gain),
-                    scale, meta.cfa, meta.reset, options.tile, uuid.uuid4().hex)
+                    scale, meta.cfa, meta.reset, options.tile, uuid.uuid4().hex, precision, options.gpu_batch)
+        batch = getattr(method, "batch", 1)
+        on_gpus = network and client is not None and gpu_workers(client) > 0  # our own local cluster has none
         done = _prepare_output(plan, options.resume, centres, grid, (meta.height * scale, meta.width * scale))
-        groups = task_groups(len(centres), getattr(method, "batch", 1), (len(grid), len(grid[0])), done)
-        work = functools.partial(run_groups, plan=plan, centres=centres, grid=grid)
+        blocks = tile_blocks(grid, max(1, options.gpu_batch // batch) if on_gpus else 1)
+        groups = task_groups(len(centres), batch, blocks, done)
+        work = functools.partial(run_groups, plan=plan, centres=centres, grid=grid,
+                                 resources={GPU: 1} if on_gpus else None)
         with held(out), progress_bar(f"reconstruct {options.method}", len(centres), enabled=progress) as advance:
             if client:
                 if progress and (link := dashboard_link(client)):
@@ -226,24 +270,27 @@ class JobIncomplete(RuntimeError):
         self.failed = failed
 
 
-def run_groups(client, groups: Iterable, *, plan: Plan, centres: list[int], grid) -> Iterator[Outcome]:
-    """Submit ``groups`` in a bounded window; yield each one's outcome as it finishes."""
+def run_groups(client, groups: Iterable, *, plan: Plan, centres: list[int], grid,
+               resources: dict | None = None) -> Iterator[Outcome]:
+    """Submit ``groups`` in a bounded window, each task needing ``resources`` (e.g. ``{"GPU": 1}``: only
+    workers that advertise them run it); yield the outcome of each of a group's tiles as it finishes."""
     shared = client.scatter(plan, broadcast=True)  # sent to each worker once, not with every task
-    group_of = {}  # future key -> (frames, ty, tx) (cheaper than fetching each result)
+    group_of = {}  # future key -> (frames, tiles) (cheaper than fetching each result)
 
     def submissions():
-        for frames, ty, tx in groups:
-            future = client.submit(_reconstruct_tile, shared, tuple((i, centres[i]) for i in frames), grid[ty][tx],
-                                   ty, tx, pure=False)
-            group_of[future.key] = (frames, ty, tx)
+        for frames, block in groups:
+            future = client.submit(_reconstruct_tiles, shared, tuple((i, centres[i]) for i in frames),
+                                   tuple((ty, tx, grid[ty][tx]) for ty, tx in block), pure=False, resources=resources)
+            group_of[future.key] = (frames, block)
             yield future
 
     for future in in_bounded_window(submissions(), window_size(client)):
-        frames, ty, tx = group_of.pop(future.key)
+        frames, block = group_of.pop(future.key)
         error = None
         if future.status != "finished":  # the task raised: report it, go on with the others
             error = " ".join(str(future.exception()).split()) or type(future.exception()).__name__
-        yield Outcome(frames.start, frames.stop, ty, tx, error)
+        for ty, tx in block:
+            yield Outcome(frames.start, frames.stop, ty, tx, error)
 
 
 def _tally(outcomes: Iterable[Outcome], done: np.ndarray, advance) -> dict[int, str]:
@@ -271,7 +318,8 @@ def _prepare_output(plan: Plan, resume: bool, centres: list[int], grid: list[lis
     tile_hr = ((first.y1 - first.y0) * plan.scale, (first.x1 - first.x0) * plan.scale)
     if resume:
         group = open_video_store(plan.out, writable=True)
-        recorded = {k: group.attrs.get(k) for k in plan.attrs()}
+        before = {"precision": "fp32" if plan.method in NETWORKS else None}  # stores from before --precision
+        recorded = {k: group.attrs.get(k, before.get(k)) for k in plan.attrs()}
         expected = plan.attrs()
         changed = [k for k in expected if recorded[k] != expected[k]]
         if changed or group["video"].shape[0] != len(centres):

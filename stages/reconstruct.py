@@ -40,6 +40,10 @@ class Reconstructor(Protocol):
     def many(self, windows: list[Window]) -> list[np.ndarray]:
         """Windows of the same tile geometry -> one image each, as ``__call__`` would give."""
 
+    def many_tiles(self, tiles: list[list[Window]], most: int | None = None) -> list[list[np.ndarray]]:
+        """The windows of several tiles (each tile's as ``many`` takes them) -> each tile's images; a
+        reconstructor may run tiles of the same shape together, at most ``most`` windows at a time."""
+
     def check(self, window: int, scale: int, cfa: str) -> None:
         """Refuse, before any work, a window length, scale or CFA the method cannot serve."""
 
@@ -63,6 +67,9 @@ class RateReconstructor:
 
     def many(self, windows: list[Window]) -> list[np.ndarray]:
         return [self(window) for window in windows]
+
+    def many_tiles(self, tiles: list[list[Window]], most: int | None = None) -> list[list[np.ndarray]]:
+        return [self.many(windows) for windows in tiles]
 
     def check(self, window: int, scale: int, cfa: str) -> None:
         """Any window, scale and CFA will do (scales are checked where images are made)."""

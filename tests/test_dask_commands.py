@@ -2,7 +2,6 @@
 127.0.0.1, with ``cscsr reconstruct --scheduler`` and ``cscsr watch --once --scheduler`` submitting to them."""
 
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -19,33 +18,34 @@ from tests.test_watch import settled
 BIN = os.path.dirname(sys.executable)
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture(scope="module")
-def scheduler():
-    """tcp://127.0.0.1:PORT of a scheduler with two single-threaded workers, as in docker-compose.yml."""
+def scheduler(tmp_path_factory):
+    """tcp://127.0.0.1:PORT of a scheduler with two single-threaded workers, as in docker-compose.yml.
+
+    The scheduler picks its own free port (``--port 0``) and writes its address to a scheduler
+    file that the workers and the test read: no port is chosen ahead and then lost to a race.
+    """
+    import json
+
     from distributed import Client
 
-    port = free_port()
-    address = f"tcp://127.0.0.1:{port}"
-    processes = [subprocess.Popen([f"{BIN}/dask", "scheduler", "--host", "127.0.0.1", "--port", str(port),
-                                   "--dashboard-address", ":0", "--no-show"], stdout=subprocess.DEVNULL,
-                                  stderr=subprocess.DEVNULL)]
-    processes += [subprocess.Popen([f"{BIN}/dask", "worker", address, "--nworkers", "1", "--nthreads", "1",
-                                    "--no-dashboard"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    address_file = tmp_path_factory.mktemp("scheduler") / "scheduler.json"
+    processes = [subprocess.Popen([f"{BIN}/dask", "scheduler", "--host", "127.0.0.1", "--port", "0",
+                                   "--scheduler-file", str(address_file), "--dashboard-address", ":0", "--no-show"],
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    processes += [subprocess.Popen([f"{BIN}/dask", "worker", "--scheduler-file", str(address_file), "--nworkers", "1",
+                                    "--nthreads", "1", "--no-dashboard"], stdout=subprocess.DEVNULL,
+                                   stderr=subprocess.DEVNULL)
                   for _ in range(2)]
     try:
-        deadline = time.time() + 60
+        deadline = time.time() + 120
         while True:
             try:
+                address = json.loads(address_file.read_text())["address"]
                 with Client(address, timeout=5) as client:
                     client.wait_for_workers(2, timeout=max(deadline - time.time(), 1))
                     break
-            except (OSError, TimeoutError):
+            except (OSError, TimeoutError, ValueError, KeyError):
                 if time.time() > deadline:
                     raise
                 time.sleep(0.5)

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import zarr
 
+from pipeline.hold import hold_environment
 from pipeline.reconstruct import ReconstructOptions, output_centres, reconstruct
 from pipeline.simulate import SimulateOptions, simulate
 from tests.conftest import with_random_heads
@@ -91,10 +92,13 @@ def test_resume_after_a_killed_run(recording, client, tmp_path):
 
     command = [os.path.join(os.path.dirname(sys.executable), "cscsr"), "reconstruct", recording, killed,
                "--method", "tfi", "--every", "2", "--tile", "16", "--workers", "1"]
-    process = subprocess.Popen(command, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.time() + 120
-    while _committed(killed) < 30 and time.time() < deadline and process.poll() is None:
-        time.sleep(0.005)
+    # the job's tasks hold after the 30th (pipeline.hold): the kill lands mid-job on any machine, under any load
+    process = subprocess.Popen(command, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                               env={**os.environ, **hold_environment(30, tmp_path / "never")})
+    deadline = time.time() + 300
+    while _committed(killed) < 30:
+        assert time.time() < deadline and process.poll() is None, "the job never got going"
+        time.sleep(0.02)
     os.killpg(process.pid, signal.SIGKILL)  # the client and its cluster, mid-job
     process.wait()
     done_before = _committed(killed)
@@ -292,9 +296,10 @@ def test_task_groups_are_fixed_by_frame_number():
     from pipeline.reconstruct import task_groups
 
     done = np.zeros((10, 1, 2), bool)
-    assert [(list(f), ty, tx) for f, ty, tx in task_groups(10, 4, (1, 2), done)][:3] == \
+    tiles = [((0, 0),), ((0, 1),)]  # one tile per task
+    assert [(list(f), *b[0]) for f, b in task_groups(10, 4, tiles, done)][:3] == \
         [([0, 1, 2, 3], 0, 0), ([0, 1, 2, 3], 0, 1), ([4, 5, 6, 7], 0, 0)]
     done[0:4, 0, 0] = True
     done[4, 0, 1] = True  # a partly done group runs whole, exactly as it did the first time
-    groups = [(list(f), ty, tx) for f, ty, tx in task_groups(10, 4, (1, 2), done)]
+    groups = [(list(f), *b[0]) for f, b in task_groups(10, 4, tiles, done)]
     assert ([0, 1, 2, 3], 0, 0) not in groups and ([4, 5, 6, 7], 0, 1) in groups and ([8, 9], 0, 1) in groups

@@ -1,7 +1,6 @@
 """Spike stores and captures at any fsspec URL: path, file://, memory://, and s3:// (moto)."""
 
 import os
-import socket
 
 import fsspec
 import pytest
@@ -38,12 +37,9 @@ def s3_endpoint():
     """A moto S3 server on 127.0.0.1 with one bucket; the AWS variables point boto at it."""
     from moto.server import ThreadedMotoServer
 
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
-    server = ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)  # the OS picks a free port
     server.start()
-    endpoint = f"http://127.0.0.1:{port}"
+    endpoint = "http://127.0.0.1:%d" % server.get_host_and_port()[1]
     saved = {k: os.environ.get(k) for k in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_DEFAULT_REGION", "AWS_ENDPOINT_URL")}
     os.environ.update(AWS_ACCESS_KEY_ID="testing", AWS_SECRET_ACCESS_KEY="testing", AWS_DEFAULT_REGION="us-east-1",
                       AWS_ENDPOINT_URL=endpoint)

@@ -135,6 +135,7 @@ def _committed(url) -> int:
 def test_killing_the_watcher_mid_job_loses_nothing_and_duplicates_nothing(tmp_path):
     """A real ``cscsr watch`` process group is SIGKILLed while it reconstructs; the next pass finishes the
     job: one ledger row (2 attempts), outputs byte-identical to an uninterrupted watcher's."""
+    from pipeline.hold import hold_environment
     from pipeline.simulate import SimulateOptions, simulate
     from tests.test_simulate import picture
     import imageio.v3 as iio
@@ -154,11 +155,12 @@ def test_killing_the_watcher_mid_job_loses_nothing_and_duplicates_nothing(tmp_pa
     subprocess.run(command(tmp_path / "clean"), check=True, capture_output=True)
 
     killed = tmp_path / "killed"
+    # the job's tasks hold after the 30th (pipeline.hold): the kill lands mid-job on any machine, under any load
     process = subprocess.Popen(command(killed), start_new_session=True, stdout=subprocess.DEVNULL,
-                               stderr=subprocess.DEVNULL)
-    deadline = time.time() + 120
-    while time.time() < deadline and not (_ledger_state(killed, "scene") == "running"
-                                          and _committed(str(killed / "scene.zarr")) >= 20):
+                               stderr=subprocess.DEVNULL, env={**os.environ, **hold_environment(30, tmp_path / "never")})
+    deadline = time.time() + 300
+    while not (_ledger_state(killed, "scene") == "running" and _committed(str(killed / "scene.zarr")) >= 20):
+        assert time.time() < deadline and process.poll() is None, "the watcher's job never got going"
         time.sleep(0.05)
     os.killpg(process.pid, signal.SIGKILL)
     process.wait()

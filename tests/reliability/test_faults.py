@@ -129,11 +129,14 @@ def test_a_failing_tile_is_reported_and_the_rest_committed(recording, client, tm
 
 
 def test_two_jobs_on_one_output_never_interleave(recording, tmp_path):
-    out = str(tmp_path / "out.zarr")
+    from pipeline.hold import hold_environment
+
+    out, release = str(tmp_path / "out.zarr"), tmp_path / "release"
+    # the first job holds after 10 tasks (pipeline.hold) until the rival attempts are over: no race to lose
     first = subprocess.Popen([f"{BIN}/cscsr", "reconstruct", recording, out, "--method", "tfi", "--every", "2",
                               "--tile", "8", "--workers", "1"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                             text=True)
-    deadline = time.time() + 120
+                             text=True, env={**os.environ, **hold_environment(10, release)})
+    deadline = time.time() + 300
     while committed(out) < 10:
         assert time.time() < deadline and first.poll() is None, "the first job never got going"
         time.sleep(0.05)
@@ -142,6 +145,7 @@ def test_two_jobs_on_one_output_never_interleave(recording, tmp_path):
                                  "--tile", "8", "--workers", "1", flag], capture_output=True, text=True, timeout=120)
         assert second.returncode == 1 and "being written by another job" in second.stderr, second.stderr
         assert len(second.stderr.strip().splitlines()) == 1
+    release.touch()
     assert first.wait(300) == 0, first.stderr.read()
     assert zarr.open_group(out, mode="r").attrs["state"] == "complete"
     assert not os.path.exists(f"{out}/lease.json")  # released at the end
