@@ -125,6 +125,11 @@ def load_model(path: str | os.PathLike, device: str | torch.device = "cpu"):
         what = (f"missing {missing[0]}" if missing else f"unexpected {extra[0]}" if extra else
                 f"{wrong[0]} is {tuple(tensors[wrong[0]].shape)}, expected {tuple(expected[wrong[0]].shape)}")
         raise InputError(f"{path} does not match its configuration {config.name!r}: {what}")
+    for name in sorted(tensors):  # NaN or infinity in one weight makes every output pixel NaN (a black video)
+        tensor = tensors[name]
+        if tensor.is_floating_point() and not torch.isfinite(tensor).all():
+            bad = int((~torch.isfinite(tensor)).sum())
+            raise InputError(f"{path} is damaged: tensor {name} holds {bad} non-finite values (NaN or infinity)")
     model.load_state_dict({k: v.to(expected[k].dtype) for k, v in tensors.items()})  # half storage -> float32
     return model.to(device).eval(), metadata
 

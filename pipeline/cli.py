@@ -83,7 +83,7 @@ def info(store: Annotated[str, typer.Argument(help="Spike store URL.")],
 
     summary = summarize(store)
     if as_json:
-        print(json.dumps(summary))
+        print(json.dumps(summary, allow_nan=False))  # strict JSON: never a bare Infinity or NaN
     else:
         show_table(f"spike store {store}", summary)
 
@@ -135,7 +135,8 @@ def preview(store: Annotated[str, typer.Argument(help="Spike store URL.")],
     stdout.print(f"wrote {image}: frames {shot.centre - window // 2}..{shot.centre + window // 2}, gain {shot.gain:.4g}")
 
 
-Workers = Annotated[Optional[int], typer.Option(help="Local Dask worker processes (default: one per core).")]
+Workers = Annotated[Optional[int], typer.Option(help="Local Dask worker processes (default: one per core; at most "
+                                                     "4 per core and 256).")]
 Scheduler = Annotated[Optional[str], typer.Option(help="Dask scheduler address (also DASK_SCHEDULER_ADDRESS).")]
 
 
@@ -347,8 +348,33 @@ def watch(inbox: Annotated[str, typer.Argument(help="Where recordings land (any 
 
     options = WatchOptions(method, weights, every, tile, settle, max_attempts, backoff,
                            CaptureDefaults(height, width, cfa, flip, fps, reset))
+    check_watch_options(options, workers)  # before OUTBOX is created
     run(inbox, outbox, options, once=once, interval=parse_interval(interval), workers=workers, scheduler=scheduler,
         log=lambda line: stdout.print(line, highlight=False, markup=False))
+
+
+def check_watch_options(options, workers: int | None) -> None:
+    """The watcher's options, refused before it creates OUTBOX rather than once per recording."""
+    from pipeline.cluster import check_workers
+    from pipeline.reconstruct import ReconstructOptions
+    from pipeline.spike_store import RESET_MODES
+    from stages.cfa import check_cfa
+    from stages.errors import InputError
+    from stages.numbers import check_number
+
+    check_workers(workers)
+    ReconstructOptions(method=options.method, every=options.every, tile=options.tile, weights=options.weights).check()
+    check_number("--settle", options.settle, at_least=0)
+    check_number("--max-attempts", options.max_attempts, at_least=1, integer=True)
+    check_number("--backoff", options.backoff, at_least=0)
+    defaults = options.defaults
+    for name in ("height", "width"):
+        if getattr(defaults, name) is not None:
+            check_number(f"--{name}", getattr(defaults, name), at_least=1, integer=True)
+    check_number("--fps", defaults.fps, above=0)
+    check_cfa(defaults.cfa)
+    if defaults.reset not in RESET_MODES:
+        raise InputError(f"unknown --reset {defaults.reset!r}: expected one of {', '.join(RESET_MODES)}")
 
 
 @command()

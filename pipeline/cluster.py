@@ -16,8 +16,11 @@ import dask
 from distributed import Client, LocalCluster
 
 from stages.errors import InputError
+from stages.numbers import check_number
 
 CONNECT_TIMEOUT = "5s"
+WORKERS_PER_CORE, MOST_WORKERS = 4, 256  # --workers at most 4 per core and 256 in all: beyond that a local
+# cluster only multiplies processes (~100 MiB each) and start-up time, with no core left to run them
 GPU = "GPU"  # the Dask worker resource a GPU worker advertises; network tasks ask for one
 
 
@@ -33,6 +36,19 @@ _PRE_SPAWN = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": str(
 def _thread_env(workers: int) -> dict:
     threads = str(max(1, (os.cpu_count() or 1) // workers))
     return {name: threads for name in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
+
+
+def most_workers() -> int:
+    """The most local worker processes ``--workers`` may ask for on this machine."""
+    return min(MOST_WORKERS, WORKERS_PER_CORE * (os.cpu_count() or 1))
+
+
+def check_workers(workers: int | None) -> None:
+    """Refuse a ``--workers`` outside 1..:func:`most_workers` (None: one per core); every command
+    that takes ``--workers`` calls this before it creates any output."""
+    if workers is not None:
+        check_number("--workers", workers, at_least=1, at_most=most_workers(), integer=True,
+                     why=f"at most {WORKERS_PER_CORE} per core and {MOST_WORKERS} in all")
 
 
 def scheduler_address(scheduler: str | None) -> str | None:
@@ -52,9 +68,8 @@ def dask_client(*, workers: int | None = None, scheduler: str | None = None) -> 
         with client:
             yield client
         return
+    check_workers(workers)
     workers = workers if workers is not None else os.cpu_count() or 1
-    if workers < 1:
-        raise InputError(f"--workers must be >= 1, got {workers}")
     with dask.config.set(_PRE_SPAWN), \
             LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
                          silence_logs=logging.ERROR, env=_thread_env(workers)) as cluster, Client(cluster) as client:

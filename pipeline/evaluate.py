@@ -14,28 +14,55 @@ import time
 import numpy as np
 import zarr
 
-from pipeline.cluster import dask_client
+from pipeline.cluster import check_workers, dask_client
 from pipeline.images import write_image
-from pipeline.reconstruct import ReconstructOptions, output_centres, reconstruct
+from pipeline.reconstruct import ReconstructOptions, checked_method, output_centres, reconstruct
 from pipeline.spike_store import open_spike_store
 from pipeline.storage import resolve, zarr_store
 from stages.errors import InputError
 from stages.metrics import psnr, ssim
+from stages.reconstruct import METHODS
 from stages.pictures import labelled, side_by_side
 
 WINDOW = 41
 
 
-def evaluate(store_url: str, methods: list[str], out_dir: str, *, weights: str | None = None,
-             workers: int | None = None, scheduler: str | None = None, client=None, progress: bool = True) -> list[dict]:
-    """Reconstruct with every method at the truth frames; return one summary row per method."""
+def check_methods(methods: list[str]) -> None:
+    """Refuse a ``--methods`` list that is empty, or names a method that does not exist or one twice,
+    before any method runs."""
+    if not methods:
+        raise InputError(f"--methods is empty: give one or more of {', '.join(METHODS)}, separated by commas")
+    for index, method in enumerate(methods):
+        if method not in METHODS:
+            raise InputError(f"--methods: unknown method {method!r}: expected one of {', '.join(METHODS)}")
+        if method in methods[:index]:
+            raise InputError(f"--methods names {method} twice")
+
+
+def checked_evaluation(store_url: str, methods: list[str], weights: str | None) -> tuple:
+    """Every check of an evaluation that needs no output: the store's truth, and every method's options
+    and weights against it. -> (store, truth frames, options per method)."""
+    check_methods(methods)
     store = open_spike_store(store_url)
     if "truth" not in store.group or "truth_frames" not in store.group:
         raise InputError(f"{store_url} has no ground truth ('truth', 'truth_frames'): make one with cscsr simulate")
-    truth, truth_frames = store.group["truth"], store.group["truth_frames"][:]
+    truth_frames = store.group["truth_frames"][:]
     every = int(store.attrs.get("truth_every", WINDOW))
     if list(truth_frames) != output_centres(store.n_frames, WINDOW, every)[: len(truth_frames)] or not len(truth_frames):
         raise InputError(f"{store_url}: truth frames {list(truth_frames)[:4]}... are not the 41-frame window centres 20, 20+{every}, ...")
+    options = {method: ReconstructOptions(method=method, every=every, weights=weights, overwrite=True)
+               for method in methods}
+    for method in methods:
+        checked_method(store, options[method])
+    return store, truth_frames, options
+
+
+def evaluate(store_url: str, methods: list[str], out_dir: str, *, weights: str | None = None,
+             workers: int | None = None, scheduler: str | None = None, client=None, progress: bool = True) -> list[dict]:
+    """Reconstruct with every method at the truth frames; return one summary row per method."""
+    check_workers(workers)
+    store, truth_frames, options = checked_evaluation(store_url, methods, weights)
+    truth = store.group["truth"]
     fs, root = resolve(out_dir)
     fs.makedirs(root, exist_ok=True)
 
@@ -45,8 +72,7 @@ def evaluate(store_url: str, methods: list[str], out_dir: str, *, weights: str |
         for method in methods:
             out = f"{str(out_dir).rstrip('/')}/{method}.zarr"
             start = time.perf_counter()
-            reconstruct(store_url, out, ReconstructOptions(method=method, every=every, weights=weights, overwrite=True),
-                        client=client, progress=progress)
+            reconstruct(store_url, out, options[method], client=client, progress=progress)
             seconds = time.perf_counter() - start
             video = zarr.open_group(zarr_store(out, read_only=True), mode="r")["video"]
             scores = [(psnr(video[k], truth[k]), ssim(video[k], truth[k])) for k in range(len(truth_frames))]

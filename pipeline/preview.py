@@ -5,7 +5,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.spike_store import open_spike_store
+from stages.colour import check_scale
 from stages.errors import InputError
+from stages.numbers import FLOAT32_MAX, check_number
 from stages.tfp import tfp_image
 
 
@@ -19,6 +21,9 @@ class Preview:
 
 def preview(url: str, *, centre: int | None = None, window: int = 41, gain: float | None = None, scale: int = 1) -> Preview:
     """TFP image of frames ``[centre - window//2, centre + window//2]``; gain: given, store's, or auto."""
+    if gain is not None:  # inf passes "> 0" and would write a picture of NaN
+        check_number("--gain", gain, above=0, at_most=FLOAT32_MAX)
+    check_scale("--scale", scale)
     store = open_spike_store(url)
     n = store.n_frames
     if window <= 0 or window % 2 == 0:

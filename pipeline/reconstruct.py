@@ -27,17 +27,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.batches import in_bounded_window, window_size
-from pipeline.cluster import GPU, dashboard_link, dask_client, gpu_workers, scheduler_address
+from pipeline.cluster import GPU, check_workers, dashboard_link, dask_client, gpu_workers, scheduler_address
 from pipeline.hold import hold_point
 from pipeline.lease import check_free, held
 from pipeline.progress import progress_bar
 from pipeline.segments import Outcome, in_segments
-from pipeline.spike_store import open_spike_store, read_frames
+from pipeline.spike_store import SpikeStore, open_spike_store, read_frames
 from pipeline.storage import claim_output, exists
 from pipeline.video_store import TileWriter, committed_mask, create_video_store, open_video_store
 from stages.colour import auto_gain
 from stages.errors import InputError
-from stages.reconstruct import METHODS, NETWORKS, Window, classic
+from stages.numbers import FLOAT32_MAX, check_number
+from stages.reconstruct import METHODS, NETWORKS, Reconstructor, Window, classic
 from stages.tfp import tfp_rate
 from stages.tiles import Tile, tile_grid
 
@@ -62,6 +63,32 @@ class ReconstructOptions:
     segment_tasks: int = SEGMENT_TASKS  # tasks per fresh cluster when the job starts its own (bounded memory)
     precision: str = "fp32"  # the network's: fp32, or bf16 (autocast on the worker's device)
     gpu_batch: int = GPU_BATCH  # windows per task and per network pass on GPU workers
+
+    def check(self) -> None:
+        """Every check that needs no recording (see :func:`check_options` for the rest)."""
+        if self.method not in METHODS:
+            raise InputError(f"unknown method {self.method!r}: expected one of {', '.join(METHODS)}")
+        if self.window <= 0 or self.window % 2 == 0:
+            raise InputError(f"--window must be a positive odd number of frames, got {self.window}")
+        if self.every <= 0:
+            raise InputError(f"--every must be >= 1, got {self.every}")
+        if self.gain is not None:  # inf would pass "> 0" and expose every pixel to NaN or full white
+            check_number("--gain", self.gain, above=0, at_most=FLOAT32_MAX)
+        if self.scale is not None:  # 0 must not mean "the default"
+            check_number("--scale", self.scale, at_least=1, integer=True)
+        if self.tile <= 0 or self.tile % 8:
+            raise InputError(f"--tile must be a positive multiple of 8 LR pixels, got {self.tile}")
+        if self.resume and self.overwrite:
+            raise InputError("--resume and --overwrite contradict each other: choose one")
+        if self.segment_tasks < 1:
+            raise InputError(f"--segment-tasks must be >= 1, got {self.segment_tasks}")
+        if self.precision not in PRECISIONS:
+            raise InputError(f"--precision must be {' or '.join(PRECISIONS)}, got {self.precision!r}")
+        if self.precision != "fp32" and self.method not in NETWORKS:
+            raise InputError(f"--precision {self.precision} is for the network (--method cscsr or cscsr-ensemble); "
+                             f"{self.method} has no network to run in it")
+        if self.gpu_batch < 1:
+            raise InputError(f"--gpu-batch must be >= 1, got {self.gpu_batch}")
 
 
 @dataclass(frozen=True)
@@ -175,29 +202,20 @@ def _auto_gain(spikes: str, centre: int, window: int, reset: str) -> float:
 
 
 def check_options(options: ReconstructOptions, n_frames: int) -> None:
-    if options.method not in METHODS:
-        raise InputError(f"unknown method {options.method!r}: expected one of {', '.join(METHODS)}")
-    if options.window <= 0 or options.window % 2 == 0:
-        raise InputError(f"--window must be a positive odd number of frames, got {options.window}")
+    options.check()
     if options.window > n_frames:
         raise InputError(f"--window {options.window} is longer than the recording ({n_frames} frames)")
-    if options.every <= 0:
-        raise InputError(f"--every must be >= 1, got {options.every}")
-    if options.gain is not None and not options.gain > 0:
-        raise InputError(f"--gain must be > 0, got {options.gain}")
-    if options.tile <= 0 or options.tile % 8:
-        raise InputError(f"--tile must be a positive multiple of 8 LR pixels, got {options.tile}")
-    if options.resume and options.overwrite:
-        raise InputError("--resume and --overwrite contradict each other: choose one")
-    if options.segment_tasks < 1:
-        raise InputError(f"--segment-tasks must be >= 1, got {options.segment_tasks}")
-    if options.precision not in PRECISIONS:
-        raise InputError(f"--precision must be {' or '.join(PRECISIONS)}, got {options.precision!r}")
-    if options.precision != "fp32" and options.method not in NETWORKS:
-        raise InputError(f"--precision {options.precision} is for the network (--method cscsr or cscsr-ensemble); "
-                         f"{options.method} has no network to run in it")
-    if options.gpu_batch < 1:
-        raise InputError(f"--gpu-batch must be >= 1, got {options.gpu_batch}")
+
+
+def checked_method(store: SpikeStore, options: ReconstructOptions) -> tuple[int, Reconstructor]:
+    """Every check of a job on ``store`` that needs no output: the options against the recording, the
+    scale (``--scale``, else the store's, else 4) and the method, its weights loaded. -> (scale, method)."""
+    check_options(options, store.n_frames)
+    scale = options.scale if options.scale is not None else int(store.attrs.get("scale", 4))
+    precision = options.precision if options.method in NETWORKS else None
+    method = reconstructor(options.method, options.weights, precision)  # loads and checks the weights here too
+    method.check(options.window, scale, store.meta.cfa)
+    return scale, method
 
 
 def reconstruct(store_url: str, out: str, options: ReconstructOptions = ReconstructOptions(), *,
@@ -209,14 +227,13 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
     ``workers`` (see :mod:`pipeline.segments`). Returns
     counts: output frames, tasks run now, tasks found already committed.
     """
+    check_workers(workers)
+    options.check()
     store = open_spike_store(store_url)
     meta = store.meta
-    check_options(options, store.n_frames)
-    scale = options.scale or int(store.attrs.get("scale", 4))
+    scale, method = checked_method(store, options)
     network = options.method in NETWORKS
     precision = options.precision if network else None
-    method = reconstructor(options.method, options.weights, precision)  # loads and checks the weights here too
-    method.check(options.window, scale, meta.cfa)
     if options.resume and not exists(out):
         raise InputError(f"cannot resume: {out} does not exist")
     if options.resume:

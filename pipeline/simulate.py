@@ -21,7 +21,7 @@ from distributed import Client
 
 from pipeline.batches import in_bounded_window, window_size
 
-from pipeline.cluster import dask_client
+from pipeline.cluster import check_workers, dask_client
 from pipeline.frame_sources import FrameSource, open_frame_source
 from pipeline.lease import held
 from pipeline.progress import progress_bar
@@ -32,6 +32,7 @@ from stages.cfa import check_cfa
 from stages.errors import InputError
 from stages.frames import to_unit_rgb
 from stages.interpolate import INTERPOLATIONS, estimate_flows
+from stages.numbers import check_number
 from stages.latent import bracket, source_position, still_mosaics, truth_image, upscale_flow, video_mosaics, between
 from stages.motion import CameraPath, render
 
@@ -93,6 +94,10 @@ def check_options(options: SimulateOptions, source: FrameSource) -> tuple[int, i
         raise InputError("--motion applies to a single image; a video or folder brings its own motion")
     if options.truth_every < 1:
         raise InputError(f"--truth-every must be >= 1, got {options.truth_every}")
+    check_number("--speed", options.speed, at_least=0)
+    check_number("--deform", options.deform, at_least=0)
+    if options.chunk_frames is not None:  # 0 must not mean "the default"
+        check_number("--chunk-frames", options.chunk_frames, at_least=1, integer=True)
     multiple = 2 * options.scale
     if source.height % multiple or source.width % multiple:
         raise InputError(f"frame size {source.height}x{source.width} is not divisible by 2*scale = {multiple} "
@@ -198,6 +203,7 @@ class _SourcePairs:
 def simulate(src: str, dest: str, options: SimulateOptions = SimulateOptions(), *, workers: int | None = None,
              scheduler: str | None = None, progress: bool = True) -> dict:
     """Simulate ``options.frames`` spike frames from ``src`` into a new spike store at ``dest``."""
+    check_workers(workers)
     source = open_frame_source(src)
     height, width = check_options(options, source)
     model = options.sensor_model()

@@ -23,6 +23,7 @@ from pipeline.storage import describe, open_group, zarr_store
 from stages.bits import packed_width
 from stages.cfa import check_cfa
 from stages.errors import InputError
+from stages.numbers import FLOAT32_MAX, check_number
 
 FORMAT_VERSION = 1
 SPIKES = "spikes"
@@ -52,8 +53,10 @@ class SpikeMeta:
 
     def __post_init__(self):
         object.__setattr__(self, "cfa", check_cfa(self.cfa, self.height, self.width))
-        if not self.fps > 0:
-            raise InputError(f"fps must be > 0, got {self.fps}")
+        check_number("fps", self.fps, above=0)
+        for name in ("gain", "threshold"):  # optional: simulated stores record them
+            if getattr(self, name) is not None:
+                check_number(name, getattr(self, name), **_ATTRIBUTE_RANGES[name])
         if self.reset not in RESET_MODES:
             raise InputError(f"unknown reset mode {self.reset!r}: expected one of {', '.join(RESET_MODES)}")
 
@@ -79,6 +82,13 @@ _ATTRIBUTE_TYPES = {"height": int, "width": int, "head_columns": int, "spike_cou
                     "fps": float, "gain": float, "threshold": float, "flipped": bool, "cfa": str, "reset": str}
 
 
+# The range of each number a store records: finite, and one that its readers can use (a negative
+# gain or a scale of 0 would otherwise fail inside every task, an infinite fps print as invalid JSON).
+_ATTRIBUTE_RANGES = {"fps": {"above": 0}, "gain": {"above": 0, "at_most": FLOAT32_MAX}, "threshold": {"above": 0},
+                     "spike_count": {"at_least": 0}, "scale": {"at_least": 1},
+                     "truth_every": {"at_least": 1, "integer": True}, "brightness": {"above": 0}}
+
+
 def check_attribute_types(attrs: dict) -> None:
     for name, kind in _ATTRIBUTE_TYPES.items():
         if name not in attrs or attrs[name] is None:
@@ -93,6 +103,9 @@ def check_attribute_types(attrs: dict) -> None:
     for name in ("height", "width"):
         if attrs[name] <= 0:
             raise InputError(f"attribute {name} must be positive, got {attrs[name]}")
+    for name, bounds in _ATTRIBUTE_RANGES.items():
+        if attrs.get(name) is not None:
+            check_number(f"attribute {name}", attrs[name], **bounds)
 
 
 def chunk_frames_for(meta: SpikeMeta, n_frames: int) -> int:

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from cscsr.training_data import TEST_PICTURES as PICTURES
-from pipeline.cluster import dask_client
-from pipeline.evaluate import evaluate
+from pipeline.cluster import check_workers, dask_client
+from pipeline.evaluate import check_methods, checked_evaluation, evaluate
 from pipeline.images import write_image
 from pipeline.simulate import SimulateOptions, simulate
 from pipeline.storage import claim_output, resolve
@@ -60,6 +60,7 @@ def make_testset(out: str, *, workers: int | None = None, overwrite: bool = Fals
 
     ``only``: item names (``astronaut_a0.6``, ...) to make, for tests; default all nine.
     """
+    check_workers(workers)
     chosen = [item for item in items() if only is None or item.name in only]
     if not chosen:
         raise InputError(f"no test-set items named {', '.join(only)}")
@@ -86,11 +87,15 @@ def make_testset(out: str, *, workers: int | None = None, overwrite: bool = Fals
 def evaluate_testset(testset: str, methods: list[str], out: str, *, weights: str | None = None,
                      workers: int | None = None, scheduler: str | None = None, progress: bool = True) -> list[dict]:
     """Every method on every test store; rows averaged per (method, alpha), plus an 'all' row per method."""
+    check_methods(methods)
+    check_workers(workers)
     fs, root = resolve(testset)
     if not fs.exists(f"{root}/manifest.json"):
         raise InputError(f"{testset} is not a test set (no manifest.json): make one with cscsr make-testset")
     with fs.open(f"{root}/manifest.json") as f:
         chosen = [Item(i["picture"], i["alpha"], i["seed"]) for i in json.load(f)["items"]]
+    for item in chosen:  # every store and method checked before OUT is replaced
+        checked_evaluation(f"{testset.rstrip('/')}/{item.name}.zarr", methods, weights)
     claim_output(out, overwrite=True, flag="")
     out_fs, out_root = resolve(out)
     out_fs.makedirs(out_root, exist_ok=True)

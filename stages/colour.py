@@ -12,7 +12,9 @@ import numpy as np
 
 from stages.cfa import opencv_bayer_code
 from stages.errors import InputError
+from stages.numbers import FLOAT32_MAX, check_number
 
+SCALES = (1, 2, 3, 4, 8)  # what the classic methods and previews upsample by
 _MID_GREY = 0.45
 _CLIP_QUANTILE = 0.99
 
@@ -47,18 +49,31 @@ def upsample(rgb: np.ndarray, scale: int) -> np.ndarray:
     return np.clip(big, 0, 1)
 
 
+def check_scale(name: str, scale) -> None:
+    """Refuse an upsampling factor the classic methods cannot make (``name``: the flag or attribute)."""
+    if scale not in SCALES or isinstance(scale, bool):
+        raise InputError(f"{name} must be one of {', '.join(map(str, SCALES))}, got {scale}")
+
+
 def rate_to_rgb(rate: np.ndarray, cfa: str, gain: float, scale: int = 1) -> np.ndarray:
     """(H, W) firing rate -> (s*H, s*W, 3) uint8 RGB: exposure, demosaic, upsample."""
-    if not gain > 0:
-        raise InputError(f"gain must be > 0, got {gain}")
-    if scale not in (1, 2, 3, 4, 8):
-        raise InputError(f"scale must be one of 1, 2, 3, 4, 8, got {scale}")
-    rgb = upsample(demosaic(np.clip(rate * np.float32(gain), 0, 1), cfa), scale)
+    check_scale("scale", scale)
+    rgb = upsample(demosaic(np.clip(exposed(rate, gain), 0, 1), cfa), scale)
     return np.round(rgb * 255).astype(np.uint8)
 
 
 def expose(rgb_rate: np.ndarray, gain: float) -> np.ndarray:
     """(..., 3) RGB firing rates -> uint8 by the contract's rule ``clip(rate * gain, 0, 1) * 255``."""
-    if not gain > 0:
-        raise InputError(f"gain must be > 0, got {gain}")
-    return np.round(np.clip(rgb_rate * np.float32(gain), 0, 1) * 255).astype(np.uint8)
+    return np.round(np.clip(exposed(rgb_rate, gain), 0, 1) * 255).astype(np.uint8)
+
+
+def exposed(rate: np.ndarray, gain: float) -> np.ndarray:
+    """``rate * gain`` in float32, refused unless every value is finite: NaN or infinity would become
+    black or noise in uint8, and a picture made of them must never be written as a good one."""
+    check_number("gain", gain, above=0, at_most=FLOAT32_MAX)
+    values = rate * np.float32(gain)
+    if not np.isfinite(values).all():
+        bad = int(values.size - np.isfinite(values).sum())
+        raise ValueError(f"{bad} of {values.size} values of the exposed image are not finite (NaN or infinity): "
+                         f"the image is not written")
+    return values

@@ -11,7 +11,7 @@ from typing import Protocol
 
 import numpy as np
 
-from stages.colour import rate_to_rgb
+from stages.colour import check_scale, rate_to_rgb
 from stages.errors import InputError
 from stages.tfi import tfi_rate
 from stages.tfp import tfp_rate
@@ -72,7 +72,8 @@ class RateReconstructor:
         return [self.many(windows) for windows in tiles]
 
     def check(self, window: int, scale: int, cfa: str) -> None:
-        """Any window, scale and CFA will do (scales are checked where images are made)."""
+        """Any window and CFA will do; the scale must be one the upsampling makes."""
+        check_scale("scale", scale)
 
 
 CLASSIC = {"tfp": RateReconstructor("tfp", tfp_rate), "tfi": RateReconstructor("tfi", tfi_rate)}
