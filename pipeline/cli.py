@@ -129,7 +129,9 @@ def preview(store: Annotated[str, typer.Argument(help="Spike store URL.")],
     """One TFP picture (window mean, demosaicked, upsampled) from a spike store."""
     from pipeline.images import write_image
     from pipeline.preview import preview as run
+    from pipeline.storage import check_apart
 
+    check_apart(image, store)
     shot = run(store, centre=centre, window=window, gain=gain, scale=scale)
     write_image(image, shot.image, overwrite=overwrite)
     stdout.print(f"wrote {image}: frames {shot.centre - window // 2}..{shot.centre + window // 2}, gain {shot.gain:.4g}")
@@ -269,7 +271,9 @@ def train(context: typer.Context,
     import torch
 
     from cscsr.train import TrainOptions, train as run
+    from pipeline.storage import check_apart
 
+    check_apart(out, init, *(pictures or []))
     if threads:
         torch.set_num_threads(threads)
     options = TrainOptions(config=config, steps=steps, batch=batch, lr_side=lr_side, learning_rate=learning_rate,
@@ -289,7 +293,9 @@ def export_weights(folder: Annotated[str, typer.Argument(help="A cscsr train fol
                    half: Annotated[bool, typer.Option("--half", help="Store float16 (half the size).")] = False):
     """The latest checkpoint of a training run as a weights file for --weights."""
     from cscsr.train import export_weights as run
+    from pipeline.storage import check_apart
 
+    check_apart(dest, os.path.join(folder, "checkpoint.safetensors"))  # the file it reads (DEST may sit beside it)
     step = run(folder, dest, storage="float16" if half else "float32")
     stdout.print(f"{dest}: weights after {step} steps")
 

@@ -24,6 +24,7 @@ from pipeline.images import read_image, write_image
 from pipeline.ingest import IngestOptions, ingest
 from pipeline.preview import preview
 from pipeline.simulate import SimulateOptions, simulate
+from pipeline.storage import check_apart
 from stages.metrics import correlation, psnr
 from stages.pictures import side_by_side
 
@@ -84,6 +85,7 @@ def sample_checks(out_dir: str, console: Console) -> dict:
 
 def run(out_dir: str, *, console: Console, workers: int = 2) -> dict:
     """Run the demo into ``out_dir`` (replacing earlier demo outputs); return its figures."""
+    check_apart(out_dir, *(samples.path(name) for name in (samples.REDS_DAT, samples.REDS_GT, samples.HELICOPTER_NPZ)))
     os.makedirs(out_dir, exist_ok=True)
     rows = simulated_job(out_dir, console, workers)
     figures = sample_checks(out_dir, console)

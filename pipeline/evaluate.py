@@ -18,7 +18,7 @@ from pipeline.cluster import check_workers, dask_client
 from pipeline.images import write_image
 from pipeline.reconstruct import ReconstructOptions, checked_method, output_centres, reconstruct
 from pipeline.spike_store import open_spike_store
-from pipeline.storage import resolve, zarr_store
+from pipeline.storage import check_apart, resolve, zarr_store
 from stages.errors import InputError
 from stages.metrics import psnr, ssim
 from stages.reconstruct import METHODS
@@ -60,6 +60,7 @@ def checked_evaluation(store_url: str, methods: list[str], weights: str | None) 
 def evaluate(store_url: str, methods: list[str], out_dir: str, *, weights: str | None = None,
              workers: int | None = None, scheduler: str | None = None, client=None, progress: bool = True) -> list[dict]:
     """Reconstruct with every method at the truth frames; return one summary row per method."""
+    check_apart(out_dir, store_url, weights)
     check_workers(workers)
     store, truth_frames, options = checked_evaluation(store_url, methods, weights)
     truth = store.group["truth"]

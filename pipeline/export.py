@@ -10,9 +10,10 @@ by its centre spike frame), so memory stays at one frame.
 import os
 import tempfile
 
+from pipeline.lease import claimed
 from pipeline.progress import progress_bar
 from pipeline.spike_store import open_spike_store
-from pipeline.storage import claim_output, new_output, open_group, resolve
+from pipeline.storage import check_apart, claim_output, new_output, open_group, resolve
 from stages.dat import DatLayout, packed_to_dat
 from stages.errors import InputError
 
@@ -24,16 +25,19 @@ VIDEO_FPS = 10
 
 def export(store_url: str, dest: str, *, overwrite: bool = False, progress: bool = True) -> None:
     """Write the store at ``store_url`` to ``dest``: the kind of store and ``dest``'s extension decide how."""
+    check_apart(dest, store_url)
     is_video = "video" in open_group(store_url)
     suffix = str(dest).lower().rsplit(".", 1)[-1] if "." in str(dest).rsplit("/", 1)[-1] else ""
     if is_video:
         if suffix not in ("mp4", ""):
             raise InputError(f"cannot export a video store to {dest}: expected a .mp4 file or a folder")
-        (export_mp4 if suffix == "mp4" else export_pngs)(store_url, dest, overwrite=overwrite, progress=progress)
+        write = export_mp4 if suffix == "mp4" else export_pngs
     elif suffix == "dat":
-        export_dat(store_url, dest, overwrite=overwrite, progress=progress)
+        write = export_dat
     else:
         raise InputError(f"cannot export a spike store to {dest}: expected a .dat destination")
+    with claimed(dest):  # one job per output, taken atomically before the output is touched
+        write(store_url, dest, overwrite=overwrite, progress=progress)
 
 
 def _complete_video(store_url: str):
@@ -49,6 +53,7 @@ def export_mp4(store_url: str, dest: str, *, overwrite: bool = False, progress: 
     """H.264 at 10 frames per second (libx264, yuv420p), written locally then moved to ``dest``."""
     import imageio.v2 as iio2
 
+    check_apart(dest, store_url)
     group = _complete_video(store_url)
     video = group["video"]
     claim_output(dest, overwrite=overwrite)
@@ -69,6 +74,7 @@ def export_pngs(store_url: str, dest: str, *, overwrite: bool = False, progress:
     """One PNG per output frame, ``frame_<centre spike frame>.png``."""
     from pipeline.images import write_image
 
+    check_apart(dest, store_url)
     group = _complete_video(store_url)
     video, frames = group["video"], group["frames"][:]
     with new_output(dest, overwrite=overwrite), progress_bar(f"export {dest}", video.shape[0], enabled=progress) as advance:
@@ -78,6 +84,8 @@ def export_pngs(store_url: str, dest: str, *, overwrite: bool = False, progress:
 
 
 def export_dat(store_url: str, dest: str, *, overwrite: bool = False, progress: bool = True) -> None:
+    check_apart(dest, store_url)
+    check_apart(f"{dest}.partial", store_url)
     store = open_spike_store(store_url)
     meta = store.meta
     layout = DatLayout(meta.height, meta.width, head_columns=meta.head_columns, flip=meta.flipped)

@@ -6,7 +6,8 @@ from pipeline.captures import open_capture
 from pipeline.prefetch import prefetched
 from pipeline.progress import progress_bar
 from pipeline.spike_store import SpikeMeta, SpikeStoreWriter, chunk_frames_for
-from pipeline.storage import new_output
+from pipeline.lease import claimed
+from pipeline.storage import check_apart, new_output
 from stages.bits import count_spikes, packed_width
 from stages.cfa import check_cfa, flip_vertically
 
@@ -32,6 +33,7 @@ def ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *, pro
     ``options.cfa`` is the pattern as recorded by the sensor; with ``flip`` the store
     records the pattern of the upright image it holds.
     """
+    check_apart(dest, src)
     capture = open_capture(src, height=options.height, width=options.width, flip=options.flip,
                            head_columns=options.head_columns, key=options.key)
     sensor_cfa = check_cfa(options.cfa, capture.height, capture.width)
@@ -42,7 +44,7 @@ def ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *, pro
     )
     chunk = chunk_frames_for(meta, capture.n_frames)
     frames_per_block = chunk * max(1, BLOCK_BYTES // (chunk * capture.height * packed_width(capture.width)))
-    with new_output(dest, overwrite=options.overwrite):
+    with claimed(dest), new_output(dest, overwrite=options.overwrite):
         writer = SpikeStoreWriter(dest, meta, capture.n_frames, chunk_frames=chunk)
         spikes = 0
         with progress_bar(f"ingest {src}", capture.n_frames, enabled=progress) as advance:

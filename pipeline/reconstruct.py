@@ -29,11 +29,11 @@ import numpy as np
 from pipeline.batches import in_bounded_window, window_size
 from pipeline.cluster import GPU, check_workers, dashboard_link, dask_client, gpu_workers, scheduler_address
 from pipeline.hold import hold_point
-from pipeline.lease import check_free, held
+from pipeline.lease import check_free, claimed, held
 from pipeline.progress import progress_bar
 from pipeline.segments import Outcome, in_segments
 from pipeline.spike_store import SpikeStore, open_spike_store, read_frames
-from pipeline.storage import claim_output, exists
+from pipeline.storage import check_apart, claim_output, exists
 from pipeline.video_store import TileWriter, committed_mask, create_video_store, open_video_store
 from stages.colour import auto_gain
 from stages.errors import InputError
@@ -229,6 +229,7 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
     """
     check_workers(workers)
     options.check()
+    check_apart(out, store_url, options.weights)
     store = open_spike_store(store_url)
     meta = store.meta
     scale, method = checked_method(store, options)
@@ -236,14 +237,15 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
     precision = options.precision if network else None
     if options.resume and not exists(out):
         raise InputError(f"cannot resume: {out} does not exist")
-    if options.resume:
-        check_free(out)
-    else:
-        claim_output(out, overwrite=options.overwrite, flag="--resume or --overwrite")
     centres = output_centres(store.n_frames, options.window, options.every)
     grid = tile_grid(meta.height, meta.width, options.tile, method.halo)
 
     with contextlib.ExitStack() as stack:
+        stack.enter_context(claimed(out))  # one job per output, taken atomically before OUT is touched
+        if options.resume:
+            check_free(out)  # and no live lease (a job on a machine that shares no claim file with us)
+        else:
+            claim_output(out, overwrite=options.overwrite, flag="--resume or --overwrite")
         if client is None and scheduler_address(scheduler):  # a long-lived cluster: connect once, before any output
             client = stack.enter_context(dask_client(scheduler=scheduler))
         gain = options.gain or meta.gain
@@ -268,9 +270,9 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
             else:  # our own local cluster: a fresh one per segment keeps memory bounded
                 outcomes = in_segments(work, groups, options.segment_tasks, workers=workers, show_dashboard=progress)
             failed = _tally(outcomes, done, advance)
-    if failed:
-        raise JobIncomplete(out, failed, len(centres))
-    open_video_store(out, writable=True).attrs["state"] = "complete"
+        if failed:
+            raise JobIncomplete(out, failed, len(centres))
+        open_video_store(out, writable=True).attrs["state"] = "complete"  # still under the claim
     skipped = int(done.sum())
     return {"frames": len(centres), "tasks_run": done.size - skipped, "tasks_skipped": skipped}
 

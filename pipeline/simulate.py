@@ -23,10 +23,10 @@ from pipeline.batches import in_bounded_window, window_size
 
 from pipeline.cluster import check_workers, dask_client
 from pipeline.frame_sources import FrameSource, open_frame_source
-from pipeline.lease import held
+from pipeline.lease import claimed, held
 from pipeline.progress import progress_bar
 from pipeline.spike_store import SpikeMeta, SpikeStoreWriter, chunk_frames_for, write_region
-from pipeline.storage import new_output
+from pipeline.storage import check_apart, new_output
 from stages import sensor
 from stages.cfa import check_cfa
 from stages.errors import InputError
@@ -204,6 +204,7 @@ def simulate(src: str, dest: str, options: SimulateOptions = SimulateOptions(), 
              scheduler: str | None = None, progress: bool = True) -> dict:
     """Simulate ``options.frames`` spike frames from ``src`` into a new spike store at ``dest``."""
     check_workers(workers)
+    check_apart(dest, src)
     source = open_frame_source(src)
     height, width = check_options(options, source)
     model = options.sensor_model()
@@ -220,7 +221,8 @@ def simulate(src: str, dest: str, options: SimulateOptions = SimulateOptions(), 
                             "truth_every": options.truth_every, "simulated": True})
     chunk = options.chunk_frames or chunk_frames_for(meta, options.frames)
 
-    with new_output(dest, overwrite=options.overwrite), dask_client(workers=workers, scheduler=scheduler) as client:
+    with claimed(dest), new_output(dest, overwrite=options.overwrite), \
+            dask_client(workers=workers, scheduler=scheduler) as client:
         writer = SpikeStoreWriter(dest, meta, options.frames, chunk_frames=chunk)
         hr = (options.scale * height, options.scale * width)
         writer.add_array("truth", (len(truth_at), *hr, 3), (1, *hr, 3), np.uint8, ("k", "y", "x", "c"))

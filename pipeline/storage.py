@@ -7,6 +7,8 @@ directories as needed), everything else to ``FsspecStore``.
 """
 
 import contextlib
+import os
+import posixpath
 from collections.abc import Iterator
 
 import fsspec
@@ -69,6 +71,53 @@ def size_of(url: str) -> int:
     """Bytes stored under a URL (a file, or every file of a directory tree)."""
     fs, path = resolve(url)
     return int(fs.du(path, total=True)) if fs.isdir(path) else int(fs.size(path))
+
+
+def _location(url: str) -> tuple[str, str]:
+    """Where a URL points, the same for every spelling: (kind of filesystem, absolute normalised path).
+    Local paths (plain, ``file://``, ``local://``) are resolved: symbolic links, ``..``, a trailing slash."""
+    fs, path = resolve(url)
+    if isinstance(fs, LocalFileSystem):
+        return "file", os.path.realpath(path)
+    protocol = fs.protocol[0] if isinstance(fs.protocol, (tuple, list)) else fs.protocol
+    return str(protocol), posixpath.normpath("/" + str(path).strip("/"))
+
+
+def _inside(path: str, folder: str) -> bool:
+    return path.startswith(folder.rstrip("/") + "/")
+
+
+def _same_local_file(a: str, b: str) -> bool:
+    """One file or folder under two real paths (a hard link, a bind mount)."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # one of them does not exist (yet)
+        return False
+
+
+def check_apart(output: str, *inputs: str | None) -> None:
+    """Refuse an output that is, is inside, or contains one of a command's inputs (``None``: no such
+    input), whatever the spelling (a symbolic link, ``file://``, ``..``, a trailing slash): writing or
+    ``--overwrite`` there would destroy the input. Called by every command that writes, before it
+    creates or deletes anything."""
+    kind, out_path = _location(output)
+    for source in inputs:
+        if source is None or str(source) == "":
+            continue
+        source_kind, in_path = _location(source)
+        if source_kind != kind:
+            continue
+        if out_path == in_path or (kind == "file" and _same_local_file(out_path, in_path)):
+            relation = "is the same as"
+        elif _inside(out_path, in_path):
+            relation = "is inside"
+        elif _inside(in_path, out_path):
+            relation = "contains"
+        else:
+            continue
+        real = f" (both are {in_path})" if relation == "is the same as" and str(output) != str(source) else ""
+        raise InputError(f"output {output} {relation} input {source}{real}: writing there would destroy or "
+                         f"corrupt the input; choose another output")
 
 
 def claim_output(url: str, *, overwrite: bool, flag: str = "--overwrite") -> None:

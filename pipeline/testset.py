@@ -20,7 +20,7 @@ from pipeline.cluster import check_workers, dask_client
 from pipeline.evaluate import check_methods, checked_evaluation, evaluate
 from pipeline.images import write_image
 from pipeline.simulate import SimulateOptions, simulate
-from pipeline.storage import claim_output, resolve
+from pipeline.storage import check_apart, claim_output, resolve
 from stages.errors import InputError
 from stages.pictures import labelled, side_by_side
 
@@ -87,6 +87,7 @@ def make_testset(out: str, *, workers: int | None = None, overwrite: bool = Fals
 def evaluate_testset(testset: str, methods: list[str], out: str, *, weights: str | None = None,
                      workers: int | None = None, scheduler: str | None = None, progress: bool = True) -> list[dict]:
     """Every method on every test store; rows averaged per (method, alpha), plus an 'all' row per method."""
+    check_apart(out, testset, weights)
     check_methods(methods)
     check_workers(workers)
     fs, root = resolve(testset)

@@ -5,8 +5,10 @@ Each pass lists INBOX (any fsspec URL): spike stores (``NAME.zarr``) and raw cap
 width, cfa, flip, fps, reset, head_columns, key, name; the watcher's defaults fill the
 rest). A recording is taken once it has not changed for ``settle`` seconds (a file still
 being copied is left for a later pass). For each: ingest a raw capture into
-``OUTBOX/NAME.spikes.zarr``, reconstruct into ``OUTBOX/NAME.zarr``, export
-``OUTBOX/NAME.mp4``; the ledger (:mod:`pipeline.ledger`) records every step's outcome.
+``OUTBOX/spikes/NAME.zarr``, reconstruct into ``OUTBOX/NAME.zarr``, export
+``OUTBOX/NAME.mp4``; the ledger (:mod:`pipeline.ledger`) records every step's outcome. No two
+recordings share an output path (:func:`spike_store_of`), and OUTBOX may not be, be inside, or
+contain INBOX.
 
 Killing the watcher at any moment loses nothing and duplicates nothing: the ledger row it
 left ``running`` is taken up by the next pass, whose reconstruction resumes from the
@@ -33,7 +35,7 @@ from pipeline.ingest import IngestOptions, ingest
 from pipeline.ledger import Ledger
 from pipeline.reconstruct import ReconstructOptions, reconstruct
 from pipeline.spike_store import open_spike_store
-from pipeline.storage import exists, is_local, resolve
+from pipeline.storage import check_apart, exists, is_local, resolve
 from pipeline.video_store import open_video_store
 from stages.errors import InputError
 
@@ -188,7 +190,7 @@ def process(candidate: Candidate, key: str, params: dict, outbox: str, ledger: L
     try:
         spikes = candidate.url
         if candidate.kind in RAW:
-            spikes = f"{out}/{candidate.name}.spikes.zarr"
+            spikes = spike_store_of(out, candidate.name)
             if not (taken_up and _complete_spikes(spikes)):
                 log(f"{candidate.name}: ingest {candidate.url}")
                 c = params["capture"]
@@ -216,6 +218,15 @@ def process(candidate: Candidate, key: str, params: dict, outbox: str, ledger: L
         return
     ledger.done(key, time.perf_counter() - started)
     log(f"{candidate.name}: done in {time.perf_counter() - started:.1f} s -> {video}")
+
+
+def spike_store_of(outbox: str, name: str) -> str:
+    """Where a raw capture's spike store goes: ``OUTBOX/spikes/NAME.zarr``. Every other output of a
+    recording is ``OUTBOX/NAME.zarr`` or ``.mp4``, with a different NAME for each recording (the
+    ledger refuses a second owner), so no output of one recording can be another's: a folder named
+    ``spikes`` is never ``SOMETHING.zarr`` or ``.mp4`` (a spike store at ``OUTBOX/NAME.spikes.zarr``
+    was the video of a recording named ``NAME.spikes``)."""
+    return f"{str(outbox).rstrip('/')}/spikes/{name}.zarr"
 
 
 def _complete_spikes(url: str) -> bool:
@@ -283,7 +294,7 @@ def watch(inbox: str, outbox: str, options: WatchOptions, *, once: bool, interva
     """Passes over INBOX every ``interval`` seconds (or one, ``once``), on one Dask client."""
     if not is_local(outbox):
         raise InputError(f"OUTBOX must be a local folder (the ledger is SQLite), got {outbox}")
-    resolve(inbox)
+    check_apart(outbox, inbox, options.weights)  # else the watcher would take its own outputs as recordings
     os.makedirs(outbox, exist_ok=True)
     with outbox_lock(outbox), dask_client(workers=workers, scheduler=scheduler) as client:
         while True:

@@ -60,8 +60,9 @@ def test_bad_input_is_recorded_and_never_stops_the_others(tmp_path, client, cli)
     assert "unknown kind of file 'notes.txt'" in got["notes"][3]
     assert "unsafe name '../../escaped'" in got["../../escaped"][3]
     assert "growing" not in got
-    assert sorted(os.listdir(outbox)) == [".watch.lock", "good.mp4", "good.spikes.zarr", "good.zarr", "ledger.sqlite"] \
-        or sorted(os.listdir(outbox)) == ["good.mp4", "good.spikes.zarr", "good.zarr", "ledger.sqlite"]
+    assert sorted(os.listdir(outbox)) == [".watch.lock", "good.mp4", "good.zarr", "ledger.sqlite", "spikes"] \
+        or sorted(os.listdir(outbox)) == ["good.mp4", "good.zarr", "ledger.sqlite", "spikes"]
+    assert os.listdir(outbox / "spikes") == ["good.zarr"]  # truncated's store removed, no claim file left
     assert sorted(os.listdir(tmp_path)) == ["box", "inbox"] and os.listdir(tmp_path / "box") == ["outbox"]
 
     settled(inbox)  # the growing file stopped growing: taken now (and refused: 50,000 bytes is not whole frames)
@@ -74,6 +75,43 @@ def test_bad_input_is_recorded_and_never_stops_the_others(tmp_path, client, cli)
     assert result.exit_code == 0 and "good" in result.stdout and "done" in result.stdout
     lines = [json.loads(line) for line in cli("status", outbox, "--json").stdout.splitlines()]
     assert {line["name"] for line in lines} >= {"good", "truncated", "notes"}
+
+
+def test_recordings_whose_outputs_would_collide_keep_their_own(tmp_path, client):
+    """``a.dat`` and ``a.spikes.zarr`` in one inbox: the capture's spike store was ``OUTBOX/a.spikes.zarr``,
+    the very path of the other recording's video, which overwrote it. Now each keeps its own outputs."""
+    import zarr
+
+    from pipeline.ingest import IngestOptions, ingest
+    from tests.conftest import integrate_and_fire, smooth_rate, write_dat
+    from tests.reliability.test_overlap import snapshot
+
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    write_dat(inbox / "a.dat", integrate_and_fire(smooth_rate(16, 16, seed=1), 101, seed=1))
+    (inbox / "a.json").write_text(json.dumps({"height": 16, "width": 16, "cfa": "rggb"}))
+    ingest(str(inbox / "a.dat"), str(tmp_path / "expected.zarr"), IngestOptions(16, 16, cfa="rggb"), progress=False)
+    write_dat(tmp_path / "other.dat", integrate_and_fire(smooth_rate(16, 16, seed=2), 123, seed=2))
+    ingest(str(tmp_path / "other.dat"), str(inbox / "a.spikes.zarr"), IngestOptions(16, 16, cfa="rggb"), progress=False)
+    settled(inbox)
+    inbox_before = snapshot(inbox)
+
+    counts = watch_once(str(inbox), str(outbox), WatchOptions(tile=16, settle=0), client, log=lambda line: None)
+    assert counts["processed"] == 2 and counts["refused"] == 0
+    assert {name: state[:2] for name, state in states(outbox).items()} == {"a": ("done", 0), "a.spikes": ("done", 0)}
+
+    def opened(path):
+        return zarr.open_group(str(path), mode="r")
+
+    made_from = opened(outbox / "a.zarr").attrs["source"]  # the spike store ingested from a.dat
+    spikes, expected = opened(made_from), opened(tmp_path / "expected.zarr")
+    assert "video" not in spikes and (spikes["spikes"][:] == expected["spikes"][:]).all()  # a.dat's, intact
+    assert made_from == str(outbox / "spikes" / "a.zarr")
+    assert opened(outbox / "a.spikes.zarr").attrs["source"] == str(inbox / "a.spikes.zarr")
+    assert opened(outbox / "a.zarr")["video"].shape[0] == 2 and opened(outbox / "a.spikes.zarr")["video"].shape[0] == 3
+    assert snapshot(inbox) == inbox_before  # the recordings themselves untouched
+    assert sorted(p for p in os.listdir(outbox) if not p.startswith(".")) == [
+        "a.mp4", "a.spikes.mp4", "a.spikes.zarr", "a.zarr", "ledger.sqlite", "spikes"]
 
 
 def test_failures_are_retried_with_back_off_then_quarantined(tmp_path, client, monkeypatch):
