@@ -5,6 +5,7 @@ import subprocess
 import sys
 from dataclasses import dataclass
 
+import fsspec
 import numpy as np
 import pytest
 from typer.testing import CliRunner
@@ -104,3 +105,25 @@ def with_random_heads(model):
     for head in model.integration.heads:
         torch.nn.init.normal_(head.weight, std=1e-3)
     return model
+
+
+@pytest.fixture(scope="session")
+def s3_endpoint():
+    """A moto S3 server on 127.0.0.1 with one bucket; the AWS variables point boto at it. One per session:
+    moto's buckets and fsspec's cached filesystems live as long as the process, so two servers would
+    disagree with them."""
+    from moto.server import ThreadedMotoServer
+
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)  # the OS picks a free port
+    server.start()
+    endpoint = "http://127.0.0.1:%d" % server.get_host_and_port()[1]
+    saved = {k: os.environ.get(k) for k in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_DEFAULT_REGION", "AWS_ENDPOINT_URL")}
+    os.environ.update(AWS_ACCESS_KEY_ID="testing", AWS_SECRET_ACCESS_KEY="testing", AWS_DEFAULT_REGION="us-east-1",
+                      AWS_ENDPOINT_URL=endpoint)
+    s3 = fsspec.filesystem("s3", skip_instance_cache=True)
+    if not s3.exists("spikes-bucket"):  # moto's state is the process's: another module's server may have made it
+        s3.mkdir("spikes-bucket")
+    yield endpoint
+    server.stop()
+    for key, value in saved.items():
+        os.environ.pop(key, None) if value is None else os.environ.__setitem__(key, value)

@@ -32,24 +32,6 @@ def test_memory_url(reds_dat):
     fsspec.filesystem("memory").rm("/urls", recursive=True)
 
 
-@pytest.fixture(scope="module")
-def s3_endpoint():
-    """A moto S3 server on 127.0.0.1 with one bucket; the AWS variables point boto at it."""
-    from moto.server import ThreadedMotoServer
-
-    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)  # the OS picks a free port
-    server.start()
-    endpoint = "http://127.0.0.1:%d" % server.get_host_and_port()[1]
-    saved = {k: os.environ.get(k) for k in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_DEFAULT_REGION", "AWS_ENDPOINT_URL")}
-    os.environ.update(AWS_ACCESS_KEY_ID="testing", AWS_SECRET_ACCESS_KEY="testing", AWS_DEFAULT_REGION="us-east-1",
-                      AWS_ENDPOINT_URL=endpoint)
-    fsspec.filesystem("s3", skip_instance_cache=True).mkdir("spikes-bucket")
-    yield endpoint
-    server.stop()
-    for key, value in saved.items():
-        os.environ.pop(key, None) if value is None else os.environ.__setitem__(key, value)
-
-
 def test_s3_store_and_capture(reds_dat, s3_endpoint, cli_process, tmp_path):
     original = open(reds_dat, "rb").read()
     assert round_trip(reds_dat, "s3://spikes-bucket/reds.zarr", "s3://spikes-bucket/reds.dat") == original

@@ -23,7 +23,6 @@ from pipeline.ingest import IngestOptions, ingest
 from pipeline.lease import claim_path, claimed
 from stages.errors import InputError
 from tests.conftest import integrate_and_fire, smooth_rate, write_dat
-from tests.test_urls import s3_endpoint  # noqa: F401 - a fixture
 
 ROUNDS = 50
 BIN = os.path.dirname(sys.executable)
@@ -124,7 +123,7 @@ def test_a_killed_holder_frees_its_claim_at_once(tmp_path):
     assert not os.path.exists(claim_path(out)[1])
 
 
-def test_s3_claims_are_conditional_writes(s3_endpoint):  # noqa: F811 - the fixture
+def test_s3_claims_are_conditional_writes(s3_endpoint):
     url = "s3://spikes-bucket/claimed.zarr"
     fs, path = claim_path(url)
     with claimed(url):
