@@ -30,9 +30,7 @@ import torch.nn.functional as F
 
 from cscsr.training_data import FRAMES, MIDDLE, ClipPlan
 from stages.cfa import colour_index
-from stages.sensor import UNITS, dark_increments, initial_state
-
-_SHOT_STREAM = 2  # stages.sensor's stream of shot-noise normals: default_rng([seed, 2, frame])
+from stages.sensor import UNITS, dark_increments, initial_state, shot_normals
 
 
 @dataclass(frozen=True)
@@ -50,7 +48,7 @@ def sensor_draws(plan: ClipPlan) -> SensorDraws:
         return SensorDraws(initial_state(sensor, side, side), None, None)
     shot = np.empty((FRAMES, side, side), np.float32)
     for t in range(FRAMES):
-        np.random.default_rng([sensor.seed, _SHOT_STREAM, t]).standard_normal(dtype=np.float32, out=shot[t])
+        shot_normals(sensor, t, out=shot[t])
     return SensorDraws(initial_state(sensor, side, side), dark_increments(sensor, side, side), shot)
 
 

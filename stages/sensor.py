@@ -137,6 +137,11 @@ def dark_increments(model: SensorModel, height: int, width: int) -> np.ndarray |
     return (model.dark_rate * np.exp(DARK_SPREAD * z - DARK_SPREAD**2 / 2)).astype(np.float32)
 
 
+def shot_normals(model: SensorModel, frame: int, out: np.ndarray) -> np.ndarray:
+    """Fill ``out`` (H, W) float32 with frame ``frame``'s standard normals of the shot noise (keyed by frame)."""
+    return np.random.default_rng([model.seed, _SHOT_STREAM, frame]).standard_normal(dtype=np.float32, out=out)
+
+
 def increments(model: SensorModel, mosaic: np.ndarray, first_frame: int, *,
                dark: np.ndarray | None = None) -> np.ndarray:
     """(n, H, W) intensities in [0, 1] of frames first_frame.. -> (n, H, W) int32 increments in units.
@@ -162,8 +167,7 @@ def increments(model: SensorModel, mosaic: np.ndarray, first_frame: int, *,
     dark_units = dark.astype(np.float64) * UNITS  # (H, W)
     z = np.empty((height, width), np.float32)
     for t in range(n):
-        rng = np.random.default_rng([model.seed, _SHOT_STREAM, int(first_frame) + t])
-        rng.standard_normal(dtype=np.float32, out=z)
+        shot_normals(model, int(first_frame) + t, out=z)
         _parallel(_noisy_kernel, mosaic[t], z, dark_units, scale, UNITS / model.electrons_per_threshold, out[t])
     return out
 
