@@ -13,7 +13,8 @@ contain INBOX.
 Killing the watcher at any moment loses nothing and duplicates nothing: the ledger row it
 left ``running`` is taken up by the next pass, whose reconstruction resumes from the
 committed tiles, and outputs are named by the recording, so there is never a second copy.
-Bad input (unknown extension, unsafe name, nonsense sidecar, truncated capture) is recorded
+Bad input (unknown extension, unsafe name, nonsense sidecar, truncated capture, a symbolic link
+anywhere in a recording or its sidecar whose real path leaves INBOX) is recorded
 as failed with its reason and never stops the other recordings; other errors are retried
 with exponential back-off, then quarantined. Names are checked so no output can land
 outside OUTBOX. One watcher per OUTBOX at a time (a lock file).
@@ -28,6 +29,8 @@ import time
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+
+from fsspec.implementations.local import LocalFileSystem
 
 from pipeline.cluster import dask_client
 from pipeline.export import export_mp4
@@ -90,6 +93,7 @@ def discover(inbox: str) -> list[Candidate]:
     if not fs.isdir(root):
         raise InputError(f"inbox {inbox} is not a folder")
     base_url = str(inbox).rstrip("/")
+    local = isinstance(fs, LocalFileSystem)  # only local folders have symbolic links
     found = []
     for entry in sorted(fs.ls(root, detail=True), key=lambda e: e["name"]):
         base = entry["name"].rstrip("/").rsplit("/", 1)[-1]
@@ -98,6 +102,11 @@ def discover(inbox: str) -> list[Candidate]:
             continue
         stem = base[: -len(suffix) - 1] if suffix else base
         url = f"{base_url}/{base}"
+        escape = (_leaves(root, entry["name"]) or _leaves(root, f"{root}/{stem}.json")) if local else None
+        if escape:  # refused before anything (even a modification time) is read through the link
+            found.append(Candidate(stem, url, suffix, {}, 0.0, f"{escape} leads outside the inbox: refused "
+                                                               f"(a link out of INBOX is never followed)"))
+            continue
         modified = _modified(fs, entry)
         if suffix not in KINDS:
             found.append(Candidate(stem, url, suffix, {}, modified,
@@ -111,6 +120,27 @@ def discover(inbox: str) -> list[Candidate]:
             problem = f"unsafe name {name!r}: letters, digits, '.', '_' and '-' only, no '..'"
         found.append(Candidate(name, url, suffix, sidecar, modified, problem))
     return found
+
+
+def _leaves(root: str, path: str) -> str | None:
+    """The first symbolic link at or under ``path`` whose real path is outside the local folder
+    ``root`` (INBOX), as ``NAME -> TARGET``; None if everything stays inside (or nothing is there)."""
+    real_root = os.path.realpath(root).rstrip("/") + "/"
+
+    def outside(entry: str) -> str | None:
+        target = os.path.realpath(entry)
+        return None if target.startswith(real_root) else f"{os.path.relpath(entry, root)} -> {target}"
+
+    if not os.path.lexists(path):
+        return None
+    if os.path.islink(path) or not os.path.isdir(path):
+        return outside(path)
+    for folder, dirs, files in os.walk(path):  # never follows a link to a folder: each is checked instead
+        for name in dirs + files:
+            entry = os.path.join(folder, name)
+            if os.path.islink(entry) and (escape := outside(entry)):
+                return escape
+    return None
 
 
 def _modified(fs, entry: dict) -> float:

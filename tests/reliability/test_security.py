@@ -1,6 +1,8 @@
 """Security properties that a code change could quietly break: checked on the source itself."""
 
 import ast
+import os
+import time
 from pathlib import Path
 
 import yaml
@@ -60,3 +62,43 @@ def test_the_scheduler_is_published_on_loopback_only():
             text = port if isinstance(port, str) else f"{port.get('host_ip', '')}:{port.get('published')}"
             assert text.startswith("127.0.0.1:"), f"{name} publishes {port} beyond this machine"
     assert "TLS" in (ROOT / "docker-compose.yml").read_text() and "tls" in (ROOT / "docs" / "cluster.md").read_text()
+
+
+def test_inbox_links_that_leave_the_inbox_are_refused_and_nothing_is_read_through_them(tmp_path):
+    """A symbolic link in INBOX (the recording, a file inside a Zarr store, or a sidecar) whose real path
+    is elsewhere: recorded as failed with its reason; nothing copied, ingested or exported."""
+    from pipeline.ledger import Ledger
+    from pipeline.watch import WatchOptions, watch_once
+
+    inbox, outbox, elsewhere = tmp_path / "inbox", tmp_path / "outbox", tmp_path / "private"
+    inbox.mkdir()
+    elsewhere.mkdir()
+    (elsewhere / "secret.dat").write_bytes(bytes(range(256)) * 64)
+    (elsewhere / "store.zarr").mkdir()
+    (elsewhere / "store.zarr" / "zarr.json").write_text('{"zarr_format": 3, "node_type": "group"}')
+    (elsewhere / "sidecar.json").write_text('{"height": 8, "width": 16}')
+    (inbox / "linked.dat").symlink_to(elsewhere / "secret.dat")  # the recording itself
+    (inbox / "linked_store.zarr").symlink_to(elsewhere / "store.zarr")  # a whole store
+    (inbox / "mixed.zarr").mkdir()  # a store of its own whose metadata is a link out
+    (inbox / "mixed.zarr" / "zarr.json").symlink_to(elsewhere / "store.zarr" / "zarr.json")
+    (inbox / "own.dat").write_bytes(bytes(128))  # a real file, with a sidecar that is a link out
+    (inbox / "own.json").symlink_to(elsewhere / "sidecar.json")
+    (inbox / "dangling.dat").symlink_to(tmp_path / "gone" / "x.dat")
+    (inbox / "inside.dat").symlink_to(inbox / "own.dat")  # a link that stays inside is not an escape...
+    past = time.time() - 60
+    os.utime(inbox / "own.dat", (past, past))
+
+    lines = []
+    counts = watch_once(str(inbox), str(outbox), WatchOptions(settle=0), client=None, log=lines.append)
+    rows = {row.name: row for row in Ledger(outbox).rows()}
+    escaped = {"linked", "linked_store", "mixed", "own", "dangling"}
+    for name in escaped:
+        row = rows[name]
+        assert (row.state, row.final) == ("failed", 1), row
+        assert "leads outside the inbox" in row.error and "\n" not in row.error, row.error
+    assert "linked.dat -> " + str(elsewhere / "secret.dat") in rows["linked"].error
+    assert "mixed.zarr/zarr.json -> " in rows["mixed"].error and "own.json -> " in rows["own"].error
+    assert "give both --height and --width" in rows["inside"].error  # ...it is taken, and judged on its bytes
+    assert counts["refused"] == len(escaped) and len(lines) == len(escaped) + 2
+    assert sorted(os.listdir(outbox)) == ["ledger.sqlite"]  # nothing ingested, reconstructed or exported
+    assert (elsewhere / "secret.dat").read_bytes() == bytes(range(256)) * 64
