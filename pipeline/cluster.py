@@ -5,6 +5,10 @@ Workers are processes with one task thread each; the numerical libraries inside 
 workers is not oversubscribed. An address comes from ``--scheduler`` or
 ``DASK_SCHEDULER_ADDRESS``; an unreachable one is a one-line error within seconds.
 Workers started with ``--resources GPU=1`` are GPU workers (:func:`gpu_workers`).
+
+A local cluster listens on loopback only: its scheduler, workers and dashboard (the dashboard
+shows task names and file paths, and can run profiling). ``CSCSR_DASHBOARD=HOST:PORT`` (e.g.
+``0.0.0.0:8787``) serves the dashboard elsewhere, for a user who asks for it.
 """
 
 import contextlib
@@ -22,6 +26,8 @@ CONNECT_TIMEOUT = "5s"
 WORKERS_PER_CORE, MOST_WORKERS = 4, 256  # --workers at most 4 per core and 256 in all: beyond that a local
 # cluster only multiplies processes (~100 MiB each) and start-up time, with no core left to run them
 GPU = "GPU"  # the Dask worker resource a GPU worker advertises; network tasks ask for one
+LOOPBACK = "127.0.0.1"
+DASHBOARD_VARIABLE = "CSCSR_DASHBOARD"  # HOST:PORT of a local cluster's dashboard; default loopback, any free port
 
 
 # Dask's nanny starts workers with MALLOC_TRIM_THRESHOLD_=65536, which pins glibc's mmap
@@ -71,7 +77,8 @@ def dask_client(*, workers: int | None = None, scheduler: str | None = None) -> 
     check_workers(workers)
     workers = workers if workers is not None else os.cpu_count() or 1
     with dask.config.set(_PRE_SPAWN), \
-            LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
+            LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host=LOOPBACK,
+                         dashboard_address=os.environ.get(DASHBOARD_VARIABLE) or f"{LOOPBACK}:0",
                          silence_logs=logging.ERROR, env=_thread_env(workers)) as cluster, Client(cluster) as client:
         yield client
 

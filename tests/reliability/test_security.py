@@ -102,3 +102,26 @@ def test_inbox_links_that_leave_the_inbox_are_refused_and_nothing_is_read_throug
     assert counts["refused"] == len(escaped) and len(lines) == len(escaped) + 2
     assert sorted(os.listdir(outbox)) == ["ledger.sqlite"]  # nothing ingested, reconstructed or exported
     assert (elsewhere / "secret.dat").read_bytes() == bytes(range(256)) * 64
+
+
+def test_a_local_cluster_listens_on_loopback_only_dashboard_included():
+    """Every listening socket of a local cluster (scheduler, its dashboard, the workers and their
+    nannies) is bound to 127.0.0.1, and the dashboard link says where it really is."""
+    import psutil
+
+    from pipeline.cluster import dashboard_link, dask_client
+
+    def listening(process):
+        return {(c.laddr.ip, c.laddr.port) for c in process.net_connections(kind="inet") if c.status == psutil.CONN_LISTEN}
+
+    me = psutil.Process()
+    before = listening(me)
+    with dask_client(workers=1) as client:
+        ours = listening(me) - before  # the scheduler and its dashboard run in this process
+        for child in me.children(recursive=True):
+            ours |= listening(child)
+        dashboard_port = client.scheduler_info()["services"]["dashboard"]
+        link = dashboard_link(client)
+    assert ours and {ip for ip, _ in ours} == {"127.0.0.1"}, ours
+    assert ("127.0.0.1", dashboard_port) in ours
+    assert link.startswith(f"http://127.0.0.1:{dashboard_port}/")
