@@ -96,7 +96,7 @@ def ingest(src: Annotated[str, typer.Argument(help="Capture: .dat, .npy or .npz 
            flip: Annotated[bool, typer.Option("--flip", help="Frames are stored upside down (real cameras).")] = False,
            cfa: Annotated[str, typer.Option(help="Sensor CFA as recorded: rggb, bggr, grbg, gbrg or mono.")] = "mono",
            fps: Annotated[float, typer.Option(help="Spike frames per second.")] = 20000.0,
-           head_columns: Annotated[int, typer.Option(help="Extra header columns at the start of each .dat row.")] = 0,
+           head_columns: Annotated[int, typer.Option(help="Header columns at the end of each .dat row, dropped (SPS10: 16 of 416).")] = 0,
            key: Annotated[Optional[str], typer.Option(help="Array name inside a .npz (default: spk).")] = None,
            reset: Annotated[str, typer.Option(help="Integrator reset of the sensor: subtract or zero.")] = "subtract",
            overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace STORE if it exists.")] = False):

@@ -88,7 +88,7 @@ def export_dat(store_url: str, dest: str, *, overwrite: bool = False, progress: 
     check_apart(f"{dest}.partial", store_url)
     store = open_spike_store(store_url)
     meta = store.meta
-    layout = DatLayout(meta.height, meta.width, head_columns=meta.head_columns, flip=meta.flipped)
+    layout = DatLayout(meta.height, meta.width, head_columns=meta.head_columns, flip=meta.flipped, head_at=meta.head_at)
     chunk = store.spikes.chunks[0]
     frames_per_read = chunk * max(1, FRAMES_PER_READ_BYTES // (chunk * layout.frame_bytes))
     claim_output(dest, overwrite=overwrite)

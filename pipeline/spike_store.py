@@ -22,6 +22,7 @@ import cscsr
 from pipeline.storage import describe, open_group, zarr_store
 from stages.bits import packed_width
 from stages.cfa import check_cfa
+from stages.dat import check_head_side
 from stages.errors import InputError
 from stages.numbers import FLOAT32_MAX, check_number
 
@@ -46,6 +47,7 @@ class SpikeMeta:
     source: str = ""
     flipped: bool = False
     head_columns: int = 0
+    head_at: str = "end"  # where the .dat header columns were; stores without it had them at the start
     reset: str = "subtract"
     gain: float | None = None
     threshold: float | None = None
@@ -57,6 +59,7 @@ class SpikeMeta:
         for name in ("gain", "threshold"):  # optional: simulated stores record them
             if getattr(self, name) is not None:
                 check_number(name, getattr(self, name), **_ATTRIBUTE_RANGES[name])
+        check_head_side(self.head_at)
         if self.reset not in RESET_MODES:
             raise InputError(f"unknown reset mode {self.reset!r}: expected one of {', '.join(RESET_MODES)}")
 
@@ -71,6 +74,8 @@ class SpikeMeta:
         if missing:
             raise InputError(f"spike store attributes lack {', '.join(missing)}")
         check_attribute_types(attrs)
+        if attrs.get("head_columns") and "head_at" not in attrs:  # written when header columns led each row
+            attrs = {**attrs, "head_at": "start"}
         known = {f for f in cls.__dataclass_fields__ if f != "extra"}
         extra = {k: v for k, v in attrs.items() if k not in known | {"format_version", "cscsr_version", "state", "spike_count"}}
         return cls(**{k: attrs[k] for k in known if k in attrs}, extra=extra)
@@ -79,7 +84,7 @@ class SpikeMeta:
 # What each attribute must be: a store written by hand or damaged is refused by name, never misread
 # (a string "no" for flipped would otherwise read as true and export frames upside down).
 _ATTRIBUTE_TYPES = {"height": int, "width": int, "head_columns": int, "spike_count": int, "scale": int,
-                    "fps": float, "gain": float, "threshold": float, "flipped": bool, "cfa": str, "reset": str}
+                    "fps": float, "gain": float, "threshold": float, "flipped": bool, "cfa": str, "reset": str, "head_at": str}
 
 
 # The range of each number a store records: finite, and one that its readers can use (a negative

@@ -2,8 +2,10 @@
 
 A ``.dat`` file has no header: frames back to back, each ``ceil(H*W_stored/8)`` bytes, pixel
 ``p = y*W_stored + x`` in bit ``p % 8`` (LSB first) of byte ``p // 8``. Some cameras store
-``head_columns`` extra columns at the start of each row, which ingest drops. Real cameras
-store frames upside down (``flip``).
+``head_columns`` extra columns at the end of each row (the 400-pixel SPS10 rows are 416 wide;
+SpikeCV's ``load_dat`` and Spike-Zoo's ``load_vidar_dat`` both drop the trailing 16), which
+ingest drops and export writes back as zeros; ``head_at="start"`` reads stores written before
+head columns were trailing. Real cameras store frames upside down (``flip``).
 
 When ``W_stored`` and ``head_columns`` are multiples of 8 a .dat frame already *is* the
 store layout (bytes are whole columns of 8 pixels), so conversion is slicing and row
@@ -17,6 +19,14 @@ import numpy as np
 from stages.bits import pack_rows, packed_width, unpack_rows
 from stages.errors import InputError
 
+HEAD_SIDES = ("end", "start")  # where a row's header columns sit; "end" is the cameras' layout
+
+
+def check_head_side(side: str) -> str:
+    if side not in HEAD_SIDES:
+        raise InputError(f"head columns at {side!r}: expected one of {', '.join(HEAD_SIDES)}")
+    return side
+
 
 @dataclass(frozen=True)
 class DatLayout:
@@ -26,6 +36,7 @@ class DatLayout:
     width: int
     head_columns: int = 0
     flip: bool = False
+    head_at: str = "end"
 
     def __post_init__(self):
         for label, value in (("height", self.height), ("width", self.width)):
@@ -33,10 +44,16 @@ class DatLayout:
                 raise InputError(f"{label} must be a positive integer, got {value!r}")
         if self.head_columns < 0:
             raise InputError(f"head columns must be >= 0, got {self.head_columns}")
+        check_head_side(self.head_at)
 
     @property
     def stored_width(self) -> int:
         return self.width + self.head_columns
+
+    @property
+    def first_column(self) -> int:
+        """Where the image starts in a stored row."""
+        return self.head_columns if self.head_at == "start" else 0
 
     @property
     def frame_bytes(self) -> int:
@@ -67,10 +84,12 @@ def dat_to_packed(raw: np.ndarray, layout: DatLayout) -> np.ndarray:
     n = raw.shape[0]
     if layout.byte_aligned:
         rows = raw.reshape(n, layout.height, layout.stored_width // 8)
-        packed = rows[:, :, layout.head_columns // 8 :]
+        first = layout.first_column // 8
+        packed = rows[:, :, first : first + layout.width // 8]
     else:
         bits = np.unpackbits(raw, axis=-1, count=layout.height * layout.stored_width, bitorder="little")
-        bits = bits.reshape(n, layout.height, layout.stored_width)[:, :, layout.head_columns :]
+        first = layout.first_column
+        bits = bits.reshape(n, layout.height, layout.stored_width)[:, :, first : first + layout.width]
         packed = pack_rows(bits)
     if layout.flip:
         packed = packed[:, ::-1]
@@ -78,16 +97,17 @@ def dat_to_packed(raw: np.ndarray, layout: DatLayout) -> np.ndarray:
 
 
 def packed_to_dat(packed: np.ndarray, layout: DatLayout) -> np.ndarray:
-    """(n, H, ceil(W/8)) packed frames -> (n, frame_bytes) .dat frames (head columns zero)."""
+    """(n, H, ceil(W/8)) packed frames -> (n, frame_bytes) .dat frames (header columns zero)."""
     n = packed.shape[0]
     if layout.flip:
         packed = packed[:, ::-1]
     if layout.byte_aligned:
-        head = np.zeros((n, layout.height, layout.head_columns // 8), np.uint8)
-        rows = np.concatenate([head, packed], axis=-1) if layout.head_columns else packed
-        return np.ascontiguousarray(rows).reshape(n, layout.frame_bytes)
+        rows = np.zeros((n, layout.height, layout.stored_width // 8), np.uint8)
+        first = layout.first_column // 8
+        rows[:, :, first : first + layout.width // 8] = packed
+        return rows.reshape(n, layout.frame_bytes)
     bits = np.zeros((n, layout.height, layout.stored_width), np.uint8)
-    bits[:, :, layout.head_columns :] = unpack_rows(packed, layout.width)
+    bits[:, :, layout.first_column : layout.first_column + layout.width] = unpack_rows(packed, layout.width)
     return np.packbits(bits.reshape(n, -1), axis=-1, bitorder="little")
 
 

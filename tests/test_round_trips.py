@@ -2,7 +2,9 @@
 
 import numpy as np
 import pytest
+import zarr
 
+from pipeline.export import export_dat
 from pipeline.ingest import IngestOptions, ingest
 from pipeline.spike_store import open_spike_store
 from stages.bits import unpack_rows
@@ -21,14 +23,43 @@ def test_export_is_byte_identical(cli, tmp_path, height, width, frames, flip):
     assert (tmp_path / "out.dat").read_bytes() == original
 
 
-def test_head_columns_are_dropped_and_restored_as_zeros(cli, tmp_path):
-    bits = integrate_and_fire(smooth_rate(8, 416), 30)
-    bits[:, :, :16] = 0
-    original = write_dat(tmp_path / "in.dat", bits)
-    result = cli("ingest", tmp_path / "in.dat", tmp_path / "s.zarr", "--height", 8, "--width", 400, "--head-columns", 16)
+def sps10_capture(frames: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """(spikes (T, H, 400), stored rows (T, H, 416)): an SPS10-shaped capture whose 16 trailing header
+    columns hold each row's line number in binary (LSB first), the layout SpikeCV and Spike-Zoo read."""
+    bits = integrate_and_fire(smooth_rate(height, 400), frames)
+    line = (np.arange(height)[:, None] >> np.arange(16)) & 1  # (H, 16)
+    header = np.broadcast_to(line, (frames, height, 16)).astype(np.uint8)
+    return bits, np.concatenate([bits, header], axis=-1)
+
+
+@pytest.mark.parametrize("flip", [False, True])
+def test_trailing_head_columns_are_dropped_as_spikecv_does(cli, tmp_path, flip):
+    bits, stored = sps10_capture(30, 8)
+    write_dat(tmp_path / "in.dat", stored, flip=flip)
+    result = cli("ingest", tmp_path / "in.dat", tmp_path / "s.zarr", "--height", 8, "--width", 400, "--head-columns", 16,
+                 *(["--flip"] if flip else []))
     assert result.exit_code == 0, result.stderr
-    np.testing.assert_array_equal(unpack_rows(open_spike_store(str(tmp_path / "s.zarr")).read(0, 30), 400), bits[:, :, 16:])
+    picture = unpack_rows(open_spike_store(str(tmp_path / "s.zarr")).read(0, 30), 400)
+    # SpikeCV's load_dat: np.delete(frames, np.arange(400, 416), 2); Spike-Zoo: spikes[:, :, :-16]
+    np.testing.assert_array_equal(picture, np.delete(stored, np.arange(400, 416), 2))
+    assert open_spike_store(str(tmp_path / "s.zarr")).meta.head_at == "end"
+    # export: the same bytes with the header columns zeroed (the store keeps the picture only)
     assert cli("export", tmp_path / "s.zarr", tmp_path / "out.dat").exit_code == 0
+    zeroed = np.concatenate([bits, np.zeros_like(stored[..., 400:])], axis=-1)
+    assert (tmp_path / "out.dat").read_bytes() == write_dat(tmp_path / "zeroed.dat", zeroed, flip=flip)
+
+
+def test_stores_written_with_leading_head_columns_still_export_their_layout(tmp_path):
+    """A store from before the header side was recorded (head_columns, no head_at) had them at the start."""
+    bits = integrate_and_fire(smooth_rate(8, 400), 20)
+    leading = np.concatenate([np.zeros((20, 8, 16), np.uint8), bits], axis=-1)
+    original = write_dat(tmp_path / "in.dat", leading)
+    write_dat(tmp_path / "picture.dat", bits)
+    ingest(str(tmp_path / "picture.dat"), str(tmp_path / "s.zarr"), IngestOptions(height=8, width=400), progress=False)
+    group = zarr.open_group(str(tmp_path / "s.zarr"), mode="r+")
+    group.attrs.update(head_columns=16)  # as the old ingest of in.dat recorded it
+    group.attrs.pop("head_at")
+    export_dat(str(tmp_path / "s.zarr"), str(tmp_path / "out.dat"), progress=False)
     assert (tmp_path / "out.dat").read_bytes() == original
 
 

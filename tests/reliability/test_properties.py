@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from stages.bits import count_spikes, pack_rows, packed_width, unpack_rows
-from stages.dat import DatLayout, dat_to_packed, packed_to_dat
+from stages.dat import HEAD_SIDES, DatLayout, dat_to_packed, packed_to_dat
 from stages.errors import InputError
 from stages.sensor import UNITS, SensorModel, fire, increments, initial_state, pixel_thresholds
 from stages.tfi import tfi_rate
@@ -198,12 +198,12 @@ def test_fire_does_not_depend_on_chunking(data, noise, reset):
 
 @FAST
 @given(bits=spike_frames(max_frames=5, max_height=5, max_width=34), head=st.integers(0, 17), flip=st.booleans(),
-       data=st.data())
-def test_dat_frames_round_trip(bits, head, flip, data):
+       head_at=st.sampled_from(HEAD_SIDES), data=st.data())
+def test_dat_frames_round_trip(bits, head, flip, head_at, data):
     """packed -> .dat -> packed is the identity for any geometry, with head columns and flip;
     reading a .dat built independently (the test helper's layout) gives the upright frames."""
     n, h, w = bits.shape
-    layout = DatLayout(h, w, head_columns=head, flip=flip)
+    layout = DatLayout(h, w, head_columns=head, flip=flip, head_at=head_at)
     packed = pack_rows(bits)
     raw = packed_to_dat(packed, layout)
     assert raw.shape == (n, layout.frame_bytes) and raw.dtype == np.uint8
@@ -212,7 +212,7 @@ def test_dat_frames_round_trip(bits, head, flip, data):
 
     # an independent writer: head columns of random bits, rows stored bottom-up when flipped
     head_bits = data.draw(hnp.arrays(np.uint8, (n, h, head), elements=st.integers(0, 1)))
-    stored = np.concatenate([head_bits, bits], axis=-1)
+    stored = np.concatenate([head_bits, bits] if head_at == "start" else [bits, head_bits], axis=-1)
     file_frames = stored[:, ::-1] if flip else stored
     independent = np.packbits(file_frames.reshape(n, -1), axis=-1, bitorder="little")
     np.testing.assert_array_equal(dat_to_packed(independent, layout), packed)
