@@ -389,12 +389,9 @@ def status(outbox: Annotated[str, typer.Argument(help="A watcher's OUTBOX.")],
     """The watcher's ledger: every recording, its state, attempts, timings and errors."""
     import time
 
-    from pipeline.ledger import FILENAME, Ledger
-    from stages.errors import InputError
+    from pipeline.ledger import Ledger
 
-    if not os.path.isfile(os.path.join(outbox, FILENAME)):
-        raise InputError(f"{outbox} has no ledger ({FILENAME}): no cscsr watch has run there")
-    rows = Ledger(outbox).rows()
+    rows = Ledger(outbox, read_only=True).rows()  # refused unless it is a cscsr ledger; never written
     if as_json:
         for row in rows:
             print(json.dumps(row.__dict__))

@@ -10,6 +10,10 @@ so the same bytes dropped twice are done once, and new parameters mean new work.
 A row left ``running`` by a watcher that died is taken up again (its outputs resumed) by
 the next one. Every change is one SQLite transaction, so a kill at any moment leaves the
 ledger consistent.
+
+A ledger is opened only if it is ours: a file that is not an SQLite database, or a database
+without the marker (``PRAGMA application_id``) and without our ``recordings`` table, is refused
+with one line and never changed; ``cscsr status`` opens the ledger read-only (``mode=ro``).
 """
 
 import json
@@ -19,8 +23,12 @@ from contextlib import closing
 from dataclasses import dataclass
 from pathlib import Path
 
+from pipeline.storage import describe
+from stages.errors import InputError
+
 STATES = ("queued", "running", "done", "failed", "quarantined")
 FILENAME = "ledger.sqlite"
+APPLICATION_ID = 0x63736372  # "cscr" in the SQLite header: this database is a cscsr ledger
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS recordings (
@@ -63,14 +71,42 @@ class Row:
 
 
 class Ledger:
-    def __init__(self, folder: str | Path):
+    def __init__(self, folder: str | Path, *, read_only: bool = False):
+        """The ledger in ``folder``: created there if absent (unless ``read_only``), else opened only
+        if it is a cscsr ledger."""
         self.path = Path(folder) / FILENAME
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        with self._connect() as db:
-            db.execute(_SCHEMA)
+        self.read_only = read_only
+        if read_only and not self.path.exists():
+            raise InputError(f"{folder} has no ledger ({FILENAME}): no cscsr watch has run there")
+        if read_only or (self.path.exists() and not (self.path.is_file() and self.path.stat().st_size == 0)):
+            self._check_ours()  # an empty file is an SQLite database with nothing in it yet
+        if not read_only:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            with closing(self._connect()) as db:
+                db.execute(_SCHEMA)
+                db.execute(f"PRAGMA application_id = {APPLICATION_ID}")
+
+    def _check_ours(self) -> None:
+        """Refuse, without writing a byte, a file that is not a database or a database that is not ours."""
+        if self.path.is_dir():
+            raise InputError(f"ledger {self.path} is a folder, not an SQLite database: move it away or choose "
+                             f"another OUTBOX")
+        try:
+            with closing(sqlite3.connect(f"{self.path.resolve().as_uri()}?mode=ro", uri=True)) as db:
+                marker = db.execute("PRAGMA application_id").fetchone()[0]
+                columns = [row[1] for row in db.execute("PRAGMA table_info(recordings)")]
+                tables = [row[0] for row in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")]
+        except sqlite3.Error as error:
+            raise InputError(f"ledger {self.path} is not an SQLite database ({describe(error)}): move it away or "
+                             f"choose another OUTBOX") from None
+        if marker != APPLICATION_ID and columns != list(Row.__dataclass_fields__):  # no marker: ledgers before it
+            raise InputError(f"{self.path} is an SQLite database but not a cscsr ledger (tables: "
+                             f"{', '.join(tables) or 'none'}): refusing to change it; move it away or choose another "
+                             f"OUTBOX")
 
     def _connect(self) -> sqlite3.Connection:
-        db = sqlite3.connect(self.path, timeout=30, isolation_level=None)  # autocommit; explicit transactions
+        target, uri = (f"{self.path.resolve().as_uri()}?mode=ro", True) if self.read_only else (self.path, False)
+        db = sqlite3.connect(target, timeout=30, isolation_level=None, uri=uri)  # autocommit; explicit transactions
         db.row_factory = lambda cursor, values: Row(*values)
         return db
 

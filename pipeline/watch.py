@@ -326,6 +326,7 @@ def watch(inbox: str, outbox: str, options: WatchOptions, *, once: bool, interva
         raise InputError(f"OUTBOX must be a local folder (the ledger is SQLite), got {outbox}")
     check_apart(outbox, inbox, options.weights)  # else the watcher would take its own outputs as recordings
     os.makedirs(outbox, exist_ok=True)
+    Ledger(outbox)  # someone else's file named like the ledger is refused before the lock file or a cluster
     with outbox_lock(outbox), dask_client(workers=workers, scheduler=scheduler) as client:
         while True:
             counts = watch_once(inbox, outbox, options, client, log)

@@ -1,11 +1,17 @@
-"""Security properties that a code change could quietly break: checked on the source itself."""
+"""Security properties that a code change could quietly break: on the source itself, and on real inboxes,
+ledgers and clusters."""
 
 import ast
+import json
 import os
 import time
 from pathlib import Path
 
+import pytest
 import yaml
+
+from pipeline.ledger import _SCHEMA
+from stages.errors import InputError
 
 ROOT = Path(__file__).resolve().parents[2]
 PACKAGES = ("cscsr", "stages", "pipeline")
@@ -125,3 +131,53 @@ def test_a_local_cluster_listens_on_loopback_only_dashboard_included():
     assert ours and {ip for ip, _ in ours} == {"127.0.0.1"}, ours
     assert ("127.0.0.1", dashboard_port) in ours
     assert link.startswith(f"http://127.0.0.1:{dashboard_port}/")
+
+
+def snapshot(folder) -> dict:
+    return {p.relative_to(folder): p.read_bytes() for p in sorted(Path(folder).rglob("*")) if p.is_file()}
+
+
+def test_a_ledger_is_opened_only_if_it_is_ours_and_status_never_writes(tmp_path, cli):
+    """``status`` or ``watch`` on an OUTBOX holding someone else's ``ledger.sqlite`` (another program's
+    database, a file that is not a database, a folder): one line naming the file, not a byte changed,
+    nothing added beside it. Our own ledger, with or without the marker, is read by ``status`` untouched."""
+    import sqlite3
+
+    from pipeline.ledger import APPLICATION_ID, Ledger
+    from tests.test_bad_input import assert_refused
+
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    with sqlite3.connect(foreign / "ledger.sqlite") as db:
+        db.execute("CREATE TABLE photos (id INTEGER PRIMARY KEY, path TEXT)")
+        db.execute("INSERT INTO photos (path) VALUES ('holiday.jpg')")
+    garbage, folder = tmp_path / "garbage", tmp_path / "folder"
+    garbage.mkdir()
+    (garbage / "ledger.sqlite").write_bytes(b"my notes, not a database\n" * 10)
+    (folder / "ledger.sqlite").mkdir(parents=True)
+    cases = [(foreign, "is an SQLite database but not a cscsr ledger (tables: photos)"),
+             (garbage, "is not an SQLite database (file is not a database)"),
+             (folder, "is a folder, not an SQLite database")]
+    for outbox, fragment in cases:
+        before = snapshot(outbox)
+        assert_refused(cli("status", outbox), f"{outbox / 'ledger.sqlite'}", fragment)
+        assert_refused(cli("watch", tmp_path / "inbox", outbox, "--once"), fragment)  # before a lock or a cluster
+        with pytest.raises(InputError, match="not"):
+            Ledger(outbox)
+        assert snapshot(outbox) == before and sorted(p.name for p in outbox.iterdir()) == ["ledger.sqlite"]
+
+    ours = tmp_path / "ours"
+    Ledger(ours).record_refusal("k", "bad", "inbox/bad.dat", "sidecar bad.json is not JSON")
+    old = tmp_path / "old"  # a ledger from before the marker: our table, application_id 0
+    old.mkdir()
+    with sqlite3.connect(old / "ledger.sqlite") as db:
+        db.execute(_SCHEMA)
+    for outbox in (ours, old):
+        before, stamp = snapshot(outbox), os.stat(outbox / "ledger.sqlite").st_mtime_ns
+        result = cli("status", outbox, "--json")
+        assert result.exit_code == 0, result.stderr
+        assert snapshot(outbox) == before and os.stat(outbox / "ledger.sqlite").st_mtime_ns == stamp
+    assert json.loads(cli("status", ours, "--json").stdout)["error"] == "sidecar bad.json is not JSON"
+    with sqlite3.connect(ours / "ledger.sqlite") as db:
+        assert db.execute("PRAGMA application_id").fetchone()[0] == APPLICATION_ID
+    assert_refused(cli("status", tmp_path / "nowhere"), "has no ledger (ledger.sqlite)")
