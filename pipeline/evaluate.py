@@ -21,15 +21,15 @@ from pipeline.spike_store import open_spike_store
 from pipeline.storage import check_apart, resolve, zarr_store
 from stages.errors import InputError
 from stages.metrics import psnr, ssim
-from stages.reconstruct import METHODS
+from stages.reconstruct import METHODS, NETWORKS
 from stages.pictures import labelled, side_by_side
 
 WINDOW = 41
 
 
-def check_methods(methods: list[str]) -> None:
-    """Refuse a ``--methods`` list that is empty, or names a method that does not exist or one twice,
-    before any method runs."""
+def check_methods(methods: list[str], weights: str | None = None) -> None:
+    """Refuse a ``--methods`` list that is empty, or names a method that does not exist or one twice, and
+    ``--weights`` with no network among them, before any method runs."""
     if not methods:
         raise InputError(f"--methods is empty: give one or more of {', '.join(METHODS)}, separated by commas")
     for index, method in enumerate(methods):
@@ -37,12 +37,15 @@ def check_methods(methods: list[str]) -> None:
             raise InputError(f"--methods: unknown method {method!r}: expected one of {', '.join(METHODS)}")
         if method in methods[:index]:
             raise InputError(f"--methods names {method} twice")
+    if weights is not None and not set(methods) & set(NETWORKS):
+        raise InputError(f"--weights is for the network (cscsr or cscsr-ensemble in --methods); {', '.join(methods)} "
+                         f"have no weights to load: leave --weights out")
 
 
 def checked_evaluation(store_url: str, methods: list[str], weights: str | None) -> tuple:
     """Every check of an evaluation that needs no output: the store's truth, and every method's options
     and weights against it. -> (store, truth frames, options per method)."""
-    check_methods(methods)
+    check_methods(methods, weights)
     store = open_spike_store(store_url)
     if "truth" not in store.group or "truth_frames" not in store.group:
         raise InputError(f"{store_url} has no ground truth ('truth', 'truth_frames'): make one with cscsr simulate")
@@ -50,8 +53,8 @@ def checked_evaluation(store_url: str, methods: list[str], weights: str | None) 
     every = int(store.attrs.get("truth_every", WINDOW))
     if list(truth_frames) != output_centres(store.n_frames, WINDOW, every)[: len(truth_frames)] or not len(truth_frames):
         raise InputError(f"{store_url}: truth frames {list(truth_frames)[:4]}... are not the 41-frame window centres 20, 20+{every}, ...")
-    options = {method: ReconstructOptions(method=method, every=every, weights=weights, overwrite=True)
-               for method in methods}
+    options = {method: ReconstructOptions(method=method, every=every, weights=weights if method in NETWORKS else None,
+                                          overwrite=True) for method in methods}
     for method in methods:
         checked_method(store, options[method])
     return store, truth_frames, options

@@ -87,6 +87,9 @@ class ReconstructOptions:
         if self.precision != "fp32" and self.method not in NETWORKS:
             raise InputError(f"--precision {self.precision} is for the network (--method cscsr or cscsr-ensemble); "
                              f"{self.method} has no network to run in it")
+        if self.weights is not None and self.method not in NETWORKS:  # a classic method has none: never recorded
+            raise InputError(f"--weights is for the network (--method cscsr or cscsr-ensemble); {self.method} has "
+                             f"no weights to load: leave --weights out")
         if self.gpu_batch < 1:
             raise InputError(f"--gpu-batch must be >= 1, got {self.gpu_batch}")
 
@@ -252,7 +255,8 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
         if gain is None:  # one window: on the cluster if there is one, else here (not worth a cluster of its own)
             args = (store_url, centres[len(centres) // 2], options.window, meta.reset)
             gain = client.submit(_auto_gain, *args).result() if client else _auto_gain(*args)
-        weights = getattr(method, "weights", options.weights)  # the file actually used: the shipped one by default
+        # the file actually used (the shipped one by default); none for a classic method
+        weights = getattr(method, "weights", options.weights) if network else None
         plan = Plan(store_url, out, options.method, weights, options.window, options.every, float(gain),
                     scale, meta.cfa, meta.reset, options.tile, uuid.uuid4().hex, precision, options.gpu_batch)
         batch = getattr(method, "batch", 1)

@@ -88,7 +88,7 @@ def evaluate_testset(testset: str, methods: list[str], out: str, *, weights: str
                      workers: int | None = None, scheduler: str | None = None, progress: bool = True) -> list[dict]:
     """Every method on every test store; rows averaged per (method, alpha), plus an 'all' row per method."""
     check_apart(out, testset, weights)
-    check_methods(methods)
+    check_methods(methods, weights)
     check_workers(workers)
     fs, root = resolve(testset)
     if not fs.exists(f"{root}/manifest.json"):

@@ -1,0 +1,76 @@
+"""Clearer answers: inputs of the wrong kind, options that do not apply, damaged stores and files.
+
+Each case goes through the real CLI (in-process) on real files and stores and must end with one
+line on stderr naming the file (or option) and the cause, a non-zero exit, and no output made.
+"""
+
+import os
+
+import numpy as np
+import pytest
+import zarr
+
+from tests.reliability.test_numbers import assert_nothing_made, fingerprint
+from tests.test_bad_input import assert_refused
+
+FRAMES, HEIGHT, WIDTH = 100, 16, 16
+
+
+@pytest.fixture
+def store(cli, tmp_path):
+    """A complete 100-frame 16x16 RGGB spike store, with ground truth at frames 20 and 61 (as simulate makes)."""
+    capture = tmp_path / "c.npy"
+    np.save(capture, (np.random.default_rng(0).random((FRAMES, HEIGHT, WIDTH)) < 0.2).astype(np.uint8))
+    path = tmp_path / "s.zarr"
+    result = cli("ingest", capture, path, "--cfa", "rggb")
+    assert result.exit_code == 0, result.stderr
+    group = zarr.open_group(str(path), mode="r+")
+    group.create_array("truth", data=np.zeros((2, 4 * HEIGHT, 4 * WIDTH, 3), np.uint8))
+    group.create_array("truth_frames", data=np.array([20, 61], np.int64))
+    os.remove(capture)
+    return path
+
+
+@pytest.fixture
+def shipped():
+    from cscsr.weights_io import default_weights
+
+    return str(default_weights("lite"))
+
+
+# --- --weights with a classic method -------------------------------------------------------------
+
+@pytest.mark.parametrize("method", ["tfp", "tfi"])
+def test_weights_with_a_classic_method_are_refused_before_the_output(cli, tmp_path, store, shipped, method):
+    before, unchanged = set(os.listdir(tmp_path)), fingerprint(store)
+    out = tmp_path / "out.zarr"
+    assert_refused(cli("reconstruct", store, out, "--method", method, "--weights", shipped, "--workers", 1),
+                   "--weights is for the network", f"{method} has no weights to load")
+    assert_nothing_made(tmp_path, before, out)
+    assert fingerprint(store) == unchanged
+
+
+def test_weights_with_only_classic_methods_in_evaluate_or_watch_are_refused(cli, tmp_path, store, shipped):
+    before = set(os.listdir(tmp_path))
+    evaluation, outbox = tmp_path / "evaluation", tmp_path / "outbox"
+    assert_refused(cli("evaluate", store, "--methods", "tfp,tfi", "--weights", shipped, "--out", evaluation),
+                   "--weights is for the network", "tfp, tfi have no weights")
+    assert_refused(cli("watch", tmp_path / "inbox", outbox, "--method", "tfi", "--weights", shipped, "--once"),
+                   "--weights is for the network", "tfi has no weights")
+    assert_nothing_made(tmp_path, before, evaluation, outbox)
+
+
+def test_evaluate_gives_the_weights_to_the_network_only(store, shipped):
+    """``evaluate --methods tfp,cscsr --weights W``: W is the network's; tfp's output never records it."""
+    from pipeline.evaluate import checked_evaluation
+
+    _, _, options = checked_evaluation(str(store), ["tfp", "cscsr"], shipped)
+    assert options["tfp"].weights is None and options["cscsr"].weights == shipped
+
+
+def test_a_classic_output_never_records_weights(cli, tmp_path, store):
+    out = tmp_path / "out.zarr"
+    result = cli("reconstruct", store, out, "--method", "tfp", "--workers", 1)
+    assert result.exit_code == 0, result.stderr
+    attrs = zarr.open_group(str(out), mode="r").attrs
+    assert attrs["state"] == "complete" and attrs["weights"] is None
