@@ -12,8 +12,10 @@ what must come back into ``--out`` (``$OUT`` on the GPU machine):
     bench   the inference benchmark (network_forward.py --device cuda): lite and full, fp32 and
             bf16, 180x320, a 256x256 tile and 1000x1000 LR at x4, with peak GPU memory
     train   ``full`` into --run (kept on the machine between calls), resuming if a checkpoint
-            is there, else from --init; stops cleanly inside --minutes; exports fp16 weights
-            and the training log into --out
+            is there (or a portable checkpoint's parts, carried to a fresh machine), else from
+            --init; stops cleanly inside --minutes; exports fp16 weights, the training log and
+            a portable checkpoint (parts of at most 16 MiB: fp16 weights, bf16 Adam moments)
+            into --out
 
 Every step also runs on the CPU with tiny settings (``--tiny``): tests/test_gpu_lease.py does.
 
@@ -126,13 +128,14 @@ def train_slice(options: dict, run: Path, *, resume: bool, log=print) -> Path:
 
 
 def train_command(out: Path, run: Path, minutes: float, pictures: list[str], init: str, decay_every: int,
-                  tiny: bool) -> None:
+                  tiny: bool, portable_weights: str = "float16", steps: int = 0) -> None:
     import torch
 
-    from cscsr.train import export_weights
+    from cscsr.portable_checkpoint import portable_parts
+    from cscsr.train import export_portable, export_weights
 
     device = "cuda" if torch.cuda.is_available() and not tiny else "cpu"
-    resume = (run / "checkpoint.safetensors").exists()
+    resume = (run / "checkpoint.safetensors").exists() or bool(portable_parts(run, complete=False))
     options = {**(TINY if tiny else RECIPE), "device": device, "precision": "bf16", "time_budget": minutes * 60,
                "pictures": os.pathsep.join(pictures)}
     if decay_every:
@@ -141,12 +144,16 @@ def train_command(out: Path, run: Path, minutes: float, pictures: list[str], ini
         options["init"] = init
     if tiny and resume:
         options["steps"] = TINY["steps"] * 2
+    if steps:
+        options["steps"] = steps
     print(f"{'resuming' if resume else 'starting'} {run} on {device} for at most {minutes} min", flush=True)
     train_slice(options, run, resume=resume)
     step = export_weights(run, out / f"cscsr-{options['config']}.safetensors", storage="float16",
                           command="benchmarks/gpu_lease.py train (fp16 export)")
     shutil.copy(run / "log.jsonl", out / "log.jsonl")
-    print(f"exported step {step} to {out}", flush=True)
+    _, parts = export_portable(run, out, weights=portable_weights)
+    print(f"exported step {step} to {out}: weights, log and a portable checkpoint in {len(parts)} parts "
+          f"({sum(p.stat().st_size for p in parts) / 2**20:.1f} MiB)", flush=True)
 
 
 def main() -> None:
@@ -155,25 +162,30 @@ def main() -> None:
     parser.add_argument("sources", nargs="*", help="pack: folders of pictures")
     parser.add_argument("--sequences", action="append", default=[], help="pack: a folder of frame sequences")
     parser.add_argument("--dest", default=str(ROOT / ".gpu-data" / "pictures"), help="pack: where to write")
+    parser.add_argument("--short-side", type=int, default=360, help="pack: largest short side, px")
     parser.add_argument("--out", default=os.environ.get("OUT", str(ROOT / "benchmarks" / "results" / "gpu")))
     parser.add_argument("--run", default=str(RUN), help="train: the training folder")
     parser.add_argument("--minutes", type=float, default=8.5, help="train: time budget of this slice")
     parser.add_argument("--pictures", action="append", default=[], help="train: a folder of training pictures")
     parser.add_argument("--init", default="", help="train: weights to start a new run from")
     parser.add_argument("--decay-every", type=int, default=0, help="train: change the decay (annealing)")
+    parser.add_argument("--steps", type=int, default=0, help="train: steps in all (default: the recipe's)")
+    parser.add_argument("--portable-weights", default="float16", choices=["float16", "float32"],
+                        help="train: storage of the weights in the portable checkpoint")
     parser.add_argument("--tiny", action="store_true", help="CPU dry run with tiny settings")
     args = parser.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if args.step == "pack":
-        print(json.dumps(pack(args.sources, Path(args.dest), args.sequences)))
+        print(json.dumps(pack(args.sources, Path(args.dest), args.sequences, args.short_side)))
     elif args.step == "check":
         check(out, args.tiny)
     elif args.step == "bench":
         subprocess.run([sys.executable, str(ROOT / "benchmarks" / "network_forward.py"), "--device", "cuda",
                         "--repeats", "5", "--out", str(out)], check=True)
     else:
-        train_command(out, Path(args.run), args.minutes, args.pictures, args.init, args.decay_every, args.tiny)
+        train_command(out, Path(args.run), args.minutes, args.pictures, args.init, args.decay_every, args.tiny,
+                      args.portable_weights, args.steps)
 
 
 if __name__ == "__main__":

@@ -277,13 +277,31 @@ def read_checkpoint(path: Path) -> tuple[dict, dict]:
     return load_file(str(path)), metadata
 
 
+def resumable(out: Path) -> Path:
+    """What ``--resume`` continues from: ``out``'s exact checkpoint, else ``out`` itself when it holds the parts
+    of a portable one (carried from another machine)."""
+    from cscsr.portable_checkpoint import portable_parts
+
+    checkpoint = out / "checkpoint.safetensors"
+    if checkpoint.exists():
+        return checkpoint
+    if portable_parts(out, complete=False):
+        portable_parts(out)  # refused unless every part is there
+        return out
+    raise InputError(f"cannot resume: {checkpoint} does not exist (nor a portable checkpoint's parts in {out})")
+
+
 def model_weights(tensors: dict) -> dict:
     """The network's part of a checkpoint's tensors, as a state dict."""
     return {k.removeprefix("model."): v for k, v in tensors.items() if k.startswith("model.")}
 
 
 def load_checkpoint(path: Path, model: CSCSR, optimiser: torch.optim.Optimizer, options: TrainOptions) -> int:
-    tensors, metadata = read_checkpoint(path)
+    """Restore a run from its exact checkpoint file, or from a folder holding a portable checkpoint's parts
+    (``cscsr.portable_checkpoint``: close, not bit-exact). Returns the step it had reached."""
+    from cscsr.portable_checkpoint import read_portable
+
+    tensors, metadata = read_portable(path) if Path(path).is_dir() else read_checkpoint(path)
     recorded = json.loads(metadata["options"])
     changed = [k for k, value in asdict(options).items()
                if k not in MAY_CHANGE_ON_RESUME and recorded.get(k, getattr(TrainOptions, k)) != value]
@@ -313,8 +331,7 @@ def train(options: TrainOptions, out: str | os.PathLike, *, resume: bool = False
     checkpoint = out / "checkpoint.safetensors"
     if out.exists() and any(out.iterdir()) and not resume:
         raise InputError(f"{out} already exists: pass --resume to continue its training")
-    if resume and not checkpoint.exists():
-        raise InputError(f"cannot resume: {checkpoint} does not exist")
+    resume_from = resumable(out) if resume else None  # refused before any output
     start = initial_weights(options) if options.init and not resume else None  # refused before any output
     pictures = training_pictures(options)  # refused before any output too
     out.mkdir(parents=True, exist_ok=True)
@@ -328,7 +345,10 @@ def train(options: TrainOptions, out: str | os.PathLike, *, resume: bool = False
         model.load_state_dict(start)
     model.to(device)
     optimiser = torch.optim.Adam(model.parameters(), lr=options.learning_rate)
-    step = load_checkpoint(checkpoint, model, optimiser, options) if resume else 0
+    step = load_checkpoint(resume_from, model, optimiser, options) if resume else 0
+    if resume_from == out:
+        log(f"resumed at step {step} from the portable checkpoint in {out} (close to, not bit-exactly, "
+            "where the run was: its Adam moments were stored in bfloat16)")
     for group in optimiser.param_groups:  # the schedule scales the configured rate, not a restored one
         group["lr"] = options.learning_rate
         group.pop("initial_lr", None)
@@ -452,6 +472,21 @@ def export_weights(folder: str | os.PathLike, dest: str | os.PathLike, command: 
     save_weights(model, dest, storage=storage,
                  **_about(step, options, command or "cscsr train (exported from a checkpoint)"))
     return step
+
+
+def export_portable(folder: str | os.PathLike, dest: str | os.PathLike, weights: str = "float32",
+                    part_bytes: int | None = None) -> tuple[int, list[Path]]:
+    """The latest checkpoint of a training folder as a portable checkpoint in ``dest`` (parts of at most
+    16 MiB, ``cscsr.portable_checkpoint``), which ``train --resume`` continues on another machine.
+    Returns (step, parts)."""
+    from cscsr.portable_checkpoint import PART_BYTES, write_portable
+
+    checkpoint = Path(folder) / "checkpoint.safetensors"
+    if not checkpoint.exists():
+        raise InputError(f"{checkpoint} does not exist: nothing trained there yet")
+    tensors, metadata = read_checkpoint(checkpoint)
+    parts = write_portable(tensors, metadata, dest, weights=weights, part_bytes=part_bytes or PART_BYTES)
+    return int(metadata["step"]), parts
 
 
 def _prefetch(step: int, options: TrainOptions, pool: dict | None = None,

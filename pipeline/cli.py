@@ -266,7 +266,8 @@ def train(context: typer.Context,
           time_budget: Annotated[float, typer.Option(help="Stop cleanly, checkpointed, before this many seconds "
                                                           "(0: no limit); --resume continues.")] = 0.0,
           threads: Annotated[Optional[int], typer.Option(help="Torch threads (default: every core).")] = None,
-          resume: Annotated[bool, typer.Option("--resume", help="Continue from OUT/checkpoint.safetensors.")] = False):
+          resume: Annotated[bool, typer.Option("--resume", help="Continue from OUT/checkpoint.safetensors (exact), "
+                                                       "or from the parts of a portable checkpoint in OUT.")] = False):
     """Train the CSCSR network on clips simulated on the fly; resumable."""
     import torch
 
@@ -290,12 +291,21 @@ def train(context: typer.Context,
 @command("export-weights")
 def export_weights(folder: Annotated[str, typer.Argument(help="A cscsr train folder.")],
                    dest: Annotated[str, typer.Argument(help="Weights file to write (.safetensors).")],
-                   half: Annotated[bool, typer.Option("--half", help="Store float16 (half the size).")] = False):
-    """The latest checkpoint of a training run as a weights file for --weights."""
-    from cscsr.train import export_weights as run
+                   half: Annotated[bool, typer.Option("--half", help="Store float16 (half the size).")] = False,
+                   portable: Annotated[bool, typer.Option(
+                       "--portable", help="Write DEST as a folder holding the whole checkpoint in parts of at most "
+                                          "16 MiB (bf16 Adam moments; fp16 weights with --half), which train "
+                                          "--resume continues on another machine (close, not bit-exact).")] = False):
+    """The latest checkpoint of a training run as a weights file for --weights (or, --portable, as a
+    checkpoint small enough to carry to another machine)."""
+    from cscsr.train import export_portable, export_weights as run
     from pipeline.storage import check_apart
 
     check_apart(dest, os.path.join(folder, "checkpoint.safetensors"))  # the file it reads (DEST may sit beside it)
+    if portable:
+        step, parts = export_portable(folder, dest, weights="float16" if half else "float32")
+        stdout.print(f"{dest}: the checkpoint after {step} steps in {len(parts)} parts")
+        return
     step = run(folder, dest, storage="float16" if half else "float32")
     stdout.print(f"{dest}: weights after {step} steps")
 

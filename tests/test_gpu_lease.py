@@ -1,6 +1,7 @@
 """The GPU lease script (benchmarks/gpu_lease.py), dry-run on the CPU with tiny settings."""
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -51,3 +52,15 @@ def test_check_and_two_training_slices_fit_what_a_lease_brings_back(tmp_path):
     assert steps == [2, 4, 6, 8]
     files = [f for f in out.rglob("*") if f.is_file()]
     assert len(files) <= LEASE_FILES and all(f.stat().st_size <= LEASE_FILE_BYTES for f in files)
+
+    # what came back goes on on a fresh machine: the portable checkpoint's parts carried into an empty run folder
+    parts = sorted(out.glob("checkpoint.part-*.safetensors"))
+    assert [p.name for p in parts] == ["checkpoint.part-1-of-1.safetensors"]  # lite: 8 MB with fp16 weights
+    fresh = tmp_path / "fresh"
+    fresh.mkdir()
+    shutil.copy(parts[0], fresh)
+    third = lease("train", "--tiny", "--out", tmp_path / "out3", "--run", fresh, "--steps", 10)
+    assert "resuming" in third and "resumed at step 8 from the portable checkpoint" in third
+    assert read_metadata(tmp_path / "out3" / "cscsr-lite.safetensors")["steps"] == "10"
+    steps = [json.loads(line)["step"] for line in (tmp_path / "out3" / "log.jsonl").read_text().splitlines()]
+    assert steps == [10]

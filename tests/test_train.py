@@ -148,6 +148,9 @@ def test_export_weights_from_a_checkpoint(tmp_path, cli):
     assert metadata["steps"] == "2"
     assert all(torch.equal(a, b) for a, b in zip(exported.state_dict().values(), final.state_dict().values()))
     assert cli("export-weights", tmp_path, tmp_path / "x.safetensors").exit_code == 1
+    result = cli("export-weights", tmp_path / "run", tmp_path / "carried", "--portable", "--half")
+    assert result.exit_code == 0 and "after 2 steps in 1 parts" in result.stdout
+    assert [p.name for p in (tmp_path / "carried").iterdir()] == ["checkpoint.part-1-of-1.safetensors"]
 
 
 def warp_error(clip, flows) -> float:
@@ -288,3 +291,48 @@ def test_half_weights_are_half_the_size_and_load_as_float32(tmp_path):
         next(model.parameters()).view(-1)[0] = 1e6  # beyond float16's range
     with pytest.raises(InputError, match="does not fit in float16"):
         save_weights(model, tmp_path / "overflow.safetensors", storage="float16")
+
+
+# --- a portable checkpoint: carried back from a GPU lease, continued on a fresh machine ----------
+
+def test_a_portable_checkpoint_in_small_parts_resumes_close_to_the_exact_one(tmp_path):
+    import shutil
+
+    from cscsr.portable_checkpoint import portable_parts
+    from cscsr.train import export_portable, read_checkpoint
+
+    train(TrainOptions(steps=2, **TINY), tmp_path / "run", log=lambda line: None)
+    at_two, _ = read_checkpoint(tmp_path / "run" / "checkpoint.safetensors")
+    limit = 2**20  # 1 MiB parts, for the test: lite's 10.5 MB of checkpoint needs at least 11
+    step, parts = export_portable(tmp_path / "run", tmp_path / "carried", part_bytes=limit)
+    assert step == 2 and len(parts) >= 11 and parts == portable_parts(tmp_path / "carried")
+    assert all(0.5 * limit < p.stat().st_size <= limit for p in parts[:-1]) and parts[-1].stat().st_size <= limit
+    total = sum(p.stat().st_size for p in parts)
+    exact_bytes = (tmp_path / "run" / "checkpoint.safetensors").stat().st_size
+    assert total == pytest.approx(exact_bytes * (4 + 2 + 2) / (4 + 4 + 4), rel=0.01)  # moments in bfloat16
+    _, halves = export_portable(tmp_path / "run", tmp_path / "halves", weights="float16")
+    assert sum(p.stat().st_size for p in halves) == pytest.approx(exact_bytes / 2, rel=0.01)  # and float16 weights
+    with pytest.raises(InputError, match="alone .* does not fit"):
+        export_portable(tmp_path / "run", tmp_path / "tiny", part_bytes=2**14)
+
+    # a fresh machine: the parts alone, then --resume; the exact run goes on beside it
+    shutil.copytree(tmp_path / "carried", tmp_path / "fresh")
+    lines = []
+    portable = load_model(train(TrainOptions(steps=4, **TINY), tmp_path / "fresh", resume=True, log=lines.append))[0]
+    exact = load_model(train(TrainOptions(steps=4, **TINY), tmp_path / "run", resume=True, log=lambda line: None))[0]
+    assert any("resumed at step 2 from the portable checkpoint" in line for line in lines)
+    steps = [json.loads(line)["step"] for line in (tmp_path / "fresh" / "log.jsonl").read_text().splitlines()]
+    assert steps == [4]
+    # close: the difference rounding made is a small fraction of what the two further steps moved
+    moved = sum((w - at_two[f"model.{k}"]).abs().sum().item() for k, w in exact.state_dict().items())
+    apart = sum((w - portable.state_dict()[k]).abs().sum().item() for k, w in exact.state_dict().items())
+    assert 0 < apart < 0.01 * moved  # measured: 0.0009
+
+    parts[3].unlink()  # a part lost on the way is refused, before any output
+    (tmp_path / "lost").mkdir()
+    for p in parts:
+        if p.exists():
+            shutil.copy(p, tmp_path / "lost")
+    with pytest.raises(InputError, match="incomplete or mixed: missing checkpoint.part-4-of"):
+        train(TrainOptions(steps=4, **TINY), tmp_path / "lost", resume=True, log=lambda line: None)
+    assert not (tmp_path / "lost" / "log.jsonl").exists()
