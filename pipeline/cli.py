@@ -76,16 +76,17 @@ def show_table(title: str, rows: dict) -> None:
 
 
 @command()
-def info(store: Annotated[str, typer.Argument(help="Spike store URL.")],
+def info(store: Annotated[str, typer.Argument(help="Spike store or HR video store URL.")],
          as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of a table.")] = False):
-    """Shape, duration, CFA, firing rate, chunks, size on disk and bits per pixel of a spike store."""
+    """A spike store's shape, duration, CFA, firing rate, chunks, size on disk and bits per pixel (missing chunks
+    named); an HR video store's frames, size, frame rate, method and state."""
     from pipeline.info import summarize
 
     summary = summarize(store)
     if as_json:
         print(json.dumps(summary, allow_nan=False))  # strict JSON: never a bare Infinity or NaN
     else:
-        show_table(f"spike store {store}", summary)
+        show_table(f"{summary.pop('kind')} {store}", summary)
 
 
 @command()

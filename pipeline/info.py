@@ -1,19 +1,37 @@
-"""``cscsr info``: what a spike store holds, as a flat summary."""
+"""``cscsr info``: what a spike store or an HR video store holds, as a flat summary."""
+
+import contextlib
 
 from pipeline.spike_store import open_spike_store
-from pipeline.storage import size_of
+from pipeline.storage import missing_chunks, open_group, size_of
+from pipeline.video_store import COMMITTED, FRAMES, VIDEO, is_video_store
+from stages.errors import InputError
+
+SHOWN = 4  # missing frame ranges named in full
 
 
 def summarize(url: str) -> dict:
-    """Shape, duration, CFA, firing rate, chunking and size at rest of a spike store."""
+    """A spike store's or a video store's summary (``kind`` says which)."""
+    group = open_group(url, "spike store")
+    return summarize_video(url, group) if is_video_store(group) else summarize_spikes(url)
+
+
+def summarize_spikes(url: str) -> dict:
+    """Shape, duration, CFA, firing rate, chunking and size at rest of a spike store; a store whose
+    chunks are not all there is never called complete, and the missing frames are named."""
     store = open_spike_store(url, allow_incomplete=True)
     meta = store.meta
     pixels = store.n_frames * meta.height * meta.width
     stored = size_of(f"{str(url).rstrip('/')}/spikes")
     spikes = store.spike_count
+    lost = missing_frames(store.spikes)
+    state = store.attrs.get("state")
+    if lost and state == "complete":  # its writer finished: what is missing now is lost
+        state = f"damaged: {lost} missing (lost data)"
     return {
+        "kind": "spike store",
         "store": str(url),
-        "state": store.attrs.get("state"),
+        "state": state,
         "frames": store.n_frames,
         "height": meta.height,
         "width": meta.width,
@@ -22,11 +40,57 @@ def summarize(url: str) -> dict:
         "cfa": meta.cfa,
         "reset": meta.reset,
         "flipped": meta.flipped,
-        "firing_rate": None if spikes is None else spikes / pixels,
+        "firing_rate": None if spikes is None or lost else spikes / pixels,  # counted over chunks not all there
+        "missing_chunks": lost,
         "chunks": list(store.spikes.chunks),
         "codec": " + ".join(type(c).__name__ for c in store.spikes.compressors) or "none",
         "size_on_disk_bytes": stored,
         "bits_per_pixel": 8 * stored / pixels,
         "source": meta.source,
         "format_version": store.attrs.get("format_version"),
+    }
+
+
+def missing_frames(spikes) -> str | None:
+    """``N of M chunks (frames a..b, ...)`` for the chunks of a spike array that are not in its store."""
+    missing = missing_chunks(spikes)
+    if not missing:
+        return None
+    step, n = spikes.chunks[0], spikes.shape[0]
+    ranges = [f"{t * step}..{min((t + 1) * step, n) - 1}" for t, *_ in missing]
+    shown = ", ".join(ranges[:SHOWN]) + (f", and {len(ranges) - SHOWN} more" if len(ranges) > SHOWN else "")
+    total = -(-n // step)
+    return f"{len(missing)} of {total} chunks of spikes (frames {shown})"
+
+
+def summarize_video(url: str, group) -> dict:
+    """Frames, size, frame rate, method and state of an HR video store."""
+    attrs = dict(group.attrs)
+    video, frames = group[VIDEO], group[FRAMES][:]
+    n, height, width = video.shape[:3]
+    fps = None
+    with contextlib.suppress(InputError, KeyError, TypeError, ZeroDivisionError):  # the source may be gone
+        fps = float(open_group(attrs["source"]).attrs["fps"]) / int(attrs["every"])
+    committed = group[COMMITTED] if COMMITTED in group else None  # one chunk per task, written when it commits
+    done = None if committed is None else committed.size - len(missing_chunks(committed))
+    return {
+        "kind": "video store",
+        "store": str(url),
+        "state": attrs.get("state"),
+        "frames": n,
+        "height": height,
+        "width": width,
+        "fps": fps,
+        "duration_s": None if fps is None else n / fps,
+        "spike_frames": f"{frames[0]}..{frames[-1]}" if len(frames) else "",
+        "method": attrs.get("method"),
+        "weights": attrs.get("weights"),
+        "scale": attrs.get("scale"),
+        "window": attrs.get("window"),
+        "every": attrs.get("every"),
+        "gain": attrs.get("gain"),
+        "tiles_committed": None if committed is None else f"{done} of {committed.size}",
+        "chunks": list(video.chunks),
+        "size_on_disk_bytes": size_of(f"{str(url).rstrip('/')}/{VIDEO}"),
+        "source": attrs.get("source"),
     }

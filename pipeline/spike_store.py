@@ -20,6 +20,7 @@ from zarr.codecs import ZstdCodec
 
 import cscsr
 from pipeline.storage import describe, open_group, zarr_store
+from pipeline.video_store import describe_video_store, is_video_store
 from stages.bits import packed_width
 from stages.cfa import check_cfa
 from stages.dat import check_head_side
@@ -184,6 +185,10 @@ def read_frames(spikes: zarr.Array, url: str, start: int, stop: int, region: tup
 def open_spike_store(url: str, *, allow_incomplete: bool = False) -> SpikeStore:
     """Open and check a spike store; an error if it is missing, malformed or unfinished."""
     group = open_group(url, "spike store")
+    if is_video_store(group):
+        source = group.attrs.get("source")
+        raise InputError(f"{describe_video_store(url, group)}, not a spike store: give the spike store it was made "
+                         f"from{f' ({source})' if source else ''}")
     try:
         store = SpikeStore(url, group)
     except InputError:

@@ -7,6 +7,7 @@ directories as needed), everything else to ``FsspecStore``.
 """
 
 import contextlib
+import itertools
 import os
 import posixpath
 from collections.abc import Iterator
@@ -65,6 +66,24 @@ def open_group(url: str, what: str = "store") -> zarr.Group:
 def describe(error: BaseException) -> str:
     """An exception as one line of text."""
     return " ".join(str(error).split()) or type(error).__name__
+
+
+def missing_chunks(array: zarr.Array) -> list[tuple[int, ...]]:
+    """The chunks of ``array`` (grid coordinates) that have no object in its store, from one listing of
+    the array's keys (no chunk is read). Our writers store every chunk, empty or not, so a chunk that
+    is not there is lost data."""
+    from zarr.core.sync import sync
+
+    prefix = array.store_path.path
+    lead = f"{prefix}/" if prefix else ""
+
+    async def listed() -> set[str]:
+        return {key async for key in array.store.list_prefix(lead)}
+
+    present = sync(listed())
+    grid = [-(-size // chunk) for size, chunk in zip(array.shape, array.chunks)]
+    return [coords for coords in itertools.product(*map(range, grid))
+            if lead + array.metadata.encode_chunk_key(coords) not in present]
 
 
 def size_of(url: str) -> int:

@@ -44,6 +44,19 @@ def open_video_store(url: str, *, writable: bool = False) -> zarr.Group:
     return group
 
 
+def is_video_store(group: zarr.Group) -> bool:
+    return VIDEO in group and FRAMES in group
+
+
+def describe_video_store(url: str, group: zarr.Group) -> str:
+    """One line saying what a video store holds, for a command that was given one where it wanted
+    a spike store: ``URL is a video store (N frames of WxH RGB, method M, state S)``."""
+    attrs = group.attrs
+    n, height, width = group[VIDEO].shape[:3]
+    return (f"{url} is a video store ({n} frames of {width}x{height} RGB, method {attrs.get('method')}, "
+            f"state {attrs.get('state')})")
+
+
 def committed_mask(group: zarr.Group) -> np.ndarray:
     """(T_out, tiles_y, tiles_x) bool: which tasks have committed their tile."""
     return group[COMMITTED][:].astype(bool)

@@ -4,6 +4,7 @@ Each case goes through the real CLI (in-process) on real files and stores and mu
 line on stderr naming the file (or option) and the cause, a non-zero exit, and no output made.
 """
 
+import json
 import os
 
 import numpy as np
@@ -74,3 +75,50 @@ def test_a_classic_output_never_records_weights(cli, tmp_path, store):
     assert result.exit_code == 0, result.stderr
     attrs = zarr.open_group(str(out), mode="r").attrs
     assert attrs["state"] == "complete" and attrs["weights"] is None
+
+
+# --- a video store where a spike store is wanted, and info of a video store ---------------------
+
+def test_a_video_store_is_named_as_one_and_info_describes_it(cli, tmp_path, store):
+    video = tmp_path / "v.zarr"
+    result = cli("reconstruct", store, video, "--method", "tfp", "--every", 20, "--workers", 1)
+    assert result.exit_code == 0, result.stderr
+    said = f"{video} is a video store (3 frames of 64x64 RGB, method tfp, state complete), not a spike store: " \
+           f"give the spike store it was made from ({store})"
+    before, unchanged = set(os.listdir(tmp_path)), fingerprint(video)
+    out, picture, evaluation = tmp_path / "again.zarr", tmp_path / "p.png", tmp_path / "evaluation"
+    assert_refused(cli("reconstruct", video, out, "--workers", 1), said)
+    assert_refused(cli("preview", video, picture), said)
+    assert_refused(cli("evaluate", video, "--out", evaluation, "--workers", 1), said)
+    assert_nothing_made(tmp_path, before, out, picture, evaluation)
+    assert fingerprint(video) == unchanged
+
+    info = json.loads(cli("info", video, "--json").stdout)
+    assert {k: info[k] for k in ("kind", "state", "frames", "height", "width", "method", "every", "tiles_committed")} \
+        == {"kind": "video store", "state": "complete", "frames": 3, "height": 64, "width": 64, "method": "tfp",
+            "every": 20, "tiles_committed": "3 of 3"}
+    assert info["fps"] == pytest.approx(20000 / 20) and info["spike_frames"] == "20..60" and info["source"] == str(store)
+    table = cli("info", video).stdout
+    assert "video store" in table and "tfp" in table and "complete" in table
+
+
+# --- info of a spike store with lost chunks --------------------------------------------------------
+
+def test_info_of_a_store_with_missing_chunks_names_them_and_never_says_complete(cli, tmp_path):
+    from pipeline.spike_store import SpikeMeta, SpikeStoreWriter
+
+    path = tmp_path / "chunked.zarr"
+    packed = np.random.default_rng(1).integers(0, 256, (FRAMES, HEIGHT, WIDTH // 8), np.uint8)
+    writer = SpikeStoreWriter(str(path), SpikeMeta(HEIGHT, WIDTH, "rggb"), FRAMES, chunk_frames=10)
+    writer.write(0, packed)
+    writer.finish(spike_count=int(np.unpackbits(packed).sum()))
+    whole = json.loads(cli("info", path, "--json").stdout)
+    assert whole["state"] == "complete" and whole["missing_chunks"] is None and whole["firing_rate"] > 0
+
+    for t in (3, 4, 9):
+        os.remove(path / "spikes" / "c" / str(t) / "0" / "0")
+    info = json.loads(cli("info", path, "--json").stdout)
+    assert info["state"] == "damaged: 3 of 10 chunks of spikes (frames 30..39, 40..49, 90..99) missing (lost data)"
+    assert info["missing_chunks"] == "3 of 10 chunks of spikes (frames 30..39, 40..49, 90..99)"
+    assert info["firing_rate"] is None  # a rate over data that is not all there would be a wrong answer
+    assert "damaged" in cli("info", path).stdout and "complete" not in cli("info", path).stdout
