@@ -75,6 +75,8 @@ def resolve_weights(path: str | os.PathLike) -> Path:
 def read_metadata(path: str | os.PathLike) -> dict[str, str]:
     """The metadata of a safetensors file (or a shipped one by name), read from its header alone."""
     path = resolve_weights(path)
+    if path.is_dir():
+        raise InputError(f"weights {path} is a folder, not a weights file: give the .safetensors file itself")
     if not path.is_file():
         raise InputError(f"weights file {path} not found")
     with open(path, "rb") as f:

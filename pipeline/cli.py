@@ -53,8 +53,12 @@ def one_line_errors(command):
         except Exception as error:
             if os.environ.get("CSCSR_DEBUG"):
                 raise
+            from pipeline.storage import unreachable
+
             message = " ".join(str(error).split()) or type(error).__name__
-            if isinstance(error, FileNotFoundError):
+            if reach := unreachable(error, [*args, *kwargs.values()]):
+                message = reach
+            elif isinstance(error, FileNotFoundError):
                 message = f"cannot read {error.filename or message}: no such file or object"
             elif not isinstance(error, ValueError):
                 message = f"{type(error).__name__}: {message}"
@@ -128,11 +132,12 @@ def preview(store: Annotated[str, typer.Argument(help="Spike store URL.")],
             scale: Annotated[int, typer.Option(help="Upsampling factor.")] = 1,
             overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace IMAGE if it exists.")] = False):
     """One TFP picture (window mean, demosaicked, upsampled) from a spike store."""
-    from pipeline.images import write_image
+    from pipeline.images import image_suffix, write_image
     from pipeline.preview import preview as run
     from pipeline.storage import check_apart
 
     check_apart(image, store)
+    image_suffix(image)  # a picture we cannot write is refused before the work
     shot = run(store, centre=centre, window=window, gain=gain, scale=scale)
     write_image(image, shot.image, overwrite=overwrite)
     stdout.print(f"wrote {image}: frames {shot.centre - window // 2}..{shot.centre + window // 2}, gain {shot.gain:.4g}")

@@ -11,10 +11,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.images import IMAGE_SUFFIXES, decode_image
 from pipeline.storage import is_local, resolve, zarr_store
 from stages.errors import InputError
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".gif")
 
 
@@ -23,10 +23,8 @@ def _suffix(path: str) -> str:
 
 
 def _read_image_bytes(fs, path: str) -> np.ndarray:
-    import imageio.v3 as iio
-
     with fs.open(path, "rb") as handle:
-        return iio.imread(handle.read(), extension=_suffix(path))
+        return decode_image(handle.read(), path)
 
 
 @dataclass(frozen=True)

@@ -25,6 +25,27 @@ def resolve(url: str) -> tuple[fsspec.AbstractFileSystem, str]:
         return fsspec.core.url_to_fs(str(url))
     except (ValueError, ImportError) as error:
         raise InputError(f"cannot use URL {url!r}: {error}") from None
+    except OSError as error:  # a filesystem that connects on creation (ftp://): no such host, refused, ...
+        raise InputError(f"cannot reach {url}: {describe(error)}") from None
+
+
+def unreachable(error: BaseException, urls) -> str | None:
+    """A failure to reach remote storage (no such host, a refused connection, no credentials) as one line
+    naming the remote URLs among ``urls`` (a command's arguments) and the cause; None for other errors."""
+    remote = [str(u) for u in urls if isinstance(u, str) and "://" in u
+              and u.split("://", 1)[0] not in ("file", "local", "memory")]
+    if not remote:
+        return None
+    name = type(error).__name__
+    if name in ("NoCredentialsError", "PartialCredentialsError"):  # botocore's, raised through s3fs
+        cause = ("no S3 credentials found (set AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY, AWS_PROFILE, or "
+                 "fsspec's FSSPEC_S3_KEY and FSSPEC_S3_SECRET)")
+    elif isinstance(error, OSError) and not isinstance(error, (FileNotFoundError, FileExistsError, IsADirectoryError,
+                                                                NotADirectoryError)):
+        cause = f"{name}: {describe(error)}"  # a host not found, a connection refused or timed out
+    else:
+        return None
+    return f"cannot reach {' or '.join(remote)}: {cause}"
 
 
 def is_local(url: str) -> bool:
@@ -55,6 +76,8 @@ def open_group(url: str, what: str = "store") -> zarr.Group:
     """The Zarr group at ``url``, read-only; a one-line error if it is missing, an array, or damaged."""
     try:
         return zarr.open_group(zarr_store(url, read_only=True), mode="r")
+    except InputError:
+        raise
     except FileNotFoundError:
         raise InputError(f"cannot read {what} {url}: no Zarr group there") from None
     except zarr.errors.ContainsArrayError:

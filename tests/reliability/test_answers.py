@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import zarr
 
+from tests.conftest import CliResult
 from tests.reliability.test_numbers import assert_nothing_made, fingerprint
 from tests.test_bad_input import assert_refused
 
@@ -122,3 +123,56 @@ def test_info_of_a_store_with_missing_chunks_names_them_and_never_says_complete(
     assert info["missing_chunks"] == "3 of 10 chunks of spikes (frames 30..39, 40..49, 90..99)"
     assert info["firing_rate"] is None  # a rate over data that is not all there would be a wrong answer
     assert "damaged" in cli("info", path).stdout and "complete" not in cli("info", path).stdout
+
+
+# --- one line naming the file and the cause ---------------------------------------------------------
+
+def closed_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_unreachable_urls_are_named_with_the_cause(cli, tmp_path, store):
+    before = set(os.listdir(tmp_path))
+    http = f"http://127.0.0.1:{closed_port()}/s.zarr"
+    assert_refused(cli("info", http), f"cannot reach {http}: ClientConnectorError", "Cannot connect to host")
+    assert_refused(cli("info", "ftp://no-such-host.invalid/s.zarr"), "cannot reach ftp://no-such-host.invalid/s.zarr: ")
+    assert_refused(cli("reconstruct", store, "ftp://no-such-host.invalid/o.zarr", "--workers", 1),
+                   "cannot reach ftp://no-such-host.invalid/o.zarr: ")
+    assert_nothing_made(tmp_path, before)
+
+
+def test_s3_without_credentials_names_the_url_and_what_to_set(s3_endpoint, tmp_path, store):
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("AWS_", "FSSPEC_S3"))}
+    env.update(AWS_ENDPOINT_URL=s3_endpoint, AWS_EC2_METADATA_DISABLED="true", AWS_CONFIG_FILE=str(tmp_path / "none"),
+               AWS_SHARED_CREDENTIALS_FILE=str(tmp_path / "none"))
+    cscsr = os.path.join(os.path.dirname(sys.executable), "cscsr")
+    for args, url in ((["info", "s3://spikes-bucket/nothing.zarr"], "s3://spikes-bucket/nothing.zarr"),
+                      (["reconstruct", store, "s3://spikes-bucket/o.zarr", "--workers", 1], "s3://spikes-bucket/o.zarr")):
+        done = subprocess.run([cscsr, *map(str, args)], capture_output=True, text=True, env=env, timeout=300)
+        assert_refused(CliResult(done.returncode, done.stdout, done.stderr), f"cannot reach {url}: no S3 credentials found", "AWS_ACCESS_KEY_ID")
+
+
+def test_files_of_the_wrong_kind_are_named_with_the_cause(cli, tmp_path, store):
+    (tmp_path / "fake.png").write_text("a note, not a picture\n")
+    (tmp_path / "outbox").write_text("a file where a folder is wanted\n")
+    (tmp_path / "weights").mkdir()
+    before, unchanged = set(os.listdir(tmp_path)), fingerprint(tmp_path)
+    made = [tmp_path / name for name in ("sim.zarr", "o.zarr", "p.xyz", "p")]
+    assert_refused(cli("simulate", tmp_path / "fake.png", made[0], "--motion", "static", "--workers", 1),
+                   f"{tmp_path / 'fake.png'} is not a valid PNG image: it cannot be decoded (it starts with b'a note, ')")
+    assert_refused(cli("watch", tmp_path / "inbox", tmp_path / "outbox", "--once"),
+                   f"OUTBOX {tmp_path / 'outbox'} is a file, not a folder")
+    for args in (("reconstruct", store, made[1], "--method", "cscsr", "--weights", tmp_path / "weights", "--workers", 1),
+                 ("model-info", "--weights", tmp_path / "weights")):
+        assert_refused(cli(*args), f"weights {tmp_path / 'weights'} is a folder, not a weights file")
+    assert_refused(cli("preview", store, made[2]), f"{made[2]}: unknown image extension '.xyz': expected one of .png")
+    assert_refused(cli("preview", store, made[3]), f"{made[3]}: unknown image extension (none)")
+    assert_nothing_made(tmp_path, before, *made)
+    assert fingerprint(tmp_path) == unchanged

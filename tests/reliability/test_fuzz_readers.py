@@ -468,7 +468,7 @@ WEIGHTS_CASES = [
     ("header-a-json-list", lambda f, m: raw_header([1]), [WEIGHTS, "header is not a JSON object"], None),
     ("metadata-a-json-list", lambda f, m: raw_header({"__metadata__": [1]}), [WEIGHTS, "not a cscsr weights file"],
      None),
-    ("a-directory", lambda f, m: None, [WEIGHTS, "not found"], None),
+    ("a-directory", lambda f, m: None, [WEIGHTS, "is a folder, not a weights file"], None),
 ]
 
 
