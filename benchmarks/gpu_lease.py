@@ -5,8 +5,8 @@ of files sent along and 8 files of 16 MiB back. Each step below is one command a
 what must come back into ``--out`` (``$OUT`` on the GPU machine):
 
     pack PICTURES... --sequences FRAMES --dest .gpu-data/pictures   (here, before the lease) natural training
-        pictures re-encoded to fit the lease's 64 MiB (JPEG q88, short side at most 360 px,
-        every third frame of a sequence)
+        pictures and sequences of frames re-encoded to fit the lease's 64 MiB (JPEG q88, short side
+        at most --short-side px)
     check   torch, CUDA, the GPU, bf16; torch clip synthesis (clips/s) beside numpy; a smoke
             training run of ``full`` (30 steps)
     bench   the inference benchmark (network_forward.py --device cuda): lite and full, fp32 and
@@ -41,10 +41,10 @@ TINY = {"config": "lite", "batch": 2, "lr_side": 16, "checkpoint_every": 2, "val
         "validation_clips": 2}
 
 
-def pack(sources: list[str], dest: Path, sequences: list[str] = (), short_side: int = 360, quality: int = 88,
-         every: int = 3) -> dict:
-    """Re-encode every picture under ``sources`` into ``dest`` (one sub-folder per source folder); of
-    ``sequences`` (folders of sub-folders of consecutive frames), every ``every``-th frame."""
+def pack(sources: list[str], dest: Path, sequences: list[str] = (), short_side: int = 360, quality: int = 88) -> dict:
+    """Re-encode every picture under ``sources`` and ``sequences`` (folders of sub-folders of consecutive frames,
+    kept whole: their frames' numbers stay consecutive, so training uses their motion) into ``dest``, one
+    sub-folder per source folder."""
     import cv2
 
     from cscsr.training_data import picture_files
@@ -52,12 +52,7 @@ def pack(sources: list[str], dest: Path, sequences: list[str] = (), short_side: 
     dest.mkdir(parents=True, exist_ok=True)
     count, size = 0, 0
     for source in [*sources, *sequences]:
-        names = picture_files([source])
-        folders = [str(Path(n).parent) for n in names]
-        for index, name in enumerate(names):
-            position = index - folders.index(folders[index])  # the frame's place in its sub-folder
-            if source in sequences and position % every:
-                continue
+        for name in picture_files([source]):
             image = cv2.imread(name, cv2.IMREAD_COLOR)
             factor = short_side / min(image.shape[:2])
             if factor < 1:

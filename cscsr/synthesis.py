@@ -28,6 +28,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from cscsr.frame_motion import FrameMotion
 from cscsr.training_data import FRAMES, MIDDLE, ClipPlan
 from stages.cfa import colour_index
 from stages.sensor import UNITS, dark_increments, initial_state, shot_normals
@@ -79,9 +80,10 @@ def synthesise(batch: PreparedBatch, device: torch.device | str) -> dict:
     channel = torch.from_numpy(np.stack([colour_index(p.cfa, side, side) for p in plans]).astype(np.int64))
     channel = channel.to(device)[:, None]  # (B, 1, lr, lr): 0 R, 1 G, 2 B
 
+    footage = footage_tensors(plans, device)
     mosaics, truth = [], None
     for t in range(FRAMES):
-        frame = render(scenes, plans, t)  # (B, 3, s*lr, s*lr)
+        frame = render(scenes, plans, t, footage)  # (B, 3, s*lr, s*lr)
         if t == MIDDLE:
             truth = (alpha[:, None, None, None].float() * frame).contiguous()
         mosaics.append(F.avg_pool2d(frame, scale).gather(1, channel)[:, 0])  # (B, lr, lr)
@@ -125,11 +127,58 @@ def sample_grid(plans: list[ClipPlan], t: float, device: torch.device) -> torch.
     return (torch.stack([qx, qy], -1) / centre).float()
 
 
-def render(scenes: torch.Tensor, plans: list[ClipPlan], t: float) -> torch.Tensor:
-    """(B, 3, S, S) scenes -> (B, 3, s*lr, s*lr) latent frame t over each clip's area, in [0, 1]."""
-    grid = sample_grid(plans, t, scenes.device)
-    frame = F.grid_sample(scenes, grid, mode="bicubic", padding_mode="reflection", align_corners=True)
-    return frame.clamp(0, 1)
+def render(scenes: torch.Tensor, plans: list[ClipPlan], t: float, footage: dict | None = None) -> torch.Tensor:
+    """(B, 3, S, S) scenes -> (B, 3, s*lr, s*lr) latent frame t over each clip's area, in [0, 1]: clips on a camera
+    path warped along it, clips of footage (``footage_tensors``) interpolated between their frames."""
+    moving = [i for i, p in enumerate(plans) if not isinstance(p.path, FrameMotion)]
+    if len(moving) == len(plans):
+        return _sample(scenes, sample_grid(plans, t, scenes.device))
+    frame = torch.empty((len(plans), 3, *[plans[0].lr_side * plans[0].scale] * 2), device=scenes.device)
+    if moving:
+        index = torch.tensor(moving, device=scenes.device)
+        frame[index] = _sample(scenes[index], sample_grid([plans[i] for i in moving], t, scenes.device))
+    frame[footage["index"]] = interpolate(scenes[footage["index"]], footage, plans[0], t)
+    return frame
+
+
+def _sample(images: torch.Tensor, grid: torch.Tensor, clip: bool = True) -> torch.Tensor:
+    """grid_sample as ``cv2.remap`` with bicubic, BORDER_REFLECT_101, clipped to [0, 1] unless ``clip`` is False."""
+    frame = F.grid_sample(images, grid, mode="bicubic", padding_mode="reflection", align_corners=True)
+    return frame.clamp(0, 1) if clip else frame
+
+
+def footage_tensors(plans: list[ClipPlan], device: torch.device) -> dict | None:
+    """The neighbouring frames and flows of the batch's clips of footage on ``device`` (None if there are none):
+    index (F,), before and after (F, 3, S, S), flow_before and flow_after (F, S, S, 2) over the whole scene."""
+    index = [i for i, p in enumerate(plans) if isinstance(p.path, FrameMotion)]
+    if not index:
+        return None
+    moves = [plans[i].path for i in index]
+    tensors = {"index": torch.tensor(index, device=device)}
+    for side in ("before", "after"):
+        tensors[side] = torch.from_numpy(np.stack([getattr(m, side) for m in moves])).to(device).permute(0, 3, 1, 2)
+        tensors[f"flow_{side}"] = torch.from_numpy(np.stack([getattr(m, f"flow_{side}") for m in moves])).to(device)
+    return tensors
+
+
+def interpolate(centres: torch.Tensor, footage: dict, plan: ClipPlan, t: float) -> torch.Tensor:
+    """(F, 3, S, S) centre frames -> (F, 3, s*lr, s*lr) frame t over the clip's area, interpolated along the flow
+    between the centre and a neighbour: (1 - a) A(p - a f(p)) + a B(p + (1 - a) f(p)) (``FrameMotion.render``)."""
+    a, side = FrameMotion.towards(t, FRAMES)
+    size, first, count = plan.picture.shape[0], plan.margin * plan.scale, plan.lr_side * plan.scale
+    area = slice(first, first + count)
+    if a == 0:
+        return centres[..., area, area]
+    flow = footage[f"flow_{side}"][:, area, area].double()  # (F, n, n, 2)
+    pixels = torch.arange(first, first + count, dtype=torch.float64, device=centres.device)
+    y, x = torch.meshgrid(pixels, pixels, indexing="ij")
+    p = torch.stack([x, y], -1)  # (n, n, 2) pixel (x, y)
+
+    def grid(offset):  # pixel p + offset -> align_corners=True coordinates
+        return ((p + offset) / (size - 1) * 2 - 1).float()
+
+    blend = (1 - a) * _sample(centres, grid(-a * flow), False) + a * _sample(footage[side], grid((1 - a) * flow), False)
+    return blend.clamp(0, 1)
 
 
 def increments(mosaics: torch.Tensor, plans: list[ClipPlan], draws: list[SensorDraws],

@@ -129,7 +129,7 @@ def learning_rate_factor(step: int, options: TrainOptions) -> float:
 
 
 def make_batch(step: int, options: TrainOptions, cache: dict, pool: dict | None = None,
-               pictures: tuple[str, ...] = TRAIN_PICTURES):
+               pictures: tuple = TRAIN_PICTURES):
     """Step ``step``'s batch: numpy arrays (``batch_arrays``), or for on-device synthesis the CPU's share of it
     (``cscsr.synthesis.PreparedBatch``, the same clips' plans)."""
     if options.distinct_batches:
@@ -419,16 +419,19 @@ class Budget:
 
 
 def training_pictures(options: TrainOptions) -> tuple[str, ...]:
-    """The pictures a run trains on: the files in ``options.pictures``'s folders, else the bundled ones.
+    """The pictures a run trains on: the files in ``options.pictures``'s folders (a folder of consecutive frames
+    as one sequence, whose real motion makes the clips: ``cscsr.frame_motion``), else the bundled ones.
 
     Refused if any of them is a held-out test picture.
     """
+    from cscsr.frame_motion import group_sequences
+
     folders = options.picture_folders()
     if not folders:
         return TRAIN_PICTURES
     names = picture_files(folders)
     check_not_test_pictures(names)
-    return names
+    return group_sequences(names)
 
 
 def initial_weights(options: TrainOptions) -> dict:
@@ -451,7 +454,8 @@ def _about(step: int, options: TrainOptions, command: str) -> dict:
     return {**start, "steps": str(step), "command": command, "options": json.dumps(asdict(options)),
             "data": f"simulated on the fly{' on the GPU' if options.on_device_synthesis else ''}: dead leaves "
                     f"({options.dead_leaves:.0%} of clips) and "
-                    + (f"the pictures in {', '.join(options.picture_folders())}" if options.pictures else
+                    + (f"the pictures in {', '.join(options.picture_folders())} (sequences of frames with their own motion)"
+                        if options.pictures else
                        f"scikit-image pictures ({', '.join(TRAIN_PICTURES)})") + ", random camera paths, alpha 0.6-1.0, both resets, "
                     "realistic noise on half, four CFA phases, x2 and x4"
                     + (f"; a pool of {options.pool} clips under 8 flips and turns" if options.pool else "")}
@@ -490,7 +494,7 @@ def export_portable(folder: str | os.PathLike, dest: str | os.PathLike, weights:
 
 
 def _prefetch(step: int, options: TrainOptions, pool: dict | None = None,
-              pictures: tuple[str, ...] = TRAIN_PICTURES, depth: int = 2):
+              pictures: tuple = TRAIN_PICTURES, depth: int = 2):
     """Batches for steps step+1, step+2, ... made in the background, in order.
 
     On the CPU one thread (the cores train). With on-device synthesis the CPU's share of each batch
@@ -526,7 +530,7 @@ def _prefetch(step: int, options: TrainOptions, pool: dict | None = None,
 _WORKER: dict = {}  # a batch worker process's options, pictures and decoded-picture cache
 
 
-def _start_batch_worker(options: TrainOptions, pictures: tuple[str, ...]) -> None:
+def _start_batch_worker(options: TrainOptions, pictures: tuple) -> None:
     import cv2
 
     cv2.setNumThreads(1)

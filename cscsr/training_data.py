@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cscsr.frame_motion import FrameMotion, choices, source_names
 from stages.cfa import BAYER_PATTERNS, flip_horizontally, flip_vertically, transpose
 from stages.frames import to_unit_rgb
 from stages.motion import CameraPath, render
@@ -114,15 +115,16 @@ def picture_files(folders) -> tuple[str, ...]:
     return tuple(files)
 
 
-def check_not_test_pictures(names: tuple[str, ...]) -> None:
-    """InputError if any named picture file holds the pixels of a test picture (any size, same picture)."""
+def check_not_test_pictures(names: tuple) -> None:
+    """InputError if any named picture file (a still, or a frame of a sequence) holds the pixels of a test
+    picture (any size, same picture)."""
     import cv2
 
     def signature(image: np.ndarray) -> np.ndarray:
         return cv2.resize(np.ascontiguousarray(image, np.float32), (16, 16), interpolation=cv2.INTER_AREA)
 
     tests = {name: signature(bundled_picture(name)) for name in TEST_PICTURES}
-    for name in names:
+    for name in source_names(names):
         if name in TEST_PICTURES:
             raise InputError(f"{name} is a test picture: it must stay out of training")
         if name in TRAIN_PICTURES:
@@ -142,27 +144,46 @@ def tint(rng: np.random.Generator, image: np.ndarray) -> np.ndarray:
     return (low + (high - low) * grey).astype(np.float32)
 
 
-def source_picture(rng: np.random.Generator, pictures: tuple[str, ...], hr_side: int, cache: dict,
-                   dead_leaves_share: float = DEAD_LEAVES_SHARE) -> np.ndarray:
-    """A random HR crop (side ``hr_side``) of a random picture, rescaled, flipped, rotated; or dead leaves."""
+def source_scene(rng: np.random.Generator, pictures: tuple, hr_side: int, cache: dict,
+                 dead_leaves_share: float = DEAD_LEAVES_SHARE) -> tuple[np.ndarray, FrameMotion | None]:
+    """A random HR crop (side ``hr_side``) of a random picture, rescaled, flipped, rotated, or dead leaves;
+    with the real motion around it when the source is a sequence of frames (``pictures`` holds names of
+    stills and tuples of frames, ``cscsr.frame_motion.group_sequences``), else None.
+    A sequence offers one clip per frame with a neighbour on each side; the three frames are cropped alike."""
     import cv2
 
     if not pictures or rng.random() < dead_leaves_share:
-        return dead_leaves(rng, hr_side)
-    name = pictures[rng.integers(len(pictures))]
-    if name not in cache:
-        cache[name] = picture(name)
-    image = tint(rng, cache[name])
+        return dead_leaves(rng, hr_side), None
+    choice = int(rng.integers(sum(choices(p) for p in pictures)))
+    for source in pictures:  # a still is one choice, a sequence of n frames n - 2
+        if choice < choices(source):
+            break
+        choice -= choices(source)
+    names = (source,) if isinstance(source, str) else source[choice : choice + 3]
+    for name in names:
+        if name not in cache:
+            cache[name] = picture(name)
+    frames = [cache[name] for name in names]
+    if len({f.shape for f in frames}) != 1:
+        raise InputError(f"the frames {', '.join(names)} of one sequence differ in size")
+    image = tint(rng, np.concatenate(frames, 1))  # side by side: one tint for all
     factor = rng.uniform(0.35, 1.0)
-    factor = max(factor, hr_side / min(image.shape[:2]))
-    if factor != 1:
-        size = (max(hr_side, round(image.shape[1] * factor)), max(hr_side, round(image.shape[0] * factor)))
-        image = cv2.resize(image, size, interpolation=cv2.INTER_AREA if factor < 1 else cv2.INTER_CUBIC)
-    top = rng.integers(0, image.shape[0] - hr_side + 1)
-    left = rng.integers(0, image.shape[1] - hr_side + 1)
-    crop = image[top : top + hr_side, left : left + hr_side]
-    crop = np.rot90(crop, rng.integers(4))
-    return np.ascontiguousarray(crop[:, ::-1] if rng.random() < 0.5 else crop)
+    factor = max(factor, hr_side / min(image.shape[0], frames[0].shape[1]))
+    top = rng.integers(0, max(hr_side, round(image.shape[0] * factor)) - hr_side + 1)
+    left = rng.integers(0, max(hr_side, round(frames[0].shape[1] * factor)) - hr_side + 1)
+    turns, flip = rng.integers(4), rng.random() < 0.5
+    width = frames[0].shape[1]
+    crops = []
+    for k in range(len(frames)):
+        frame = image[:, k * width : (k + 1) * width]
+        if factor != 1:
+            size = (max(hr_side, round(frame.shape[1] * factor)), max(hr_side, round(frame.shape[0] * factor)))
+            frame = cv2.resize(frame, size, interpolation=cv2.INTER_AREA if factor < 1 else cv2.INTER_CUBIC)
+        crop = np.rot90(frame[top : top + hr_side, left : left + hr_side], turns)
+        crops.append(np.ascontiguousarray(crop[:, ::-1] if flip else crop))
+    if len(crops) == 1:
+        return crops[0], None
+    return crops[1], FrameMotion.between(*crops)
 
 
 @dataclass(frozen=True)
@@ -171,7 +192,7 @@ class ClipPlan:
     record) and ``cscsr.synthesis`` (torch, on the training device) both carry it out."""
 
     picture: np.ndarray  # (hr_side, hr_side, 3) float32: the padded scene, hr_side = scale * (lr_side + 2 * margin)
-    path: CameraPath  # the scene's motion on the HR grid
+    path: CameraPath | FrameMotion  # the scene's motion on the HR grid: a camera path, or footage's own
     sensor: SensorModel
     cfa: str
     lr_side: int
@@ -189,18 +210,31 @@ class ClipPlan:
     def flows(self) -> np.ndarray:
         """(2, 2, lr, lr) float32 exact LR flows from the middle frame to frames MIDDLE -/+ SPAN, (x, y)."""
         crop = slice(self.margin, self.margin + self.lr_side)
+        if isinstance(self.path, FrameMotion):  # HR flows averaged over each LR pixel, in LR pixels
+            return np.stack([area_downsample(self.path.flow(MIDDLE + d, FRAMES), self.scale)[crop, crop]
+                             .transpose(2, 0, 1) / self.scale for d in (-SPAN, SPAN)]).astype(np.float32)
         lr_path = self.path.scaled(1 / self.scale)
         return np.stack([lr_path.flow(MIDDLE, MIDDLE + d)[crop, crop].transpose(2, 0, 1)
                          for d in (-SPAN, SPAN)]).astype(np.float32)
 
+    def frame(self, t: float) -> np.ndarray:
+        """(hr_side, hr_side, 3) float32 latent frame t of the whole padded scene (numpy, the simulator of record)."""
+        if isinstance(self.path, FrameMotion):
+            return self.path.render(self.picture, t, FRAMES)
+        return render(self.picture, self.path, t)
+
 
 def plan_clip(picture: np.ndarray, rng: np.random.Generator, *, lr_side: int, scale: int, alpha: float,
-              cfa: str, zero_reset: bool, noise: str, speed: float) -> ClipPlan:
-    """The camera path and sensor of a clip of ``picture`` (HR side = scale * (lr_side + 2 * margin))."""
+              cfa: str, zero_reset: bool, noise: str, speed: float, motion: FrameMotion | None = None) -> ClipPlan:
+    """The camera path (or the footage's ``motion``) and sensor of a clip of ``picture``
+    (HR side = scale * (lr_side + 2 * margin))."""
     hr_side = picture.shape[0]
-    seed = int(rng.integers(2**31))
-    path = CameraPath.random(FRAMES, hr_side, hr_side, seed=seed, speed=speed * scale,
-                             deform=float(rng.uniform(0, 0.5)) * scale if rng.random() < 0.3 else 0.0)
+    if motion is None:
+        seed = int(rng.integers(2**31))
+        path = CameraPath.random(FRAMES, hr_side, hr_side, seed=seed, speed=speed * scale,
+                                 deform=float(rng.uniform(0, 0.5)) * scale if rng.random() < 0.3 else 0.0)
+    else:
+        path = motion
     sensor = SensorModel(brightness=alpha, threshold=1.0, reset="zero" if zero_reset else "subtract",
                          noise=noise, seed=int(rng.integers(2**31)))
     return ClipPlan(picture, path, sensor, cfa, lr_side, scale)
@@ -222,31 +256,31 @@ def run_plan(plan: ClipPlan) -> Clip:
     scale, lr_side, margin = plan.scale, plan.lr_side, plan.margin
     crop = slice(margin, margin + lr_side)
     hr_crop = slice(margin * scale, (margin + lr_side) * scale)
-    mosaics = np.stack([cfa_sample(area_downsample(render(plan.picture, plan.path, t), scale), plan.cfa)[crop, crop]
+    mosaics = np.stack([cfa_sample(area_downsample(plan.frame(t), scale), plan.cfa)[crop, crop]
                         for t in range(FRAMES)])  # (41, lr, lr)
     sensor = plan.sensor
     fired = fire(increments(sensor, mosaics, 0), initial_state(sensor, lr_side, lr_side), reset=sensor.reset)
-    truth = sensor.brightness * render(plan.picture, plan.path, MIDDLE)[hr_crop, hr_crop]
+    truth = sensor.brightness * plan.frame(MIDDLE)[hr_crop, hr_crop]
     return Clip(unpack_rows(fired.packed, lr_side), np.ascontiguousarray(truth.transpose(2, 0, 1), np.float32),
                 plan.flows(), plan.cfa, plan.zero_reset, sensor.brightness, scale)
 
 
-def random_plan(seed, *, lr_side: int, scale: int, pictures: tuple[str, ...] = TRAIN_PICTURES,
+def random_plan(seed, *, lr_side: int, scale: int, pictures: tuple = TRAIN_PICTURES,
                 cache: dict | None = None, alpha: float | None = None,
                 dead_leaves_share: float = DEAD_LEAVES_SHARE) -> ClipPlan:
     """A training clip's plan: everything drawn from ``seed`` (an int or a sequence of ints)."""
     rng = np.random.default_rng(seed)
     margin = max(4, lr_side // 4) // 2 * 2
-    picture = source_picture(rng, pictures, scale * (lr_side + 2 * margin), {} if cache is None else cache,
-                             dead_leaves_share)
+    picture, motion = source_scene(rng, pictures, scale * (lr_side + 2 * margin), {} if cache is None else cache,
+                                   dead_leaves_share)
     return plan_clip(picture, rng, lr_side=lr_side, scale=scale,
                      alpha=float(rng.uniform(0.6, 1.0)) if alpha is None else alpha,
                      cfa=BAYER_PATTERNS[rng.integers(4)], zero_reset=bool(rng.random() < 0.5),
                      noise="realistic" if rng.random() < 0.5 else "none",
-                     speed=float(rng.uniform(0, MAX_SPEED)))
+                     speed=float(rng.uniform(0, MAX_SPEED)), motion=motion)
 
 
-def random_clip(seed, *, lr_side: int, scale: int, pictures: tuple[str, ...] = TRAIN_PICTURES,
+def random_clip(seed, *, lr_side: int, scale: int, pictures: tuple = TRAIN_PICTURES,
                 cache: dict | None = None, alpha: float | None = None,
                 dead_leaves_share: float = DEAD_LEAVES_SHARE) -> Clip:
     """A training clip: everything drawn from ``seed`` (an int or a sequence of ints)."""

@@ -21,7 +21,10 @@ def lease(*args) -> str:
     return run.stdout
 
 
-def test_pack_reencodes_pictures_and_thins_sequences(tmp_path):
+def test_pack_reencodes_pictures_and_keeps_sequences_whole(tmp_path):
+    from cscsr.frame_motion import group_sequences
+    from cscsr.training_data import picture_files
+
     rng = np.random.default_rng(0)
     (tmp_path / "stills").mkdir()
     iio.imwrite(tmp_path / "stills" / "big.png", rng.integers(0, 255, (800, 600, 3), dtype=np.uint8))
@@ -29,11 +32,12 @@ def test_pack_reencodes_pictures_and_thins_sequences(tmp_path):
         (tmp_path / "clips" / "walk").mkdir(parents=True, exist_ok=True)
         iio.imwrite(tmp_path / "clips" / "walk" / f"{i:05d}.png", rng.integers(0, 255, (240, 320, 3), dtype=np.uint8))
     report = json.loads(lease("pack", tmp_path / "stills", "--sequences", tmp_path / "clips", "--dest",
-                              tmp_path / "packed"))
-    assert report["pictures"] == 1 + 3  # frames 0, 3 and 6 of the sequence
-    assert iio.imread(tmp_path / "packed" / "stills" / "big.jpg").shape == (480, 360, 3)  # short side 360
-    assert sorted(p.name for p in (tmp_path / "packed" / "clips" / "walk").iterdir()) == [
-        "00000.jpg", "00003.jpg", "00006.jpg"]
+                              tmp_path / "packed", "--short-side", 300))
+    assert report["pictures"] == 1 + 7
+    assert iio.imread(tmp_path / "packed" / "stills" / "big.jpg").shape == (400, 300, 3)  # short side 300
+    sources = group_sequences(picture_files([tmp_path / "packed"]))
+    frames, still = sources  # the frames (sorted first: clips/ before stills/) are still a sequence, in order
+    assert still.endswith("big.jpg") and [n.rsplit("/", 1)[-1] for n in frames] == [f"{i:05d}.jpg" for i in range(7)]
 
 
 def test_check_and_two_training_slices_fit_what_a_lease_brings_back(tmp_path):
