@@ -17,7 +17,7 @@ import os
 from collections.abc import Iterator
 
 import dask
-from distributed import Client, LocalCluster
+from distributed import Client, LocalCluster, WorkerPlugin
 
 from stages.errors import InputError
 from stages.numbers import check_number
@@ -80,7 +80,33 @@ def dask_client(*, workers: int | None = None, scheduler: str | None = None) -> 
             LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host=LOOPBACK,
                          dashboard_address=os.environ.get(DASHBOARD_VARIABLE) or f"{LOOPBACK}:0",
                          silence_logs=logging.ERROR, env=_thread_env(workers)) as cluster, Client(cluster) as client:
+        client.register_plugin(_QuietWorkerLogs())  # our own workers only: a shared cluster's logs are its owner's
         yield client
+
+
+class QuietExpectedErrors(logging.Filter):
+    """Drops a worker's ``Compute Failed`` record (a traceback per task) for a task that raised our own
+    :class:`InputError` (a lost or damaged chunk, bad data): the job names every such failure in its one
+    summary line, and a traceback per task would bury it. Any other exception is still logged in full."""
+
+    EXPECTED = (f"{InputError.__name__}(",)  # how the worker writes the exception: its repr
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if not str(record.msg).startswith("Compute Failed") or not isinstance(record.args, tuple):
+            return True
+        exception = record.args[3] if len(record.args) > 3 else ""
+        return not str(exception).startswith(self.EXPECTED)
+
+
+class _QuietWorkerLogs(WorkerPlugin):
+    """Installs :class:`QuietExpectedErrors` in each worker process of a local cluster."""
+
+    name = "cscsr-quiet-expected-errors"
+
+    def setup(self, worker) -> None:
+        log = logging.getLogger("distributed.worker")
+        if not any(isinstance(f, QuietExpectedErrors) for f in log.filters):
+            log.addFilter(QuietExpectedErrors())
 
 
 def gpu_workers(client: Client) -> int:

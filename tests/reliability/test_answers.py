@@ -176,3 +176,42 @@ def test_files_of_the_wrong_kind_are_named_with_the_cause(cli, tmp_path, store):
     assert_refused(cli("preview", store, made[3]), f"{made[3]}: unknown image extension (none)")
     assert_nothing_made(tmp_path, before, *made)
     assert fingerprint(tmp_path) == unchanged
+
+
+# --- a lost or garbage chunk during reconstruct: one summary line, no traceback per task -------------
+
+def test_lost_and_garbage_chunks_end_in_one_line_not_a_traceback_per_task(cli_process, tmp_path):
+    from pipeline.spike_store import SpikeMeta, SpikeStoreWriter
+
+    path, out = tmp_path / "lost.zarr", tmp_path / "v.zarr"
+    writer = SpikeStoreWriter(str(path), SpikeMeta(HEIGHT, WIDTH, "rggb"), 400, chunk_frames=10)
+    writer.write(0, np.random.default_rng(1).integers(0, 256, (400, HEIGHT, WIDTH // 8), np.uint8))
+    writer.finish(spike_count=1)
+    os.remove(path / "spikes" / "c" / "5" / "0" / "0")  # frames 50..59: lost
+    (path / "spikes" / "c" / "20" / "0" / "0").write_bytes(b"garbage" * 10)  # frames 200..209: damaged
+
+    result = cli_process("reconstruct", path, out, "--every", 5, "--gain", 1, "--workers", 2)
+    assert result.returncode == 1
+    assert "Compute Failed" not in result.stderr and "InputError(" not in result.stderr, result.stderr[:2000]
+    errors = [line for line in result.stderr.splitlines() if "error" in line.lower()]
+    assert len(errors) == 1 and errors[0].startswith("error: JobIncomplete: 20 of 72 output frames failed"), errors
+    assert "the chunk of frames 50..59 is missing (lost data)" in errors[0]
+    assert zarr.open_group(str(out), mode="r").attrs["state"] == "writing"
+
+
+def test_only_our_own_task_errors_are_kept_out_of_worker_logs():
+    """The filter drops a ``Compute Failed`` record for an InputError; an unexpected error keeps its traceback."""
+    import logging
+
+    from pipeline.cluster import QuietExpectedErrors
+
+    def record(exception_text):
+        return logging.LogRecord("distributed.worker", logging.ERROR, __file__, 1,
+                                 "Compute Failed\nKey: %s\nState: %s\nTask: %s\nException: %r\nTraceback: %r\n",
+                                 ("k", "executing", "task", exception_text, "  File ..."), None)
+
+    quiet = QuietExpectedErrors()
+    assert not quiet.filter(record("InputError('spike store s.zarr: the chunk of frames 0..9 is missing')"))
+    assert quiet.filter(record("ZeroDivisionError('division by zero')"))
+    assert quiet.filter(record("ValueError('3 of 12 values of the exposed image are not finite')"))
+    assert quiet.filter(logging.LogRecord("distributed.worker", logging.ERROR, __file__, 1, "other %s", ("x",), None))
