@@ -20,7 +20,10 @@ On a GPU (``--device cuda``) the same cases run in fp32 and bf16 (autocast).
 
 ``--compile`` runs the network through ``torch.compile`` (the warm-up pass compiles; not timed).
 
-Run: ``python benchmarks/network_forward.py [--repeats 3] [--device cpu|cuda] [--compile] [--quick]``.
+``--channels-last`` runs the network on NHWC tensors (``cscsr.network.use_channels_last``).
+
+Run: ``python benchmarks/network_forward.py [--repeats 3] [--device cpu|cuda] [--compile] [--channels-last]
+[--sizes 180x320,...] [--configs lite,full] [--quick]``.
 """
 
 import argparse
@@ -36,7 +39,7 @@ PAPER_SECONDS = 1.032
 
 
 def one_case(config: str, height: int, width: int, repeats: int, device: str, dtype: str, threads: int,
-             compile: bool = False) -> dict:
+             compile: bool = False, channels_last: bool = False) -> dict:
     """Runs inside the subprocess: time, peak memory and FLOPs of one configuration and size."""
     import resource
     import time
@@ -46,7 +49,7 @@ def one_case(config: str, height: int, width: int, repeats: int, device: str, dt
     from torch.utils.flop_counter import FlopCounterMode
 
     from cscsr.config import named
-    from cscsr.network import CSCSR
+    from cscsr.network import CSCSR, use_channels_last
     from stages.bits import pack_rows
     from stages.reconstruct import Window, classic
 
@@ -55,7 +58,7 @@ def one_case(config: str, height: int, width: int, repeats: int, device: str, dt
     rng = np.random.default_rng(0)
     spikes = (rng.random((41, height, width)) < 0.2).astype(np.uint8)
     x = torch.from_numpy(spikes).float()[None].to(device)
-    model = CSCSR(named(config)).eval().to(device)
+    model = use_channels_last(CSCSR(named(config)).eval().to(device), channels_last)
     network = torch.compile(model) if compile else model
 
     def forward():
@@ -94,6 +97,7 @@ def one_case(config: str, height: int, width: int, repeats: int, device: str, dt
         tfp_times.append(time.perf_counter() - start)
     counts = model.parameter_counts()
     return {"config": config, "size": f"{height}x{width}", "device": device, "dtype": dtype, "compile": compile,
+            "channels_last": channels_last,
             "seconds": float(np.median(times)), "tfp_seconds": float(np.median(tfp_times)),
             "peak_mib": peak, "rss_before_mib": before, "gflops": flops / 1e9, "flops_per_output_pixel": flops / (16 * height * width),
             "parameters": counts["network"], "flow_parameters": counts["flow"]}
@@ -106,6 +110,9 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--quick", action="store_true", help="64x64 only, one repeat (a smoke run)")
     parser.add_argument("--compile", action="store_true", help="torch.compile the network (the warm-up compiles)")
+    parser.add_argument("--channels-last", action="store_true", help="the network on NHWC tensors")
+    parser.add_argument("--sizes", help="only these sizes, comma-separated labels (e.g. 180x320)")
+    parser.add_argument("--configs", default="lite,full", help="configurations, comma-separated")
     parser.add_argument("--out", default=None, help="folder for the JSON results (default benchmarks/results)")
     parser.add_argument("--case", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -116,14 +123,17 @@ def main() -> None:
         print(json.dumps(one_case(**json.loads(args.case))))
         return
     sizes = {"64x64": SIZES["64x64"]} if args.quick else GPU_SIZES if args.device == "cuda" else SIZES
+    if args.sizes:
+        sizes = {label: {**SIZES, **GPU_SIZES}[label] for label in args.sizes.split(",")}
     repeats = 1 if args.quick else args.repeats
     dtypes = ["fp32", "bf16"] if args.device == "cuda" else ["fp32"]
     results = []
-    for config in ("lite", "full"):
+    for config in args.configs.split(","):
         for label, (h, w) in sizes.items():
             for dtype in dtypes:
                 case = {"config": config, "height": h, "width": w, "repeats": repeats, "device": args.device,
-                        "dtype": dtype, "threads": threads, "compile": args.compile}
+                        "dtype": dtype, "threads": threads, "compile": args.compile,
+                        "channels_last": args.channels_last}
                 run = subprocess.run([sys.executable, __file__, "--case", json.dumps(case)], cwd=ROOT,
                                      capture_output=True, text=True)
                 if run.returncode:
@@ -140,7 +150,7 @@ def main() -> None:
     print("paper: CSCSR 1.032 s per 180x320 image on a GPU of its time\n")
     print(markdown_table(["config", "LR size", "dtype", "forward s (median)", "vs TFP", "peak RSS MiB",
                           "FLOPs / output px", "GFLOPs", "params (net + flow)"], rows))
-    save_results(f"network_forward_{args.device}", {"threads": threads, "repeats": repeats, "cases": results,
+    save_results(f"network_forward_{args.device}{'_channels_last' if args.channels_last else ''}", {"threads": threads, "repeats": repeats, "cases": results,
                                                     "paper_seconds_180x320": PAPER_SECONDS},
                  **({"folder": args.out} if args.out else {}))
 

@@ -42,6 +42,7 @@ class CSCSR(nn.Module):
         self.motion = MotionEstimation(config) if config.flow_guidance else None
         self.temporal = nn.ModuleList([TemporalPixels(c, t, config.flow_guidance) for _ in "rgb"])
         self.integration = Integration(c, config.features, config.blocks)
+        self.channels_last = False  # memory format of the activations (``use_channels_last``); default NCHW
         initialise(self)
 
     def forward(self, spikes: torch.Tensor, cfa: str | list[str], zero_reset=False, scale: int = 4) -> dict:
@@ -54,6 +55,8 @@ class CSCSR(nn.Module):
         zero = torch.as_tensor(zero_reset, device=spikes.device).expand(b).bool()
 
         x = pad_keeping_phase(spikes.float(), MULTIPLE)  # (B, N, Hp, Wp)
+        if self.channels_last:
+            x = x.contiguous(memory_format=torch.channels_last)  # (B, N, Hp, Wp) stored as (B, Hp, Wp, N)
         cells = cell_masks(cfas, x.shape[-2], x.shape[-1], x.device)  # (B, 4, Hp, Wp) R, G1, G2, B
         colours = colour_masks(cells)  # (B, 3, Hp, Wp) R, G, B
         if self.motion is not None:
@@ -87,6 +90,19 @@ class CSCSR(nn.Module):
         flow = sum(p.numel() for p in self.motion.parameters()) if self.motion is not None else 0
         total = sum(p.numel() for p in self.parameters())
         return {"network": total - flow, "flow": flow, "total": total}
+
+
+def use_channels_last(model: CSCSR, on: bool = True) -> CSCSR:
+    """Store the 4-D weights and the input channels-last (NHWC), so convolutions run on that layout (faster on
+    GPUs' tensor cores, measured on the CPU in docs/performance.md); the same result within float rounding,
+    not bit for bit. ``on=False`` goes back to the default layout. Returns the model."""
+    model.channels_last = on
+    layout = torch.channels_last if on else torch.contiguous_format
+    for module in model.modules():
+        for name, tensor in [*module.named_parameters(recurse=False), *module.named_buffers(recurse=False)]:
+            if tensor.dim() == 4:
+                tensor.data = tensor.data.contiguous(memory_format=layout)
+    return model
 
 
 def initialise(model: nn.Module) -> None:

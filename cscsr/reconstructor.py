@@ -130,13 +130,18 @@ def one_thread_on_cpu(device: torch.device):
 
 
 def load_reconstructor(weights: str | None, device: str | None = None, *, self_ensemble: bool = False,
-                       precision: str = "fp32") -> NetworkReconstructor:
+                       precision: str = "fp32", channels_last: bool = False) -> NetworkReconstructor:
     """The network from ``weights`` (a file, or "lite" or "full" for the shipped ones; default lite, the
     faster on a CPU), on a GPU if there is one; with ``self_ensemble``, every window is reconstructed
-    under the 8 flips and quarter turns and averaged; ``precision`` fp32, or bf16 (autocast)."""
+    under the 8 flips and quarter turns and averaged; ``precision`` fp32, or bf16 (autocast);
+    ``channels_last`` runs the convolutions on NHWC tensors (``cscsr.network.use_channels_last``)."""
+    from cscsr.network import use_channels_last
+
     if precision not in PRECISIONS:
         raise InputError(f"--precision must be {' or '.join(PRECISIONS)}, got {precision!r}")
     path = resolve_weights(weights) if weights else default_weights("lite")
     device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
     model, _ = load_model(path, device)
+    if channels_last:
+        use_channels_last(model)
     return NetworkReconstructor(model, device, str(path), self_ensemble=self_ensemble, precision=precision)

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from cscsr.config import CSCSRConfig, named
-from cscsr.network import CSCSR
+from cscsr.network import CSCSR, use_channels_last
 from cscsr.training_data import (DEAD_LEAVES_SHARE, TRAIN_PICTURES, Clip, batch_arrays, check_not_test_pictures,
                                  picture_files, random_clip, random_plan, reoriented)
 from cscsr.weights_io import save_weights
@@ -64,6 +64,8 @@ class TrainOptions:
     synthesis: str = "auto"  # clips by "numpy" (stages, the simulator of record) or "torch" (cscsr.synthesis, on
     # the device; the same clips); "auto": torch on a GPU, numpy on the CPU
     time_budget: float = 0.0  # seconds from the start of the run: stop cleanly with a checkpoint before it (0: none)
+    channels_last: bool = False  # convolutions on NHWC tensors (cscsr.network.use_channels_last): the same
+    # training within float rounding, faster where the device's kernels prefer that layout
 
     def network(self) -> CSCSRConfig:
         """The configuration this run trains: the named one with its ablation switches applied."""
@@ -114,7 +116,8 @@ class TrainOptions:
 # pool brings fresh clips to a run that has seen its pool many times (clip i keeps its seed; its scale may change).
 # The device, precision and time budget do not change the clips or the schedule: a run moves between machines.
 MAY_CHANGE_ON_RESUME = frozenset({"steps", "decay_every", "checkpoint_every", "validate_every", "validation_clips",
-                                  "pool", "device", "precision", "time_budget", "synthesis", "init"})
+                                  "pool", "device", "precision", "time_budget", "synthesis", "init",
+                                  "channels_last"})
 PRECISIONS = ("fp32", "bf16")
 SYNTHESES = ("auto", "numpy", "torch")
 
@@ -344,6 +347,7 @@ def train(options: TrainOptions, out: str | os.PathLike, *, resume: bool = False
     if start is not None:
         model.load_state_dict(start)
     model.to(device)
+    use_channels_last(model, options.channels_last)
     optimiser = torch.optim.Adam(model.parameters(), lr=options.learning_rate)
     step = load_checkpoint(resume_from, model, optimiser, options) if resume else 0
     if resume_from == out:

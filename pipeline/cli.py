@@ -272,6 +272,8 @@ def train(context: typer.Context,
           time_budget: Annotated[float, typer.Option(help="Stop cleanly, checkpointed, before this many seconds "
                                                           "(0: no limit); --resume continues.")] = 0.0,
           threads: Annotated[Optional[int], typer.Option(help="Torch threads (default: every core).")] = None,
+          channels_last: Annotated[bool, typer.Option("--channels-last", help="Convolutions on NHWC tensors (the "
+                                                      "same training within rounding; may change on --resume).")] = False,
           resume: Annotated[bool, typer.Option("--resume", help="Continue from OUT/checkpoint.safetensors (exact), "
                                                        "or from the parts of a portable checkpoint in OUT.")] = False):
     """Train the CSCSR network on clips simulated on the fly; resumable."""
@@ -287,7 +289,7 @@ def train(context: typer.Context,
                            warmup=warmup, decay_every=decay_every, seed=seed, pool=pool, init=init or "",
                            motion=motion, flow_guidance=flow_guidance, pictures=os.pathsep.join(pictures or []),
                            dead_leaves=dead_leaves, device=device, precision=precision, time_budget=time_budget,
-                           synthesis=synthesis,
+                           synthesis=synthesis, channels_last=channels_last,
                            checkpoint_every=checkpoint_every, validate_every=validate_every)
     final = run(options, out, resume=resume, log=lambda line: stdout.print(line, highlight=False),
                 command=command_line(context))

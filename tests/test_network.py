@@ -243,3 +243,23 @@ def test_the_self_ensemble_turns_with_the_recording(lite):
     assert np.abs(expected.astype(int) - got).max() <= 1
     expected, got = pictures(self_ensemble=False)
     assert np.abs(expected.astype(int) - got).max() > 4
+
+
+def test_channels_last_gives_the_same_image_and_the_default_layout_stays():
+    from cscsr.network import use_channels_last
+
+    torch.manual_seed(0)
+    model = CSCSR(named("lite")).eval()
+    spikes = (torch.rand(2, 41, 20, 34) < 0.25).float()  # not a multiple of 16: padded, then cropped
+    with torch.inference_mode():
+        default = model(spikes, ["rggb", "gbrg"], True, 4)
+        use_channels_last(model)
+        conv = next(m for m in model.modules() if isinstance(m, torch.nn.Conv2d) and m.kernel_size == (3, 3))
+        assert conv.weight.is_contiguous(memory_format=torch.channels_last) and not conv.weight.is_contiguous()
+        nhwc = model(spikes, ["rggb", "gbrg"], True, 4)
+        use_channels_last(model, False)
+        again = model(spikes, ["rggb", "gbrg"], True, 4)
+    for key in ("image", "base"):
+        assert torch.allclose(nhwc[key], default[key], atol=1e-5), key
+    assert all(torch.allclose(a, b, atol=1e-5) for a, b in zip(nhwc["flows"], default["flows"]))
+    assert torch.equal(again["image"], default["image"]) and conv.weight.is_contiguous()

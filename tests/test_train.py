@@ -336,3 +336,11 @@ def test_a_portable_checkpoint_in_small_parts_resumes_close_to_the_exact_one(tmp
     with pytest.raises(InputError, match="incomplete or mixed: missing checkpoint.part-4-of"):
         train(TrainOptions(steps=4, **TINY), tmp_path / "lost", resume=True, log=lambda line: None)
     assert not (tmp_path / "lost" / "log.jsonl").exists()
+
+
+def test_channels_last_trains_the_same_network_within_rounding(tmp_path):
+    default = load_model(train(TrainOptions(steps=2, **TINY), tmp_path / "default", log=lambda line: None))[0]
+    nhwc = load_model(train(TrainOptions(steps=2, channels_last=True, **TINY), tmp_path / "nhwc",
+                            log=lambda line: None))[0]
+    for (name, a), (_, b) in zip(default.state_dict().items(), nhwc.state_dict().items()):
+        assert torch.allclose(a, b, atol=1e-5), name
