@@ -4,6 +4,7 @@ Each case goes through the real CLI (in-process) on real files and stores and mu
 line on stderr naming the file (or option) and the cause, a non-zero exit, and no output made.
 """
 
+import functools
 import json
 import os
 
@@ -142,6 +143,28 @@ def test_unreachable_urls_are_named_with_the_cause(cli, tmp_path, store):
     assert_refused(cli("info", "ftp://no-such-host.invalid/s.zarr"), "cannot reach ftp://no-such-host.invalid/s.zarr: ")
     assert_refused(cli("reconstruct", store, "ftp://no-such-host.invalid/o.zarr", "--workers", 1),
                    "cannot reach ftp://no-such-host.invalid/o.zarr: ")
+    assert_nothing_made(tmp_path, before)
+
+
+def test_ingest_tells_an_unreachable_host_from_a_missing_file(cli, tmp_path):
+    """fsspec's HTTP filesystem says a file does not exist when its host cannot be reached."""
+    import http.server
+    import threading
+
+    before = set(os.listdir(tmp_path))
+    closed = f"http://127.0.0.1:{closed_port()}/x.npy"
+    assert_refused(cli("ingest", closed, tmp_path / "a.zarr"), f"cannot reach {closed}: ClientConnectorError")
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args):  # the server shares the command's stderr
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Quiet, directory=str(tmp_path)))
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        missing = f"http://127.0.0.1:{server.server_address[1]}/no-such-capture.npy"  # a 404 from a live server
+        assert_refused(cli("ingest", missing, tmp_path / "b.zarr"), f"cannot read {missing}: no such file")
+    finally:
+        server.shutdown()
     assert_nothing_made(tmp_path, before)
 
 
