@@ -145,7 +145,8 @@ def preview(store: Annotated[str, typer.Argument(help="Spike store URL.")],
 
 Workers = Annotated[Optional[int], typer.Option(help="Local Dask worker processes (default: one per core; at most "
                                                      "4 per core and 256).")]
-Scheduler = Annotated[Optional[str], typer.Option(help="Dask scheduler address (also DASK_SCHEDULER_ADDRESS).")]
+Scheduler = Annotated[Optional[str], typer.Option(help="Dask scheduler address (default: DASK_SCHEDULER_ADDRESS, else Dask's "
+                                                          "scheduler-address setting).")]
 
 
 @command()

@@ -3,7 +3,7 @@
 Workers are processes with one task thread each; the numerical libraries inside a task
 (numba, OpenCV, torch) get ``cores // workers`` threads so that a 2-core laptop with two
 workers is not oversubscribed. An address comes from ``--scheduler`` or
-``DASK_SCHEDULER_ADDRESS``; an unreachable one is a one-line error within seconds.
+``DASK_SCHEDULER_ADDRESS`` or Dask's ``scheduler-address`` setting; an unreachable one is a one-line error within seconds.
 Workers started with ``--resources GPU=1`` are GPU workers (:func:`gpu_workers`).
 
 A local cluster listens on loopback only: its scheduler, workers and dashboard (the dashboard
@@ -58,8 +58,11 @@ def check_workers(workers: int | None) -> None:
 
 
 def scheduler_address(scheduler: str | None) -> str | None:
-    """The scheduler to use: ``--scheduler``, else ``DASK_SCHEDULER_ADDRESS``; None means a local cluster."""
-    return scheduler or os.environ.get("DASK_SCHEDULER_ADDRESS")
+    """The scheduler to use, as Dask users expect: ``--scheduler`` (or ``scheduler=``), else
+    ``DASK_SCHEDULER_ADDRESS`` (read now, not only when Dask was imported), else ``scheduler-address`` in
+    Dask's configuration (a YAML file in ``~/.config/dask/`` or ``DASK_CONFIG``, or ``dask.config.set``).
+    None means a local cluster of our own."""
+    return scheduler or os.environ.get("DASK_SCHEDULER_ADDRESS") or dask.config.get("scheduler-address", None)
 
 
 @contextlib.contextmanager

@@ -1,0 +1,127 @@
+"""The Python API: the main jobs as functions, importable as ``from cscsr import ingest, simulate, reconstruct,
+evaluate`` (``cscsr`` loads this module only when one of them is first used).
+
+Every function takes its inputs and output as paths or URLs (``file://``, ``s3://``, ``memory://``, ...), the
+command's options as keyword arguments (the fields of :class:`~pipeline.ingest.IngestOptions`,
+:class:`~pipeline.simulate.SimulateOptions`, :class:`~pipeline.reconstruct.ReconstructOptions`), and an
+optional connected :class:`distributed.Client`. It returns a :class:`Written`: what it wrote and what it found.
+
+Where the work runs, for the jobs on Dask (``simulate``, ``reconstruct``, ``evaluate``):
+
+1. ``client=``: that client's cluster;
+2. else ``scheduler=ADDRESS``, else ``DASK_SCHEDULER_ADDRESS``, else ``scheduler-address`` in Dask's
+   configuration (a file in ``~/.config/dask/``, ``DASK_CONFIG``, or ``dask.config.set``): that scheduler;
+3. else a local cluster of ``workers=`` processes (default one per core), started and stopped by the call.
+
+``ingest`` reads one capture as one stream in bounded memory: it runs in the calling process, with or
+without a client. Bad input raises :class:`stages.errors.InputError` (a ``ValueError``) before any output
+exists, with the same one-line message the command prints.
+"""
+
+import dataclasses
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+from stages.errors import InputError
+
+
+@dataclass(frozen=True)
+class Written:
+    """What a job wrote.
+
+    ``url``: the store (or, for ``evaluate``, the folder) written. ``attrs``: the store's attributes as
+    written (shape, CFA, gain, ``spike_count``, ... of a spike store; ``method``, ``frames``, ``state`` ... of
+    a video store). ``counts``: what the job did (``reconstruct``: ``frames``, ``tasks_run``,
+    ``tasks_skipped``; ``ingest``/``simulate``: ``frames``, ``spikes``). ``rows``: ``evaluate``'s summary,
+    one dict per method (``method``, ``psnr``, ``ssim``, ``frames``, ``seconds_per_image``).
+    """
+
+    url: str
+    attrs: dict = field(default_factory=dict)
+    counts: dict = field(default_factory=dict)
+    rows: tuple = ()
+
+
+def _options(kind, job: str, given: dict):
+    """``kind(**given)``, with an unknown option named in one line with the ones there are."""
+    names = [f.name for f in dataclasses.fields(kind)]
+    if unknown := [name for name in given if name not in names]:
+        raise TypeError(f"{job}() got an unknown option {unknown[0]!r}: expected some of {', '.join(names)}")
+    return kind(**given)
+
+
+def _spike_counts(url: str) -> dict:
+    from pipeline.spike_store import open_spike_store
+
+    store = open_spike_store(url)
+    return {"frames": store.n_frames, "spikes": int(store.attrs.get("spike_count", 0))}
+
+
+def _address_of(client) -> str:
+    """The address other clients reach ``client``'s scheduler at (``simulate`` connects its own client)."""
+    address = client.scheduler.address
+    if address.startswith("inproc://"):
+        raise InputError(f"simulate needs a cluster it can reach by address; {address} is in this process only "
+                         "(start the LocalCluster with processes=True)")
+    return address
+
+
+def ingest(src: str, store: str, *, client=None, progress: bool = False, **options) -> Written:
+    """A raw capture (``.dat``, ``.npy``, ``.npz``) into a new spike store at ``store``.
+
+    ``options``: ``height``, ``width`` (required for ``.dat``), ``cfa`` (``"mono"``), ``fps``, ``flip``,
+    ``head_columns``, ``key``, ``reset``, ``overwrite`` as in ``cscsr ingest``. ``client`` is accepted like
+    everywhere else and not needed: the capture is one stream, read in this process.
+    """
+    from pipeline.ingest import IngestOptions, ingest as run
+
+    del client  # one sequential stream: nothing to spread over a cluster
+    attrs = run(src, store, _options(IngestOptions, "ingest", options), progress=progress)
+    return Written(str(store), dict(attrs), _spike_counts(store))
+
+
+def simulate(src: str, store: str, *, client=None, workers: int | None = None, scheduler: str | None = None,
+             progress: bool = False, **options) -> Written:
+    """An LR Bayer spike recording with HR ground truth, simulated from ``src`` (a video, a folder of frames,
+    a Zarr video or one image) into a new spike store at ``store``, on Dask.
+
+    ``options``: the fields of ``SimulateOptions`` (``scale``, ``cfa``, ``brightness``, ``threshold``,
+    ``frames``, ``motion``, ``seed``, ``noise``, ``reset``, ``interp``, ``truth_every``, ``speed``,
+    ``deform``, ``fps``, ``chunk_frames``, ``overwrite``) as in ``cscsr simulate``.
+    """
+    from pipeline.simulate import SimulateOptions, simulate as run
+
+    checked = _options(SimulateOptions, "simulate", options)
+    attrs = run(src, store, checked, workers=workers, progress=progress,
+                scheduler=_address_of(client) if client is not None else scheduler)
+    return Written(str(store), dict(attrs), _spike_counts(store))
+
+
+def reconstruct(store: str, out: str, *, client=None, workers: int | None = None, scheduler: str | None = None,
+                progress: bool = False, **options) -> Written:
+    """HR colour video from the spike store at ``store`` into a new video store at ``out``, on Dask.
+
+    ``options``: the fields of ``ReconstructOptions`` (``method`` ``"tfp"``/``"tfi"``/``"cscsr"``/
+    ``"cscsr-ensemble"``, ``weights``, ``every``, ``window``, ``gain``, ``scale``, ``tile``, ``precision``,
+    ``gpu_batch``, ``segment_tasks``, ``resume``, ``overwrite``) as in ``cscsr reconstruct``.
+    """
+    from pipeline.reconstruct import ReconstructOptions, reconstruct as run
+    from pipeline.video_store import open_video_store
+
+    counts = run(store, out, _options(ReconstructOptions, "reconstruct", options), workers=workers,
+                 scheduler=scheduler, client=client, progress=progress)
+    return Written(str(out), dict(open_video_store(out).attrs), dict(counts))
+
+
+def evaluate(store: str, methods: str | Iterable[str] = ("tfp", "tfi"), out: str = "evaluation", *,
+             weights: str | None = None, client=None, workers: int | None = None, scheduler: str | None = None,
+             progress: bool = False) -> Written:
+    """PSNR / SSIM of ``methods`` (a list, or ``"tfp,tfi"``) against a simulated store's truth, as ``cscsr
+    evaluate``: the reconstructions, ``metrics.csv``, ``summary.csv`` and ``comparison.png`` in the folder
+    ``out``; ``rows`` holds the summary, one dict per method."""
+    from pipeline.evaluate import evaluate as run
+
+    names = [m.strip() for m in (methods.split(",") if isinstance(methods, str) else methods) if m.strip()]
+    rows = run(store, names, out, weights=weights, workers=workers, scheduler=scheduler, client=client,
+               progress=progress)
+    return Written(str(out), {}, {"methods": len(rows)}, tuple(rows))

@@ -1,0 +1,113 @@
+"""The Python API (``from cscsr import ingest, simulate, reconstruct, evaluate``) on a real LocalCluster:
+what each function returns, where it runs without a client (Dask's own configuration), and that
+``import cscsr`` alone leaves the pipeline and Dask unimported."""
+
+import subprocess
+import sys
+from dataclasses import FrozenInstanceError
+
+import cv2
+import dask
+import imageio.v3 as iio
+import numpy as np
+import pytest
+from distributed import get_task_stream
+
+from cscsr import Written, evaluate, ingest, reconstruct, simulate
+from pipeline.video_store import open_video_store
+from stages.errors import InputError
+from tests.conftest import integrate_and_fire, smooth_rate, write_dat
+from tests.test_simulate import picture
+
+HEIGHT, WIDTH, FRAMES = 16, 24, 82
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    """A static RGGB scene of known firing rates: the .dat path, its spikes and the rates."""
+    rate = smooth_rate(HEIGHT, WIDTH)
+    bits = integrate_and_fire(rate, FRAMES)
+    path = tmp_path_factory.mktemp("capture") / "scene.dat"
+    write_dat(path, bits)
+    return str(path), bits, rate
+
+
+def test_ingest_then_reconstruct_with_a_given_client(capture, client, tmp_path):
+    src, bits, rate = capture
+    store, out = str(tmp_path / "spikes.zarr"), str(tmp_path / "video.zarr")
+
+    ingested = ingest(src, store, height=HEIGHT, width=WIDTH, cfa="rggb", client=client)
+    assert isinstance(ingested, Written) and ingested.url == store
+    assert ingested.counts == {"frames": FRAMES, "spikes": int(bits.sum())}
+    assert (ingested.attrs["height"], ingested.attrs["width"], ingested.attrs["cfa"]) == (HEIGHT, WIDTH, "rggb")
+    assert ingested.attrs["spike_count"] == int(bits.sum())
+
+    with get_task_stream(client) as stream:
+        made = reconstruct(store, out, method="tfp", every=41, gain=1.0, client=client)
+    assert made.url == out and made.counts == {"frames": 2, "tasks_run": 2, "tasks_skipped": 0}
+    assert made.attrs["method"] == "tfp" and made.attrs["state"] == "complete" and made.attrs["every"] == 41
+    assert sum("_reconstruct_tiles" in str(task["key"]) for task in stream.data) == 2  # ran on this cluster
+
+    video = open_video_store(out)["video"][:]
+    assert video.shape == (2, 4 * HEIGHT, 4 * WIDTH, 3) and video.dtype == np.uint8
+    # a static scene: both frames show the rates it fired at (window means, demosaicked, upsampled)
+    grey = video.astype(np.float64).mean(axis=(0, 3))
+    expected = cv2.resize(rate, (4 * WIDTH, 4 * HEIGHT), interpolation=cv2.INTER_LINEAR)
+    assert np.corrcoef(grey.ravel(), expected.ravel())[0, 1] > 0.9
+    with pytest.raises(FrozenInstanceError):
+        made.url = "elsewhere"
+
+
+def test_bad_options_are_refused_before_any_output(capture, client, tmp_path):
+    src, _, _ = capture
+    with pytest.raises(TypeError, match="unknown option 'colour'.*height"):
+        ingest(src, str(tmp_path / "a.zarr"), height=HEIGHT, width=WIDTH, colour="rggb")
+    with pytest.raises(InputError, match="unknown CFA .rgbw."):
+        ingest(src, str(tmp_path / "b.zarr"), height=HEIGHT, width=WIDTH, cfa="rgbw")
+    store = str(tmp_path / "spikes.zarr")
+    ingest(src, store, height=HEIGHT, width=WIDTH, cfa="rggb")
+    with pytest.raises(InputError, match="method"):
+        reconstruct(store, str(tmp_path / "c.zarr"), method="magic", client=client)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["spikes.zarr"]
+
+
+@pytest.mark.parametrize("how", ["environment", "dask-config"])
+def test_without_a_client_dask_configuration_names_the_scheduler(capture, client, tmp_path, monkeypatch, how):
+    """DASK_SCHEDULER_ADDRESS, or scheduler-address in Dask's configuration: the job's tasks run on that
+    scheduler's workers (its task stream records them), not on a local cluster of its own."""
+    src, _, _ = capture
+    store = str(tmp_path / "spikes.zarr")
+    ingest(src, store, height=HEIGHT, width=WIDTH, cfa="rggb")
+    address = client.scheduler.address
+    monkeypatch.delenv("DASK_SCHEDULER_ADDRESS", raising=False)
+    if how == "environment":
+        monkeypatch.setenv("DASK_SCHEDULER_ADDRESS", address)
+    with dask.config.set({"scheduler-address": address} if how == "dask-config" else {}), \
+            get_task_stream(client) as stream:
+        made = reconstruct(store, str(tmp_path / "video.zarr"), method="tfi", every=41)
+    assert made.counts["tasks_run"] == 2
+    ran = [task for task in stream.data if "_reconstruct_tiles" in str(task["key"])]
+    assert len(ran) == 2 and {task["worker"] for task in ran} <= set(client.scheduler_info()["workers"])
+
+
+def test_simulate_and_evaluate_with_a_given_client(client, tmp_path):
+    iio.imwrite(tmp_path / "scene.png", picture("astronaut", 64))
+    store = str(tmp_path / "sim.zarr")
+    with get_task_stream(client) as stream:
+        made = simulate(str(tmp_path / "scene.png"), store, scale=4, frames=41, motion="static", client=client)
+    assert made.url == store and made.counts["frames"] == 41 and made.counts["spikes"] == made.attrs["spike_count"] > 0
+    assert (made.attrs["height"], made.attrs["width"], made.attrs["scale"]) == (16, 16, 4)
+    assert any("_write_spikes" in str(task["key"]) for task in stream.data)  # simulated on the given cluster
+
+    scored = evaluate(store, "tfp,tfi", str(tmp_path / "evaluation"), client=client)
+    assert scored.url == str(tmp_path / "evaluation") and [row["method"] for row in scored.rows] == ["tfp", "tfi"]
+    assert all(row["frames"] == 1 and 10 < row["psnr"] < 60 and 0 < row["ssim"] <= 1 for row in scored.rows)
+    assert {"metrics.csv", "summary.csv", "comparison.png"} <= {p.name for p in (tmp_path / "evaluation").iterdir()}
+
+
+def test_import_cscsr_imports_neither_the_pipeline_nor_dask():
+    code = ("import sys, cscsr; loaded = sorted(m for m in sys.modules if m.split('.')[0] in "
+            "('pipeline', 'dask', 'distributed')); print(loaded); "
+            "from cscsr import reconstruct; print(reconstruct.__module__)")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert result.stdout.split("\n")[:2] == ["[]", "pipeline.api"]
