@@ -20,6 +20,20 @@ err = Console(stderr=True)
 stdout = Console()
 
 
+def show_version(value: bool) -> None:
+    if value:
+        from cscsr import __version__
+
+        print(f"cscsr {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def options(version: Annotated[bool, typer.Option("--version", callback=show_version, is_eager=True,
+                                                  help="Print the version and exit.")] = False) -> None:
+    """Reconstruction pipeline for colour spike cameras: ingest, inspect, export, reconstruct."""
+
+
 def command_line(context: typer.Context) -> str:
     """The running command as one would retype it: its name, arguments, and every option not at its default."""
     words = ["cscsr", context.info_name]

@@ -20,6 +20,7 @@ else automatic exposure of the middle window), so tiles and frames agree with ea
 
 import contextlib
 import functools
+import sys
 import uuid
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
@@ -269,7 +270,7 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
         with held(out), progress_bar(f"reconstruct {options.method}", len(centres), enabled=progress) as advance:
             if client:
                 if progress and (link := dashboard_link(client)):
-                    print(f"dashboard: {link}")
+                    print(f"dashboard: {link}", file=sys.stderr)  # never mixed with results on stdout
                 outcomes = work(client, groups)
             else:  # our own local cluster: a fresh one per segment keeps memory bounded
                 outcomes = in_segments(work, groups, options.segment_tasks, workers=workers, show_dashboard=progress)

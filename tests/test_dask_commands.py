@@ -2,6 +2,7 @@
 127.0.0.1, with ``cscsr reconstruct --scheduler`` and ``cscsr watch --once --scheduler`` submitting to them."""
 
 import os
+import re
 import subprocess
 import sys
 import time
@@ -83,6 +84,7 @@ def test_reconstruct_and_watch_on_a_real_scheduler(scheduler, recording, tmp_pat
                           "--tile", "16", "--scheduler", scheduler], capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     assert chunk_files(remote) == chunk_files(local)  # the same bytes as on a local cluster
+    assert "dashboard" not in run.stdout and re.search(r"^dashboard: http://\S+/status$", run.stderr, re.MULTILINE)
 
     outbox = tmp_path / "outbox"
     inbox = os.path.dirname(recording)
