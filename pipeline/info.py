@@ -68,9 +68,9 @@ def summarize_video(url: str, group) -> dict:
     attrs = dict(group.attrs)
     video, frames = group[VIDEO], group[FRAMES][:]
     n, height, width = video.shape[:3]
-    fps = None
-    with contextlib.suppress(InputError, KeyError, TypeError, ZeroDivisionError):  # the source may be gone
-        fps = float(open_group(attrs["source"]).attrs["fps"]) / int(attrs["every"])
+    fps = attrs.get("fps")  # recorded since format_version 1; before, from the source, which may be gone
+    with contextlib.suppress(InputError, KeyError, TypeError, ZeroDivisionError):
+        fps = fps or float(open_group(attrs["source"]).attrs["fps"]) / int(attrs["every"])
     committed = group[COMMITTED] if COMMITTED in group else None  # one chunk per task, written when it commits
     done = None if committed is None else committed.size - len(missing_chunks(committed))
     return {

@@ -7,7 +7,7 @@ from pipeline.prefetch import prefetched
 from pipeline.progress import progress_bar
 from pipeline.spike_store import SpikeMeta, SpikeStoreWriter, chunk_frames_for
 from pipeline.lease import claimed
-from pipeline.storage import check_apart, new_output
+from pipeline.storage import check_apart, new_output, recorded
 from stages.bits import count_spikes, packed_width
 from stages.cfa import check_cfa, flip_vertically
 
@@ -40,7 +40,7 @@ def ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *, pro
     meta = SpikeMeta(
         height=capture.height, width=capture.width,
         cfa=flip_vertically(sensor_cfa, capture.height) if options.flip else sensor_cfa,
-        fps=options.fps, source=str(src), flipped=options.flip, head_columns=options.head_columns, reset=options.reset,
+        fps=options.fps, source=recorded(src), flipped=options.flip, head_columns=options.head_columns, reset=options.reset,
     )
     chunk = chunk_frames_for(meta, capture.n_frames)
     frames_per_block = chunk * max(1, BLOCK_BYTES // (chunk * capture.height * packed_width(capture.width)))

@@ -34,7 +34,7 @@ from pipeline.lease import check_free, claimed, held
 from pipeline.progress import progress_bar
 from pipeline.segments import Outcome, in_segments
 from pipeline.spike_store import SpikeStore, open_spike_store, read_frames
-from pipeline.storage import check_apart, claim_output, exists
+from pipeline.storage import check_apart, claim_output, exists, recorded
 from pipeline.video_store import TileWriter, committed_mask, create_video_store, open_video_store
 from stages.colour import auto_gain
 from stages.errors import InputError
@@ -121,7 +121,7 @@ class Plan:
     def attrs(self) -> dict:
         """What the output store records (and ``--resume`` checks)."""
         return {"method": self.method, "weights": self.weights, "precision": self.precision, "window": self.window,
-                "every": self.every, "gain": self.gain, "scale": self.scale, "source": self.spikes, "cfa": self.cfa,
+                "every": self.every, "gain": self.gain, "scale": self.scale, "source": recorded(self.spikes), "cfa": self.cfa,
                 "reset": self.reset, "tile_lr": self.tile}
 
 
@@ -258,11 +258,13 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
             gain = client.submit(_auto_gain, *args).result() if client else _auto_gain(*args)
         # the file actually used (the shipped one by default); none for a classic method
         weights = getattr(method, "weights", options.weights) if network else None
-        plan = Plan(store_url, out, options.method, weights, options.window, options.every, float(gain),
+        # the spike store as workers find it, whatever their working directory (and as the output records it)
+        plan = Plan(recorded(store_url), out, options.method, weights, options.window, options.every, float(gain),
                     scale, meta.cfa, meta.reset, options.tile, uuid.uuid4().hex, precision, options.gpu_batch)
         batch = getattr(method, "batch", 1)
         on_gpus = network and client is not None and gpu_workers(client) > 0  # our own local cluster has none
-        done = _prepare_output(plan, options.resume, centres, grid, (meta.height * scale, meta.width * scale))
+        done = _prepare_output(plan, options.resume, centres, grid, (meta.height * scale, meta.width * scale),
+                               fps=meta.fps / options.every)
         blocks = tile_blocks(grid, max(1, options.gpu_batch // batch) if on_gpus else 1)
         groups = task_groups(len(centres), batch, blocks, done)
         work = functools.partial(run_groups, plan=plan, centres=centres, grid=grid,
@@ -335,7 +337,8 @@ def _tally(outcomes: Iterable[Outcome], done: np.ndarray, advance) -> dict[int, 
     return failed
 
 
-def _prepare_output(plan: Plan, resume: bool, centres: list[int], grid: list[list[Tile]], hr_size: tuple[int, int]):
+def _prepare_output(plan: Plan, resume: bool, centres: list[int], grid: list[list[Tile]], hr_size: tuple[int, int],
+                    fps: float | None = None):
     """Create the output (metadata first), or check a resumed one matches; return the commit mask."""
     tiles = (len(grid), len(grid[0]))
     first = grid[0][0]
@@ -343,13 +346,16 @@ def _prepare_output(plan: Plan, resume: bool, centres: list[int], grid: list[lis
     if resume:
         group = open_video_store(plan.out, writable=True)
         before = {"precision": "fp32" if plan.method in NETWORKS else None}  # stores from before --precision
-        recorded = {k: group.attrs.get(k, before.get(k)) for k in plan.attrs()}
+        found = {k: group.attrs.get(k, before.get(k)) for k in plan.attrs()}
+        if isinstance(found["source"], str):  # stores from before sources were absolute: as seen from here
+            found["source"] = recorded(found["source"])
         expected = plan.attrs()
-        changed = [k for k in expected if recorded[k] != expected[k]]
+        changed = [k for k in expected if found[k] != expected[k]]
         if changed or group["video"].shape[0] != len(centres):
-            what = ", ".join(f"{k} {recorded[k]!r} -> {expected[k]!r}" for k in changed) or "frame count"
+            what = ", ".join(f"{k} {found[k]!r} -> {expected[k]!r}" for k in changed) or "frame count"
             raise InputError(f"cannot resume {plan.out}: it was made with other parameters ({what})")
         return committed_mask(group)
-    create_video_store(plan.out, centres=centres, hr_size=hr_size, tile_hr=tile_hr, tiles=tiles, attrs=plan.attrs())
+    create_video_store(plan.out, centres=centres, hr_size=hr_size, tile_hr=tile_hr, tiles=tiles,
+                       attrs=plan.attrs(), fps=fps)
     return np.zeros((len(centres), *tiles), bool)
 

@@ -26,7 +26,7 @@ from pipeline.frame_sources import FrameSource, open_frame_source
 from pipeline.lease import claimed, held
 from pipeline.progress import progress_bar
 from pipeline.spike_store import SpikeMeta, SpikeStoreWriter, chunk_frames_for, write_region
-from pipeline.storage import check_apart, new_output
+from pipeline.storage import check_apart, new_output, recorded
 from stages import sensor
 from stages.cfa import check_cfa
 from stages.errors import InputError
@@ -214,7 +214,7 @@ def simulate(src: str, dest: str, options: SimulateOptions = SimulateOptions(), 
                                  speed=options.speed, deform=options.deform)
     scene = Scene(source, path)
     truth_at = truth_frames(options.frames, options.truth_every)
-    meta = SpikeMeta(height=height, width=width, cfa=options.cfa, fps=options.fps, source=str(src),
+    meta = SpikeMeta(height=height, width=width, cfa=options.cfa, fps=options.fps, source=recorded(src),
                      reset=options.reset, gain=model.gain, threshold=options.threshold,
                      extra={"brightness": options.brightness, "scale": options.scale, "seed": options.seed,
                             "noise": options.noise, "interp": options.interp, "motion": options.motion or "video",
@@ -225,11 +225,16 @@ def simulate(src: str, dest: str, options: SimulateOptions = SimulateOptions(), 
             dask_client(workers=workers, scheduler=scheduler) as client:
         writer = SpikeStoreWriter(dest, meta, options.frames, chunk_frames=chunk)
         hr = (options.scale * height, options.scale * width)
-        writer.add_array("truth", (len(truth_at), *hr, 3), (1, *hr, 3), np.uint8, ("k", "y", "x", "c"))
-        writer.add_array("truth_frames", (len(truth_at),), (max(len(truth_at), 1),), np.int64, ("k",))
+        # dimension names mean one thing in the store: y, x are the sensor's (spikes), hr_y, hr_x the HR
+        # pictures'; k counts truth frames, k_flow the flow fields between them (one fewer)
+        writer.add_array("truth", (len(truth_at), *hr, 3), (1, *hr, 3), np.uint8, ("k", "hr_y", "hr_x", "c"),
+                         {"units": "8-bit RGB, the source's values", "coordinates": "truth_frames"})
+        writer.add_array("truth_frames", (len(truth_at),), (max(len(truth_at), 1),), np.int64, ("k",),
+                         {"units": "spike frame index", "fps": options.fps})
         writer.group["truth_frames"][:] = np.asarray(truth_at, np.int64)
         if path is not None and len(truth_at) > 1:
-            writer.add_array("flow", (len(truth_at) - 1, *hr, 2), (1, *hr, 2), np.float32, ("k", "y", "x", "d"))
+            writer.add_array("flow", (len(truth_at) - 1, *hr, 2), (1, *hr, 2), np.float32,
+                             ("k_flow", "hr_y", "hr_x", "d"), {"units": "HR pixels, (dx, dy)"})
             writer.group.attrs["flow_convention"] = "flow[k] (dx, dy) HR pixels: truth[k] at x is truth[k+1] at x + flow"
 
         pairs = None if scene.is_still else _SourcePairs(client, source, options)

@@ -10,6 +10,7 @@ import contextlib
 import itertools
 import os
 import posixpath
+import warnings
 from collections.abc import Iterator
 
 import fsspec
@@ -70,6 +71,23 @@ def zarr_store(url: str, *, read_only: bool) -> zarr.abc.store.Store:
     if isinstance(fs, LocalFileSystem):
         return zarr.storage.LocalStore(path, read_only=read_only)
     return zarr.storage.FsspecStore.from_url(str(url), read_only=read_only)
+
+
+def recorded(url: str) -> str:
+    """A location as a store records it (``source``): a URL as given, a local path made absolute, so
+    that the record still points to the same place when the store is moved or read from elsewhere."""
+    text = str(url)
+    return text if "://" in text else os.path.abspath(text)
+
+
+def consolidate(url: str) -> None:
+    """Write consolidated metadata (every array's metadata, in the root ``zarr.json``), as xarray and other
+    readers expect. Called once a store's arrays are all declared: array metadata never changes after, and
+    the group's own attributes (``state``, written last) live beside the consolidated copy, so later
+    attribute updates keep it valid. Zarr warns that v3 has no standard for it yet; xarray reads it."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Consolidated metadata is currently not part", category=UserWarning)
+        zarr.consolidate_metadata(zarr_store(url, read_only=False))
 
 
 def open_group(url: str, what: str = "store") -> zarr.Group:

@@ -1,37 +1,52 @@
 """The HR video store: reconstructed frames, their spike-frame centres, and a commit record.
 
 Layout (``PRODUCT.md``): ``video`` uint8 ``(T_out, s*H, s*W, 3)`` with dimension names
-``t, y, x, c``, one chunk per (frame, tile), so each reconstruction task owns exactly one
+``j, hr_y, hr_x, c`` (stores before format_version 1 said ``t, y, x, c``: read alike), one chunk per (frame, tile), so each reconstruction task owns exactly one
 chunk, zstd level 1 (half the encode time of level 3 for 7 % more bytes on HR frames); ``frames`` int64 ``(T_out,)``, the centre spike frame of each output frame;
 ``committed`` uint8 ``(T_out, tiles_y, tiles_x)``, one single-element chunk per task, set to 1
 after that task's tile is written. ``committed`` is the record ``--resume`` trusts (an
 absent chunk of ``video`` could be an empty tile or a lost one; a missing 1 can only mean
 not done). Attributes say how the video was made and ``state`` says whether it is complete.
+The metadata is consolidated once every array is declared (xarray opens the store, ``frames``
+as the coordinate of ``video``); only the group's attributes change after, which keeps it valid.
 """
 
 import numpy as np
 import zarr
+
+import cscsr
 from zarr.codecs import ZstdCodec
 
-from pipeline.storage import zarr_store
+from pipeline.storage import consolidate, zarr_store
 from stages.errors import InputError
 
 VIDEO, FRAMES, COMMITTED = "video", "frames", "committed"
+FORMAT_VERSION = 1
+VIDEO_UNITS = "8-bit sRGB"
 
 
 def create_video_store(url: str, *, centres: list[int], hr_size: tuple[int, int], tile_hr: tuple[int, int],
-                       tiles: tuple[int, int], attrs: dict) -> zarr.Group:
-    """Write every array's metadata, ``frames`` and the attributes (state "writing")."""
-    group = zarr.open_group(zarr_store(url, read_only=False), mode="w", attributes={**attrs, "state": "writing"})
+                       tiles: tuple[int, int], attrs: dict, fps: float | None = None) -> zarr.Group:
+    """Write every array's metadata, ``frames`` and the attributes (state "writing"), and consolidate the
+    metadata. ``fps``: output frames per second of recording time (the spike rate over ``every``)."""
+    info = {"format_version": FORMAT_VERSION, "cscsr_version": cscsr.__version__}
+    if fps is not None:
+        info["fps"] = fps
+    group = zarr.open_group(zarr_store(url, read_only=False), mode="w",
+                            attributes={**attrs, **info, "state": "writing"})
     n = len(centres)
+    viewer = {k: attrs[k] for k in ("window", "every", "method") if k in attrs}
     group.create_array(VIDEO, shape=(n, *hr_size, 3), chunks=(1, *tile_hr, 3), dtype=np.uint8, fill_value=0,
-                       compressors=ZstdCodec(level=1), dimension_names=("t", "y", "x", "c"),
+                       compressors=ZstdCodec(level=1), dimension_names=("j", "hr_y", "hr_x", "c"),
+                       attributes={"units": VIDEO_UNITS, "coordinates": FRAMES, **viewer, **info},
                        config={"write_empty_chunks": True})
-    group.create_array(FRAMES, shape=(n,), chunks=(max(n, 1),), dtype=np.int64, fill_value=0, dimension_names=("t",))
+    group.create_array(FRAMES, shape=(n,), chunks=(max(n, 1),), dtype=np.int64, fill_value=0, dimension_names=("j",),
+                       attributes={"units": "spike frame index, the centre of each output frame's window"})
     group.create_array(COMMITTED, shape=(n, *tiles), chunks=(1, 1, 1), dtype=np.uint8, fill_value=0,
-                       dimension_names=("t", "tile_y", "tile_x"))
+                       dimension_names=("j", "tile_y", "tile_x"), attributes={"units": "1 = tile written"})
     group[FRAMES][:] = np.asarray(centres, np.int64)
-    return group
+    consolidate(url)
+    return zarr.open_group(zarr_store(url, read_only=False), mode="r+")  # knows the consolidated copy
 
 
 def open_video_store(url: str, *, writable: bool = False) -> zarr.Group:
