@@ -14,10 +14,22 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from stages.cfa import PATTERNS
+from stages.reconstruct import METHODS
+
 app = typer.Typer(no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False,
                   help="Reconstruction pipeline for colour spike cameras: ingest, inspect, export, reconstruct.")
 err = Console(stderr=True)
 stdout = Console()
+
+
+def choices(names) -> str:
+    """How ``--help`` shows an option's choices; the command checks the value itself, so that a bad one
+    is the usual one-line error rather than Click's usage block."""
+    return "[" + "|".join(names) + "]"
+
+
+METHOD_CHOICES, CFA_CHOICES = choices(METHODS), choices(PATTERNS)
 
 
 def show_version(value: bool) -> None:
@@ -113,7 +125,7 @@ def ingest(src: Annotated[str, typer.Argument(help="Capture: .dat, .npy or .npz 
            height: Annotated[Optional[int], typer.Option(help="Frame height (required for .dat).")] = None,
            width: Annotated[Optional[int], typer.Option(help="Frame width without header columns (required for .dat).")] = None,
            flip: Annotated[bool, typer.Option("--flip", help="Frames are stored upside down (real cameras).")] = False,
-           cfa: Annotated[str, typer.Option(help="Sensor CFA as recorded: rggb, bggr, grbg, gbrg or mono.")] = "mono",
+           cfa: Annotated[str, typer.Option(metavar=CFA_CHOICES, help="Sensor CFA as recorded.")] = "mono",
            fps: Annotated[float, typer.Option(help="Spike frames per second.")] = 20000.0,
            head_columns: Annotated[int, typer.Option(help="Header columns at the end of each .dat row, dropped (SPS10: 16 of 416).")] = 0,
            key: Annotated[Optional[str], typer.Option(help="Array name inside a .npz (default: spk).")] = None,
@@ -127,10 +139,12 @@ def ingest(src: Annotated[str, typer.Argument(help="Capture: .dat, .npy or .npz 
 
 
 @command()
-def export(store: Annotated[str, typer.Argument(help="Spike store URL.")],
-           dest: Annotated[str, typer.Argument(help="Destination .dat (any URL).")],
+def export(store: Annotated[str, typer.Argument(help="Spike store or HR video store URL.")],
+           dest: Annotated[str, typer.Argument(help="A spike store's destination: a .dat file. A video store's: "
+                                                    "a .mp4 file, or a folder for PNG frames (any URL).")],
            overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace DEST if it exists.")] = False):
-    """Write a spike store back out as a raw .dat capture (original orientation)."""
+    """A spike store back to a raw .dat capture (original orientation, byte-identical to what was ingested);
+    an HR video store to an H.264 .mp4 (10 fps) or to a folder of PNG frames (frame_<centre>.png)."""
     from pipeline.export import export as run
 
     run(store, dest, overwrite=overwrite)
@@ -167,7 +181,7 @@ Scheduler = Annotated[Optional[str], typer.Option(help="Dask scheduler address (
 def simulate(src: Annotated[str, typer.Argument(help="A video, a folder of frames, a Zarr video, or one image.")],
              store: Annotated[str, typer.Argument(help="Spike store to create (any URL).")],
              scale: Annotated[int, typer.Option(help="Super-resolution factor s: LR = HR / s.")] = 4,
-             cfa: Annotated[str, typer.Option(help="CFA: rggb, bggr, grbg, gbrg or mono.")] = "rggb",
+             cfa: Annotated[str, typer.Option(metavar=CFA_CHOICES, help="CFA of the simulated sensor.")] = "rggb",
              brightness: Annotated[float, typer.Option(help="Brightness coefficient alpha.")] = 0.6,
              threshold: Annotated[float, typer.Option(help="Firing threshold theta.")] = 1.0,
              frames: Annotated[int, typer.Option(help="Spike frames to simulate (>= 41).")] = 41,
@@ -196,7 +210,7 @@ def simulate(src: Annotated[str, typer.Argument(help="A video, a folder of frame
 @command()
 def reconstruct(store: Annotated[str, typer.Argument(help="Spike store URL.")],
                 out: Annotated[str, typer.Argument(help="HR video store to write (any URL).")],
-                method: Annotated[str, typer.Option(help="tfp, tfi, cscsr or cscsr-ensemble.")] = "tfp",
+                method: Annotated[str, typer.Option(metavar=METHOD_CHOICES, help="Reconstruction method.")] = "tfp",
                 every: Annotated[int, typer.Option(help="One output frame every K spike frames.")] = 41,
                 window: Annotated[int, typer.Option(help="Spike frames per output frame (odd).")] = 41,
                 gain: Annotated[Optional[float], typer.Option(help="Rate-to-intensity gain (default: store's, else auto).")] = None,
@@ -226,7 +240,7 @@ def reconstruct(store: Annotated[str, typer.Argument(help="Spike store URL.")],
 
 @command()
 def evaluate(store: Annotated[str, typer.Argument(help="Simulated spike store (with truth).")],
-             methods: Annotated[str, typer.Option(help="Comma-separated methods: tfp, tfi, cscsr, cscsr-ensemble.")] = "tfp,tfi",
+             methods: Annotated[str, typer.Option(help=f"Comma-separated methods of {', '.join(METHODS)}.")] = "tfp,tfi",
              out_dir: Annotated[str, typer.Option("--out", help="Folder for reconstructions, CSVs and the picture.")] = "evaluation",
              weights: Annotated[Optional[str], typer.Option(help="Network weights for cscsr.")] = None,
              workers: Workers = None, scheduler: Scheduler = None):
@@ -368,7 +382,7 @@ def watch(inbox: Annotated[str, typer.Argument(help="Where recordings land (any 
           outbox: Annotated[str, typer.Argument(help="Local folder for outputs and the ledger.")],
           interval: Annotated[str, typer.Option(help="Time between passes: 30s, 10m, 1h.")] = "10m",
           once: Annotated[bool, typer.Option("--once", help="One pass, then exit (for cron).")] = False,
-          method: Annotated[str, typer.Option(help="tfp, tfi, cscsr or cscsr-ensemble.")] = "tfp",
+          method: Annotated[str, typer.Option(metavar=METHOD_CHOICES, help="Reconstruction method.")] = "tfp",
           weights: Annotated[Optional[str], typer.Option(help="Network weights for cscsr.")] = None,
           every: Annotated[int, typer.Option(help="One output frame every K spike frames.")] = 41,
           tile: Annotated[int, typer.Option(help="Tile side in LR pixels.")] = 256,
@@ -377,7 +391,7 @@ def watch(inbox: Annotated[str, typer.Argument(help="Where recordings land (any 
           backoff: Annotated[float, typer.Option(help="Seconds before the first retry (doubles each time).")] = 60.0,
           height: Annotated[Optional[int], typer.Option(help="Default frame height of raw captures.")] = None,
           width: Annotated[Optional[int], typer.Option(help="Default frame width of raw captures.")] = None,
-          cfa: Annotated[str, typer.Option(help="Default CFA of raw captures.")] = "rggb",
+          cfa: Annotated[str, typer.Option(metavar=CFA_CHOICES, help="Default CFA of raw captures.")] = "rggb",
           flip: Annotated[bool, typer.Option("--flip", help="Raw captures are upside down by default.")] = False,
           fps: Annotated[float, typer.Option(help="Default spike frames per second of raw captures.")] = 20000.0,
           reset: Annotated[str, typer.Option(help="Default sensor reset of raw captures.")] = "subtract",

@@ -36,3 +36,32 @@ def test_the_dashboard_link_goes_to_stderr_never_stdout(cli_process, tmp_path):
     assert run.returncode == 0, run.stderr
     assert " ".join(run.stdout.split()) == f"{out}: 1 frames (1 tasks run, 0 already committed)"  # the result only
     assert re.search(r"^dashboard: http://127\.0\.0\.1:\d+/status$", run.stderr, re.MULTILINE)
+
+
+def test_help_shows_the_choices_of_method_and_cfa_and_what_export_writes():
+    from typer.testing import CliRunner
+
+    from pipeline.cli import app
+
+    def help_of(*command):
+        result = CliRunner().invoke(app, [*command, "--help"], env={"COLUMNS": "200"})  # no wrapped choices
+        assert result.exit_code == 0
+        return " ".join(result.stdout.replace("│", " ").split())
+
+    for command in ("reconstruct", "watch"):
+        assert "--method [tfp|tfi|cscsr|cscsr-ensemble]" in help_of(command)
+    for command in ("ingest", "simulate", "watch"):
+        assert "--cfa [rggb|bggr|grbg|gbrg|mono]" in help_of(command)
+    assert "tfp, tfi, cscsr, cscsr-ensemble" in help_of("evaluate")
+    export = help_of("export")
+    assert ".mp4" in export and "PNG" in export and ".dat" in export
+
+
+def test_a_value_outside_the_choices_is_one_line(cli, tmp_path):
+    write_dat(tmp_path / "scene.dat", integrate_and_fire(smooth_rate(8, 8), 41))
+    result = cli("ingest", tmp_path / "scene.dat", tmp_path / "s.zarr", "--height", 8, "--width", 8, "--cfa", "rgbw")
+    assert result.exit_code == 1 and result.stderr == ("error: unknown CFA 'rgbw': expected one of rggb, bggr, grbg, "
+                                                       "gbrg, mono\n")
+    result = cli("reconstruct", tmp_path / "s.zarr", tmp_path / "v.zarr", "--method", "magic")
+    assert result.exit_code == 1 and result.stderr.count("\n") == 1 and "magic" in result.stderr
+    assert not (tmp_path / "s.zarr").exists() and not (tmp_path / "v.zarr").exists()
