@@ -11,6 +11,7 @@ import xarray as xr
 import zarr
 
 import cscsr
+from pipeline.info import summarize_video
 from pipeline.ingest import IngestOptions, ingest
 from pipeline.reconstruct import ReconstructOptions, reconstruct
 from pipeline.simulate import SimulateOptions, simulate
@@ -80,6 +81,7 @@ def test_a_video_store_opens_with_xarray(simulated, client, tmp_path):
     assert video["fps"] == ds.attrs["fps"] == 20000.0 / 20
     assert ds.attrs["format_version"] == 1 and ds.attrs["cscsr_version"] == cscsr.__version__
     assert ds.attrs["source"] == simulated and ds.attrs["state"] == "complete"
+    assert summarize_video(out, open_video_store(out))["fps"] == 1000.0  # info reads it from the store itself
 
     # a resumed run on the finished store keeps it whole: consolidated, complete, nothing redone
     counts = reconstruct(simulated, out, ReconstructOptions(method="tfp", every=20, resume=True), client=client,
