@@ -31,11 +31,11 @@ def test_dat_round_trip_and_pixel_order(height, width, head, flip):
     layout = DatLayout(height, width, head, flip)
     rng = np.random.default_rng(height)
     stored = (rng.random((3, height, width + head)) < 0.4).astype(np.uint8)
-    stored[:, :, :head] = 0  # header columns come back zero-filled
+    stored[:, :, width:] = 0  # header columns (at the end of each row) come back zero-filled
     raw = np.packbits(stored.reshape(3, -1), axis=-1, bitorder="little")
     assert raw.shape[1] == layout.frame_bytes
     packed = dat_to_packed(raw, layout)
-    upright = stored[:, ::-1, head:] if flip else stored[:, :, head:]
+    upright = stored[:, ::-1, :width] if flip else stored[:, :, :width]
     np.testing.assert_array_equal(unpack_rows(packed, width), upright)
     np.testing.assert_array_equal(packed_to_dat(packed, layout), raw)
 
