@@ -25,13 +25,20 @@ RUN apt-get update \
     && apt-get install -y --no-install-recommends libglib2.0-0 \
     && rm -rf /var/lib/apt/lists/*
 
+# Every version the host's `make` installs (constraints.txt, `make lock`), so the cluster
+# runs the same Dask, zarr and numcodecs as the client.
+COPY constraints.txt /etc/cscsr/constraints.txt
+
 # torch first, pinned, from the chosen index; the project's "torch>=2.4" accepts it as is.
-RUN pip install --no-cache-dir torch==2.13.0 --index-url ${TORCH_INDEX}
+# Only torch comes from that index (--no-deps): its dependencies (and a CUDA build's nvidia-*
+# libraries) come with the project below, from PyPI, at the constrained versions. The pin has
+# no local label, so the CPU wheel (2.13.0+cpu) and a CUDA one (2.13.0+cu126) both satisfy it.
+RUN pip install --no-cache-dir --no-deps -c /etc/cscsr/constraints.txt torch==2.13.0 --index-url ${TORCH_INDEX}
 
 # The project; bokeh on top so the scheduler's dashboard (:8787) works (distributed
 # serves it only when bokeh is installed; the project itself does not need it).
 COPY . /src
-RUN pip install --no-cache-dir /src "bokeh>=3.1" && rm -rf /src
+RUN pip install --no-cache-dir -c /etc/cscsr/constraints.txt /src "bokeh>=3.1" && rm -rf /src
 
 RUN groupadd --gid ${GID} cscsr \
     && useradd --uid ${UID} --gid ${GID} --create-home --shell /usr/sbin/nologin cscsr \
