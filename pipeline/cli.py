@@ -6,6 +6,7 @@ the full traceback.
 
 import functools
 import json
+import logging
 import os
 import sys
 from typing import Annotated, Optional
@@ -40,10 +41,51 @@ def show_version(value: bool) -> None:
         raise typer.Exit()
 
 
+LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+LOG_TIME = "%Y-%m-%dT%H:%M:%S%z"  # ISO 8601, local time with its offset
+log_level = logging.INFO  # set by --quiet / --verbose for the command that runs
+
+
 @app.callback()
-def options(version: Annotated[bool, typer.Option("--version", callback=show_version, is_eager=True,
-                                                  help="Print the version and exit.")] = False) -> None:
+def options(context: typer.Context,
+            version: Annotated[bool, typer.Option("--version", callback=show_version, is_eager=True,
+                                                  help="Print the version and exit.")] = False,
+            quiet: Annotated[bool, typer.Option("-q", "--quiet", help="No progress bars or log lines below "
+                                                "warnings: results and errors only.")] = False,
+            verbose: Annotated[bool, typer.Option("-v", "--verbose", help="Debug log lines, and Dask's own "
+                                                  "warnings.")] = False) -> None:
     """Reconstruction pipeline for colour spike cameras: ingest, inspect, export, reconstruct."""
+    global log_level
+    from pipeline.progress import set_quiet
+
+    if quiet and verbose:
+        err.print("error: -q/--quiet and -v/--verbose exclude each other: give one", markup=False, highlight=False)
+        raise typer.Exit(1)
+    log_level = logging.WARNING if quiet else logging.DEBUG if verbose else logging.INFO
+    set_quiet(quiet)
+    context.call_on_close(lambda: set_quiet(False))  # in-process callers (tests, the Python API) get them back
+    send_logs(context)
+
+
+def send_logs(context: typer.Context, path: str | None = None) -> None:
+    """Our log records, timestamped one line each, to standard error or to the file ``path`` (appended), at the
+    level --quiet / --verbose chose, until the command ends. Only the command line configures logging."""
+    handler = logging.FileHandler(path, encoding="utf-8") if path else logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter(LOG_FORMAT, LOG_TIME))
+    handler.set_name("cscsr")
+    logger = logging.getLogger("cscsr")
+    for old in [h for h in logger.handlers if h.get_name() == "cscsr"]:  # --log-file replaces standard error
+        logger.removeHandler(old)
+        old.close()
+    logger.addHandler(handler)
+    logger.setLevel(log_level)
+
+    def restore() -> None:
+        logger.removeHandler(handler)
+        logger.setLevel(logging.NOTSET)
+        handler.close()
+
+    context.call_on_close(restore)
 
 
 def command_line(context: typer.Context) -> str:
@@ -378,7 +420,8 @@ def evaluate_testset(testset: Annotated[str, typer.Argument(help="A folder made 
 
 
 @command()
-def watch(inbox: Annotated[str, typer.Argument(help="Where recordings land (any URL).")],
+def watch(context: typer.Context,
+          inbox: Annotated[str, typer.Argument(help="Where recordings land (any URL).")],
           outbox: Annotated[str, typer.Argument(help="Local folder for outputs and the ledger.")],
           interval: Annotated[str, typer.Option(help="Time between passes: 30s, 10m, 1h.")] = "10m",
           once: Annotated[bool, typer.Option("--once", help="One pass, then exit (for cron).")] = False,
@@ -395,15 +438,33 @@ def watch(inbox: Annotated[str, typer.Argument(help="Where recordings land (any 
           flip: Annotated[bool, typer.Option("--flip", help="Raw captures are upside down by default.")] = False,
           fps: Annotated[float, typer.Option(help="Default spike frames per second of raw captures.")] = 20000.0,
           reset: Annotated[str, typer.Option(help="Default sensor reset of raw captures.")] = "subtract",
+          log_file: Annotated[Optional[str], typer.Option(help="Append the log lines to this file instead of "
+                                                               "standard error.")] = None,
           workers: Workers = None, scheduler: Scheduler = None):
-    """Reconstruct recordings as they land in INBOX, once each, with a ledger in OUTBOX."""
+    """Reconstruct recordings as they land in INBOX, once each, with a ledger in OUTBOX; one timestamped log
+    line per event (found, claimed, ingested, reconstructed, exported, done, failed, skipped with -v)."""
     from pipeline.watch import CaptureDefaults, WatchOptions, parse_interval, watch as run
 
     options = WatchOptions(method, weights, every, tile, settle, max_attempts, backoff,
                            CaptureDefaults(height, width, cfa, flip, fps, reset))
     check_watch_options(options, workers)  # before OUTBOX is created
-    run(inbox, outbox, options, once=once, interval=parse_interval(interval), workers=workers, scheduler=scheduler,
-        log=lambda line: stdout.print(line, highlight=False, markup=False))
+    seconds = parse_interval(interval)
+    if log_file is not None:
+        check_log_file(log_file, inbox, outbox)
+        send_logs(context, log_file)
+    run(inbox, outbox, options, once=once, interval=seconds, workers=workers, scheduler=scheduler)
+
+
+def check_log_file(path: str, inbox: str, outbox: str) -> None:
+    """A log file the watcher can append to, outside INBOX (else it would be taken as a recording)."""
+    from pipeline.storage import check_apart
+    from stages.errors import InputError
+
+    if os.path.isdir(path):
+        raise InputError(f"--log-file {path} is a folder: give a file to append the log lines to")
+    if not os.path.isdir(os.path.dirname(os.path.abspath(path))):
+        raise InputError(f"--log-file {path}: its folder does not exist")
+    check_apart(path, inbox)
 
 
 def check_watch_options(options, workers: int | None) -> None:

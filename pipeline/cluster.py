@@ -82,9 +82,15 @@ def dask_client(*, workers: int | None = None, scheduler: str | None = None) -> 
     with dask.config.set(_PRE_SPAWN), \
             LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host=LOOPBACK,
                          dashboard_address=os.environ.get(DASHBOARD_VARIABLE) or f"{LOOPBACK}:0",
-                         silence_logs=logging.ERROR, env=_thread_env(workers)) as cluster, Client(cluster) as client:
+                         silence_logs=_dask_log_level(), env=_thread_env(workers)) as cluster, Client(cluster) as client:
         client.register_plugin(_QuietWorkerLogs())  # our own workers only: a shared cluster's logs are its owner's
         yield client
+
+
+def _dask_log_level() -> int:
+    """Dask's own log records shown by a local cluster: errors only, and warnings too when our logger is at
+    DEBUG (``cscsr --verbose``)."""
+    return logging.WARNING if logging.getLogger("cscsr").isEnabledFor(logging.DEBUG) else logging.ERROR
 
 
 class QuietExpectedErrors(logging.Filter):

@@ -1,4 +1,5 @@
-"""Progress bars (rich) on standard error, for anything longer than a few seconds."""
+"""Progress bars (rich) on standard error, for anything longer than a few seconds; none at all once
+:func:`set_quiet` (``cscsr --quiet``)."""
 
 import contextlib
 import sys
@@ -6,6 +7,14 @@ from collections.abc import Iterator
 
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn, TransferSpeedColumn
+
+_quiet = False
+
+
+def set_quiet(quiet: bool) -> None:
+    """Turn every progress bar of this process off (or back on)."""
+    global _quiet
+    _quiet = bool(quiet)
 
 
 @contextlib.contextmanager
@@ -15,6 +24,6 @@ def progress_bar(description: str, total: int, *, unit: str = "frames", enabled:
     columns += [TransferSpeedColumn()] if unit == "bytes" else []
     columns += [TimeRemainingColumn()]
     console = Console(stderr=True)
-    with Progress(*columns, console=console, disable=not enabled, transient=not sys.stderr.isatty()) as bar:
+    with Progress(*columns, console=console, disable=_quiet or not enabled, transient=not sys.stderr.isatty()) as bar:
         task = bar.add_task(description, total=total)
         yield lambda n: bar.advance(task, n)

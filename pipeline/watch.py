@@ -18,11 +18,17 @@ anywhere in a recording or its sidecar whose real path leaves INBOX) is recorded
 as failed with its reason and never stops the other recordings; other errors are retried
 with exponential back-off, then quarantined. Names are checked so no output can land
 outside OUTBOX. One watcher per OUTBOX at a time (a lock file).
+
+Every event is one record of the ``cscsr.watch`` logger, naming the recording: found, claimed,
+ingested, reconstructed, exported, done (INFO); will retry (WARNING); failed or quarantined, with
+the reason (ERROR); skipped, still settling (DEBUG); one summary per pass (INFO). The library
+never configures logging: ``cscsr watch`` sends these to standard error or ``--log-file``.
 """
 
 import fcntl
 import hashlib
 import json
+import logging
 import os
 import re
 import time
@@ -49,6 +55,8 @@ SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 SIDECAR_FIELDS = {"height": int, "width": int, "cfa": str, "flip": bool, "fps": (int, float), "reset": str,
                   "head_columns": int, "key": str, "name": str}
 SAMPLE = 1 << 20  # bytes read from each end of a file for its fingerprint
+
+log = logging.getLogger("cscsr.watch")  # the package is ``pipeline``; the logger is named for the command
 
 
 @dataclass(frozen=True)
@@ -209,45 +217,58 @@ def key_of(fingerprint_: str, params: dict) -> str:
 
 
 def process(candidate: Candidate, key: str, params: dict, outbox: str, ledger: Ledger, options: WatchOptions,
-            client, log) -> None:
+            client) -> None:
     """Ingest (raw captures), reconstruct, export; record the outcome. Never raises for one recording."""
     row = ledger.get(key)
     out = str(outbox).rstrip("/")
     video, preview = f"{out}/{candidate.name}.zarr", f"{out}/{candidate.name}.mp4"
     taken_up = row.state in ("running", "failed")  # a previous attempt may have left outputs to reuse or resume
     ledger.start(key, candidate.name)
+    log.info("%s: claimed (attempt %d%s)", candidate.name, ledger.get(key).attempts,
+             ", taking up an earlier one" if taken_up else "")
     started = time.perf_counter()
     try:
         spikes = candidate.url
         if candidate.kind in RAW:
             spikes = spike_store_of(out, candidate.name)
             if not (taken_up and _complete_spikes(spikes)):
-                log(f"{candidate.name}: ingest {candidate.url}")
                 c = params["capture"]
-                ingest(candidate.url, spikes, IngestOptions(c["height"], c["width"], c["cfa"], c["fps"], c["flip"],
-                                                            c["head_columns"], c["key"], c["reset"], overwrite=True),
-                       progress=False)
+                attrs = ingest(candidate.url, spikes,
+                               IngestOptions(c["height"], c["width"], c["cfa"], c["fps"], c["flip"], c["head_columns"],
+                                             c["key"], c["reset"], overwrite=True), progress=False)
+                log.info("%s: ingested %s -> %s (%d spikes)", candidate.name, candidate.url, spikes,
+                         attrs["spike_count"])
+            else:
+                log.info("%s: ingested already (%s)", candidate.name, spikes)
         resume = taken_up and exists(video)
         if not (resume and open_video_store(video).attrs.get("state") == "complete"):
-            log(f"{candidate.name}: reconstruct {options.method}{' (resumed)' if resume else ''}")
-            reconstruct(spikes, video, ReconstructOptions(method=options.method, every=options.every, tile=options.tile,
-                                                          weights=options.weights, resume=resume, overwrite=not resume),
-                        client=client, progress=False)
+            counts = reconstruct(spikes, video, ReconstructOptions(method=options.method, every=options.every,
+                                                                   tile=options.tile, weights=options.weights,
+                                                                   resume=resume, overwrite=not resume),
+                                 client=client, progress=False)
+            log.info("%s: reconstructed %s%s -> %s (%d frames)", candidate.name, options.method,
+                     " (resumed)" if resume else "", video, counts["frames"])
+        else:
+            log.info("%s: reconstructed already (%s)", candidate.name, video)
         export_mp4(video, preview, overwrite=True, progress=False)
+        log.info("%s: exported %s", candidate.name, preview)
     except InputError as error:
         ledger.fail(key, str(error), final=True, retry_in=None, quarantine=False)
-        log(f"{candidate.name}: failed: {error}")
+        log.error("%s: failed: %s", candidate.name, " ".join(str(error).split()))
         return
     except Exception as error:  # anything else may pass: retry later, up to a bound
         attempts = ledger.get(key).attempts
         quarantine = attempts >= options.max_attempts
         message = f"{type(error).__name__}: {' '.join(str(error).split())}"
         ledger.fail(key, message, final=False, retry_in=options.backoff * 2 ** (attempts - 1), quarantine=quarantine)
-        log(f"{candidate.name}: {'quarantined after ' + str(attempts) + ' attempts' if quarantine else 'will retry'}: "
-            f"{message}")
+        if quarantine:
+            log.error("%s: quarantined after %d attempts: %s", candidate.name, attempts, message)
+        else:
+            log.warning("%s: failed, will retry in %.0f s (attempt %d of %d): %s", candidate.name,
+                        options.backoff * 2 ** (attempts - 1), attempts, options.max_attempts, message)
         return
     ledger.done(key, time.perf_counter() - started)
-    log(f"{candidate.name}: done in {time.perf_counter() - started:.1f} s -> {video}")
+    log.info("%s: done in %.1f s -> %s", candidate.name, time.perf_counter() - started, video)
 
 
 def spike_store_of(outbox: str, name: str) -> str:
@@ -267,7 +288,7 @@ def _complete_spikes(url: str) -> bool:
         return False
 
 
-def watch_once(inbox: str, outbox: str, options: WatchOptions, client, log=print) -> dict:
+def watch_once(inbox: str, outbox: str, options: WatchOptions, client) -> dict:
     """One pass over INBOX; returns how many recordings were processed, waited for and skipped."""
     ledger = Ledger(outbox)
     counts = {"processed": 0, "waiting": 0, "skipped": 0, "refused": 0}
@@ -277,10 +298,13 @@ def watch_once(inbox: str, outbox: str, options: WatchOptions, client, log=print
             refusal = hashlib.sha256(f"{candidate.url}|{candidate.problem}".encode()).hexdigest()[:24]  # once per problem
             if ledger.get(refusal) is None:
                 ledger.record_refusal(refusal, candidate.name, candidate.url, candidate.problem)
-                log(f"{candidate.url}: failed: {candidate.problem}")
+                log.error("%s: failed: %s (%s)", candidate.name, candidate.problem, candidate.url)
+            else:
+                log.debug("%s: skipped: refused before (%s)", candidate.name, candidate.url)
             counts["refused"] += 1
             continue
         if now - candidate.modified < options.settle:
+            log.debug("%s: skipped for now: changed %.1f s ago, still settling", candidate.name, now - candidate.modified)
             counts["waiting"] += 1  # still being written, or just landed: next pass
             continue
         params = parameters(candidate, options)
@@ -290,19 +314,23 @@ def watch_once(inbox: str, outbox: str, options: WatchOptions, client, log=print
         if row is None:
             owner = ledger.owner_of(candidate.name)
             ledger.queue(key, candidate.name, candidate.url, bytes_hash, params)
+            log.info("%s: found %s (%s)", candidate.name, candidate.url, candidate.kind)
             if owner is not None:
                 ledger.start(key, None)
-                ledger.fail(key, f"output name {candidate.name!r} already belongs to {owner.source} (other bytes or "
-                                 f"parameters): rename the recording or give its sidecar a 'name'",
-                            final=True, retry_in=None, quarantine=False)
+                reason = (f"output name {candidate.name!r} already belongs to {owner.source} (other bytes or "
+                          f"parameters): rename the recording or give its sidecar a 'name'")
+                ledger.fail(key, reason, final=True, retry_in=None, quarantine=False)
+                log.error("%s: failed: %s", candidate.name, reason)
                 counts["refused"] += 1
                 continue
             row = ledger.get(key)
         waiting = row.state == "failed" and not row.final and (row.next_try or 0) > now
         if row.state in ("done", "quarantined") or (row.state == "failed" and row.final) or waiting:
+            log.debug("%s: skipped: %s", candidate.name, "waiting to retry" if waiting else
+                      f"already {row.state}{' (final)' if row.final else ''}")
             counts["skipped"] += 1
             continue
-        process(candidate, key, params, outbox, ledger, options, client, log)
+        process(candidate, key, params, outbox, ledger, options, client)
         counts["processed"] += 1
     return counts
 
@@ -320,7 +348,7 @@ def outbox_lock(outbox: str):
 
 
 def watch(inbox: str, outbox: str, options: WatchOptions, *, once: bool, interval: float, workers: int | None = None,
-          scheduler: str | None = None, log=print) -> None:
+          scheduler: str | None = None) -> None:
     """Passes over INBOX every ``interval`` seconds (or one, ``once``), on one Dask client."""
     if not is_local(outbox):
         raise InputError(f"OUTBOX must be a local folder (the ledger is SQLite), got {outbox}")
@@ -331,9 +359,9 @@ def watch(inbox: str, outbox: str, options: WatchOptions, *, once: bool, interva
     Ledger(outbox)  # someone else's file named like the ledger is refused before the lock file or a cluster
     with outbox_lock(outbox), dask_client(workers=workers, scheduler=scheduler) as client:
         while True:
-            counts = watch_once(inbox, outbox, options, client, log)
-            log(f"pass: {counts['processed']} processed, {counts['waiting']} still settling, "
-                f"{counts['skipped']} already handled, {counts['refused']} refused")
+            counts = watch_once(inbox, outbox, options, client)
+            log.info("pass over %s: %d processed, %d still settling, %d already handled, %d refused", inbox,
+                     counts["processed"], counts["waiting"], counts["skipped"], counts["refused"])
             if once:
                 return
             time.sleep(interval)

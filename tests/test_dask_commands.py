@@ -91,7 +91,7 @@ def test_reconstruct_and_watch_on_a_real_scheduler(scheduler, recording, tmp_pat
     run = subprocess.run([f"{BIN}/cscsr", "watch", inbox, str(outbox), "--once", "--method", "tfi", "--every", "10",
                           "--tile", "16", "--scheduler", scheduler], capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
-    assert "scene: done" in run.stdout
+    assert "INFO cscsr.watch: scene: done in" in run.stderr  # log lines go to stderr
     video = zarr.open_group(str(outbox / "scene.zarr"), mode="r")
     assert video.attrs["state"] == "complete" and video["video"].shape == (9, 128, 128, 3)
     assert chunk_files(str(outbox / "scene.zarr")) == chunk_files(local)

@@ -51,7 +51,7 @@ def test_bad_input_is_recorded_and_never_stops_the_others(tmp_path, client, cli)
     settled(inbox)
     drop(inbox, "growing.dat", reds[:50_000], REDS)  # just landed: left for a later pass
 
-    counts = watch_once(str(inbox), str(outbox), WatchOptions(tile=128), client, log=lambda line: None)
+    counts = watch_once(str(inbox), str(outbox), WatchOptions(tile=128), client)
     assert counts == {"processed": 2, "waiting": 1, "skipped": 0, "refused": 4}
     got = states(outbox)
     assert got["good"][:3] == ("done", 0, 1)
@@ -66,7 +66,7 @@ def test_bad_input_is_recorded_and_never_stops_the_others(tmp_path, client, cli)
     assert sorted(os.listdir(tmp_path)) == ["box", "inbox"] and os.listdir(tmp_path / "box") == ["outbox"]
 
     settled(inbox)  # the growing file stopped growing: taken now (and refused: 50,000 bytes is not whole frames)
-    again = watch_once(str(inbox), str(outbox), WatchOptions(tile=128), client, log=lambda line: None)
+    again = watch_once(str(inbox), str(outbox), WatchOptions(tile=128), client)
     assert again == {"processed": 1, "waiting": 0, "skipped": 2, "refused": 4}  # good and truncated: handled
     assert states(outbox)["good"][2] == 1 and states(outbox)["growing"][0] == "failed"  # done once, not twice
     assert len(Ledger(outbox).rows()) == 7  # one row per recording, however many passes
@@ -96,7 +96,7 @@ def test_recordings_whose_outputs_would_collide_keep_their_own(tmp_path, client)
     settled(inbox)
     inbox_before = snapshot(inbox)
 
-    counts = watch_once(str(inbox), str(outbox), WatchOptions(tile=16, settle=0), client, log=lambda line: None)
+    counts = watch_once(str(inbox), str(outbox), WatchOptions(tile=16, settle=0), client)
     assert counts["processed"] == 2 and counts["refused"] == 0
     assert {name: state[:2] for name, state in states(outbox).items()} == {"a": ("done", 0), "a.spikes": ("done", 0)}
 
@@ -129,15 +129,15 @@ def test_failures_are_retried_with_back_off_then_quarantined(tmp_path, client, m
 
     monkeypatch.setattr(pipeline.watch, "reconstruct", broken)
     options = WatchOptions(max_attempts=3, backoff=3600)
-    watch_once(str(inbox), str(outbox), options, client, log=lambda line: None)
+    watch_once(str(inbox), str(outbox), options, client)
     state, final, attempts, error = states(outbox)["flaky"]
     assert (state, final, attempts) == ("failed", 0, 1) and "OSError: disk on fire" in error
-    watch_once(str(inbox), str(outbox), options, client, log=lambda line: None)
+    watch_once(str(inbox), str(outbox), options, client)
     assert len(calls) == 1  # the back-off (an hour) has not passed: not retried yet
     for _ in range(3):
         with sqlite3.connect(outbox / "ledger.sqlite") as db:  # let the back-off pass
             db.execute("UPDATE recordings SET next_try = 0")
-        watch_once(str(inbox), str(outbox), options, client, log=lambda line: None)
+        watch_once(str(inbox), str(outbox), options, client)
     assert len(calls) == 3 and states(outbox)["flaky"][:3] == ("quarantined", 0, 3)
 
 
