@@ -9,6 +9,7 @@ import json
 from dataclasses import asdict, dataclass, fields, replace
 
 from stages.errors import InputError
+from stages.reconstruct import WINDOW
 
 MOTIONS = ("joint", "assembled")
 
@@ -16,7 +17,7 @@ MOTIONS = ("joint", "assembled")
 @dataclass(frozen=True)
 class CSCSRConfig:
     name: str
-    frames: int = 41  # N: spike frames per clip, the output is at frame N // 2
+    frames: int = WINDOW  # N: spike frames per clip, the output is at frame N // 2
     length: int = 11  # w: frames per BSSR time point
     stride: int = 3  # s: frames between BSSR time points -> N' = (N - w + s) / s
     colour_features: int = 32  # C: features per colour and time point (BSSR, alignment)

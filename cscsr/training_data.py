@@ -25,13 +25,14 @@ from stages.frames import to_unit_rgb
 from stages.motion import CameraPath, render
 from stages.bits import unpack_rows
 from stages.errors import InputError
+from stages.reconstruct import WINDOW
 from stages.sensor import SensorModel, area_downsample, cfa_sample, fire, increments, initial_state
 
 TRAIN_PICTURES = ("rocket", "motorcycle_left", "motorcycle_right", "hubble_deep_field", "immunohistochemistry",
                   "retina", "colorwheel", "logo", "brick", "grass", "gravel", "camera", "coins", "moon", "page", "text")
 TEST_PICTURES = ("astronaut", "coffee", "chelsea")  # never seen in training
 _STEREO_VIEWS = {"motorcycle_left": 0, "motorcycle_right": 1}  # index in skimage.data.stereo_motorcycle()
-FRAMES, MIDDLE, SPAN = 41, 20, 9
+FRAMES, MIDDLE, SPAN = WINDOW, WINDOW // 2, 9
 DEAD_LEAVES_SHARE = 0.4  # clips of dead leaves rather than a picture
 PICTURE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 MAX_SPEED = 0.15  # LR px per frame (RMS), the fastest training motion (the test set moves at 0.125)

@@ -16,7 +16,7 @@ from rich.console import Console
 from rich.table import Table
 
 from stages.cfa import PATTERNS
-from stages.reconstruct import METHODS
+from stages.reconstruct import METHODS, WINDOW
 
 app = typer.Typer(no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False,
                   help="Reconstruction pipeline for colour spike cameras: ingest, inspect, export, reconstruct.")
@@ -197,7 +197,7 @@ def export(store: Annotated[str, typer.Argument(help="Spike store or HR video st
 def preview(store: Annotated[str, typer.Argument(help="Spike store URL.")],
             image: Annotated[str, typer.Argument(help="PNG to write (any URL).")],
             centre: Annotated[Optional[int], typer.Option(help="Centre spike frame (default: the middle).")] = None,
-            window: Annotated[int, typer.Option(help="Frames in the window (odd).")] = 41,
+            window: Annotated[int, typer.Option(help="Frames in the window (odd).")] = WINDOW,
             gain: Annotated[Optional[float], typer.Option(help="Rate-to-intensity gain (default: store's, else auto).")] = None,
             scale: Annotated[int, typer.Option(help="Upsampling factor.")] = 1,
             overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace IMAGE if it exists.")] = False):
@@ -226,13 +226,13 @@ def simulate(src: Annotated[str, typer.Argument(help="A video, a folder of frame
              cfa: Annotated[str, typer.Option(metavar=CFA_CHOICES, help="CFA of the simulated sensor.")] = "rggb",
              brightness: Annotated[float, typer.Option(help="Brightness coefficient alpha.")] = 0.6,
              threshold: Annotated[float, typer.Option(help="Firing threshold theta.")] = 1.0,
-             frames: Annotated[int, typer.Option(help="Spike frames to simulate (>= 41).")] = 41,
+             frames: Annotated[int, typer.Option(help="Spike frames to simulate (>= 41).")] = WINDOW,
              motion: Annotated[Optional[str], typer.Option(help="For one image: static or random (known flow).")] = None,
              seed: Annotated[int, typer.Option(help="Seed of every random choice.")] = 0,
              noise: Annotated[str, typer.Option(help="none or realistic (shot noise, threshold mismatch, dark current).")] = "none",
              reset: Annotated[str, typer.Option(help="zero (the paper) or subtract (real sensors).")] = "zero",
              interp: Annotated[str, typer.Option(help="Frame interpolation: flow or linear.")] = "flow",
-             truth_every: Annotated[int, typer.Option(help="Ground truth every K frames from frame 20.")] = 41,
+             truth_every: Annotated[int, typer.Option(help="Ground truth every K frames from frame 20.")] = WINDOW,
              speed: Annotated[float, typer.Option(help="Random motion: typical HR pixels per frame.")] = 0.5,
              deform: Annotated[float, typer.Option(help="Random motion: local deformation, HR pixels.")] = 0.0,
              fps: Annotated[float, typer.Option(help="Spike frames per second.")] = 20000.0,
@@ -253,8 +253,8 @@ def simulate(src: Annotated[str, typer.Argument(help="A video, a folder of frame
 def reconstruct(store: Annotated[str, typer.Argument(help="Spike store URL.")],
                 out: Annotated[str, typer.Argument(help="HR video store to write (any URL).")],
                 method: Annotated[str, typer.Option(metavar=METHOD_CHOICES, help="Reconstruction method.")] = "tfp",
-                every: Annotated[int, typer.Option(help="One output frame every K spike frames.")] = 41,
-                window: Annotated[int, typer.Option(help="Spike frames per output frame (odd).")] = 41,
+                every: Annotated[int, typer.Option(help="One output frame every K spike frames.")] = WINDOW,
+                window: Annotated[int, typer.Option(help="Spike frames per output frame (odd).")] = WINDOW,
                 gain: Annotated[Optional[float], typer.Option(help="Rate-to-intensity gain (default: store's, else auto).")] = None,
                 scale: Annotated[Optional[int], typer.Option(help="Upsampling factor (default: store's, else 4).")] = None,
                 tile: Annotated[int, typer.Option(help="Tile side in LR pixels (multiple of 8).")] = 256,
@@ -427,7 +427,7 @@ def watch(context: typer.Context,
           once: Annotated[bool, typer.Option("--once", help="One pass, then exit (for cron).")] = False,
           method: Annotated[str, typer.Option(metavar=METHOD_CHOICES, help="Reconstruction method.")] = "tfp",
           weights: Annotated[Optional[str], typer.Option(help="Network weights for cscsr.")] = None,
-          every: Annotated[int, typer.Option(help="One output frame every K spike frames.")] = 41,
+          every: Annotated[int, typer.Option(help="One output frame every K spike frames.")] = WINDOW,
           tile: Annotated[int, typer.Option(help="Tile side in LR pixels.")] = 256,
           settle: Annotated[float, typer.Option(help="Seconds a recording must be unchanged before it is taken.")] = 10.0,
           max_attempts: Annotated[int, typer.Option(help="Tries before a failing recording is quarantined.")] = 3,

@@ -21,10 +21,8 @@ from pipeline.spike_store import open_spike_store
 from pipeline.storage import check_apart, resolve, zarr_store
 from stages.errors import InputError
 from stages.metrics import psnr, ssim
-from stages.reconstruct import METHODS, NETWORKS
+from stages.reconstruct import METHODS, NETWORKS, WINDOW
 from stages.pictures import labelled, side_by_side
-
-WINDOW = 41
 
 
 def check_methods(methods: list[str], weights: str | None = None) -> None:

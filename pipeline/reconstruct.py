@@ -39,7 +39,7 @@ from pipeline.video_store import TileWriter, committed_mask, create_video_store,
 from stages.colour import auto_gain
 from stages.errors import InputError
 from stages.numbers import FLOAT32_MAX, check_number
-from stages.reconstruct import METHODS, NETWORKS, Reconstructor, Window, classic
+from stages.reconstruct import METHODS, NETWORKS, WINDOW, Reconstructor, Window, classic
 from stages.tfp import tfp_rate
 from stages.tiles import Tile, tile_grid
 
@@ -53,8 +53,8 @@ PRECISIONS = ("fp32", "bf16")
 @dataclass(frozen=True)
 class ReconstructOptions:
     method: str = "tfp"
-    every: int = 41
-    window: int = 41
+    every: int = WINDOW
+    window: int = WINDOW
     gain: float | None = None
     scale: int | None = None  # default: the store's scale, else 4
     tile: int = DEFAULT_TILE

@@ -35,8 +35,8 @@ from stages.interpolate import INTERPOLATIONS, estimate_flows
 from stages.numbers import check_number
 from stages.latent import bracket, source_position, still_mosaics, truth_image, upscale_flow, video_mosaics, between
 from stages.motion import CameraPath, render
+from stages.reconstruct import WINDOW
 
-WINDOW = 41
 SCALES = (1, 2, 4)
 MOTIONS = ("static", "random")
 

@@ -47,6 +47,7 @@ from pipeline.spike_store import open_spike_store
 from pipeline.storage import check_apart, exists, is_local, resolve
 from pipeline.video_store import open_video_store
 from stages.errors import InputError
+from stages.reconstruct import WINDOW
 
 RAW = ("dat", "npz", "npy")
 KINDS = ("zarr",) + RAW
@@ -77,7 +78,7 @@ class CaptureDefaults:
 class WatchOptions:
     method: str = "tfp"
     weights: str | None = None
-    every: int = 41
+    every: int = WINDOW
     tile: int = 256
     settle: float = 10.0  # seconds a recording must stay unchanged before it is taken
     max_attempts: int = 3  # tries of a recording that fails for other reasons than its input

@@ -16,6 +16,8 @@ from stages.errors import InputError
 from stages.tfi import tfi_rate
 from stages.tfp import tfp_rate
 
+WINDOW = 41  # spike frames per output frame (CSCSR's input, N = 41); also the default step between outputs
+
 
 @dataclass(frozen=True)
 class Window:
