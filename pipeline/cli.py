@@ -471,10 +471,9 @@ def check_watch_options(options, workers: int | None) -> None:
     """The watcher's options, refused before it creates OUTBOX rather than once per recording."""
     from pipeline.cluster import check_workers
     from pipeline.reconstruct import ReconstructOptions
-    from pipeline.spike_store import RESET_MODES
     from stages.cfa import check_cfa
-    from stages.errors import InputError
     from stages.numbers import check_number
+    from stages.sensor import check_reset
 
     check_workers(workers)
     ReconstructOptions(method=options.method, every=options.every, tile=options.tile, weights=options.weights).check()
@@ -487,8 +486,7 @@ def check_watch_options(options, workers: int | None) -> None:
             check_number(f"--{name}", getattr(defaults, name), at_least=1, integer=True)
     check_number("--fps", defaults.fps, above=0)
     check_cfa(defaults.cfa)
-    if defaults.reset not in RESET_MODES:
-        raise InputError(f"unknown --reset {defaults.reset!r}: expected one of {', '.join(RESET_MODES)}")
+    check_reset(defaults.reset)
 
 
 @command()

@@ -26,12 +26,12 @@ from stages.cfa import check_cfa
 from stages.dat import check_head_side
 from stages.errors import InputError
 from stages.numbers import FLOAT32_MAX, check_number
+from stages.sensor import check_reset
 
 FORMAT_VERSION = 1
 SPIKES = "spikes"
 CODEC_LEVEL = 1
 TARGET_CHUNK_BYTES = 4 * 2**20
-RESET_MODES = ("subtract", "zero")
 # What a viewer shows beside the spikes (``spikes``'s own attributes; xarray shows them as the variable's).
 SPIKES_UNITS = "bit-packed spikes, 1 = fired"
 SPIKES_PACKING = "8 pixels per byte along x, least significant bit first: pixel x is bit x % 8 of byte x // 8"
@@ -64,8 +64,7 @@ class SpikeMeta:
             if getattr(self, name) is not None:
                 check_number(name, getattr(self, name), **_ATTRIBUTE_RANGES[name])
         check_head_side(self.head_at)
-        if self.reset not in RESET_MODES:
-            raise InputError(f"unknown reset mode {self.reset!r}: expected one of {', '.join(RESET_MODES)}")
+        check_reset(self.reset)
 
     def attrs(self) -> dict:
         attrs = {k: v for k, v in asdict(self).items() if k != "extra" and v is not None}

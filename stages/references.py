@@ -21,8 +21,8 @@ import numpy as np
 
 from stages.colour import demosaic, upsample
 from stages.errors import InputError
-from stages.sensor import area_downsample, cfa_sample
-from stages.tfp import RESETS, undo_zero_reset
+from stages.sensor import area_downsample, cfa_sample, check_reset
+from stages.tfp import undo_zero_reset
 
 NEVER = 1 << 40  # the period of a pixel that never fires
 
@@ -78,8 +78,7 @@ def steady_state_mosaic(truth: np.ndarray, cfa: str, scale: int, brightness: flo
     ``zero`` quantises the rate to 1/ceil(1/(α·I)) and undoes the bias as TFP does;
     ``subtract`` reads α·I exactly (then this equals :func:`exact_mosaic_demosaicked`).
     """
-    if reset not in RESETS:
-        raise InputError(f"unknown reset {reset!r}: expected one of {', '.join(RESETS)}")
+    check_reset(reset)
     if reset == "subtract":
         _check_brightness(brightness)
         return exact_mosaic_demosaicked(truth, cfa, scale)

@@ -40,7 +40,13 @@ from stages.errors import InputError
 from stages.frames import LUMA
 
 UNITS: int = 1 << 24
-RESETS = ("zero", "subtract")
+RESETS = ("subtract", "zero")  # integrator resets: keep the charge above the threshold (cameras), or drop it
+
+
+def check_reset(reset: str) -> str:
+    if reset not in RESETS:
+        raise InputError(f"unknown reset mode {reset!r}: expected one of {', '.join(RESETS)}")
+    return reset
 NOISES = ("none", "realistic")
 _MAX_UNITS = 1 << 30  # state and thresholds below this keep acc + q inside int32
 DARK_SPREAD = 0.5  # log-std of the per-pixel dark current (lognormal, mean dark_rate)
@@ -102,8 +108,7 @@ class SensorModel:
         for label, value, zero_ok in checks:
             if not (value >= 0 if zero_ok else value > 0) or not np.isfinite(value):
                 raise InputError(f"{label} must be {'>= 0' if zero_ok else '> 0'}, got {value!r}")
-        if self.reset not in RESETS:
-            raise InputError(f"unknown reset {self.reset!r}: expected one of {', '.join(RESETS)}")
+        check_reset(self.reset)
         if self.noise not in NOISES:
             raise InputError(f"unknown noise {self.noise!r}: expected one of {', '.join(NOISES)}")
         if not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
@@ -190,8 +195,7 @@ def fire(increments: np.ndarray, state: np.ndarray, *, reset: str,
     is returned; ``thresholds`` (H, W) in [1, 2^30), None means UNITS everywhere.
     ``subtract`` keeps ``acc - thr`` (capped below thr), ``zero`` sets 0.
     """
-    if reset not in RESETS:
-        raise InputError(f"unknown reset {reset!r}: expected one of {', '.join(RESETS)}")
+    check_reset(reset)
     q = np.ascontiguousarray(increments, dtype=np.int32)
     if q.ndim != 3:
         raise InputError(f"expected (n, H, W) increments, got shape {q.shape}")

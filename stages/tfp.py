@@ -10,8 +10,6 @@ so the measured rate is r = rho / (1 + rho/2); :func:`undo_zero_reset` inverts t
 (rho = r / (1 - r/2)), which removes the brightness bias (up to -17 % at rho = 0.4).
 """
 
-RESETS = ("subtract", "zero")
-
 import numpy as np
 
 from stages.bits import unpack_rows

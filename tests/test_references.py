@@ -60,7 +60,7 @@ def test_the_best_reading_of_a_period_is_the_mean_intensity_that_has_it():
 
 def test_bad_reset_or_brightness_is_refused():
     truth = np.zeros((8, 8, 3), np.uint8)
-    with pytest.raises(InputError, match="unknown reset 'sideways'"):
+    with pytest.raises(InputError, match="unknown reset mode 'sideways'"):
         steady_state_mosaic(truth, "rggb", 2, 0.8, "sideways")
     with pytest.raises(InputError, match="brightness must be in"):
         steady_state_mosaic(truth, "rggb", 2, 0.0, "zero")

@@ -190,7 +190,7 @@ def test_cfa_sample_mono_is_rec601_luma():
     ({"brightness": -0.5}, "brightness α must be > 0, got -0.5"),
     ({"brightness": float("nan")}, "brightness α must be > 0"),
     ({"threshold": 0.0}, "threshold θ must be > 0, got 0.0"),
-    ({"reset": "hard"}, "unknown reset 'hard': expected one of zero, subtract"),
+    ({"reset": "hard"}, "unknown reset mode 'hard': expected one of subtract, zero"),
     ({"noise": "poisson"}, "unknown noise 'poisson': expected one of none, realistic"),
     ({"electrons_per_threshold": 0}, "electrons_per_threshold must be > 0"),
     ({"threshold_mismatch": -0.1}, "threshold_mismatch must be >= 0"),
