@@ -42,7 +42,8 @@ def timed(fn, *args, repeats: int = 3):
 def stage_breakdown(video: str, options, n_chunks: int, n_truth: int, dest: str) -> list[tuple[str, float, int]]:
     """(stage, seconds per call, calls in the run) for every stage of the graph."""
     from pipeline.frame_sources import open_frame_source
-    from pipeline.simulate import _lr_frame, _hr_frame, _increments, _fire, Scene, truth_frames, _write_truth
+    from pipeline.simulate import _lr_frame, _hr_frame, _increments, _fire, Scene, _write_truth
+    from stages.reconstruct import WINDOW, output_centres
     from pipeline.spike_store import SpikeMeta, SpikeStoreWriter
     from stages import sensor
     from stages.interpolate import estimate_flows
@@ -66,7 +67,7 @@ def stage_breakdown(video: str, options, n_chunks: int, n_truth: int, dest: str)
     writer = SpikeStoreWriter(dest, meta, chunk, chunk_frames=chunk)
     write_time, _ = timed(writer.write, 0, fired.packed)
     writer.add_array("truth", (1, *frame0.shape), (1, *frame0.shape), np.uint8, ("k", "y", "x", "c"))
-    truth_time, _ = timed(_write_truth, dest, 0, scene, truth_frames(options.frames, 41)[0], options, flows, repeats=1)
+    truth_time, _ = timed(_write_truth, dest, 0, scene, output_centres(options.frames, WINDOW, WINDOW)[0], options, flows, repeats=1)
     return [
         ("decode HR source frame + area downsample", read_hr + lr_time, source.n_frames),
         ("optical flow (DIS, LR, both directions)", flow_time, source.n_frames - 1),
@@ -86,7 +87,8 @@ def main() -> None:
     args = parser.parse_args()
 
     from pipeline.frame_sources import open_frame_source
-    from pipeline.simulate import SimulateOptions, simulate, truth_frames
+    from pipeline.simulate import SimulateOptions, simulate
+    from stages.reconstruct import WINDOW, output_centres
 
     work = tempfile.mkdtemp(prefix="cscsr-sim-bench-")
     try:
@@ -103,7 +105,7 @@ def main() -> None:
         wall = time.perf_counter() - start
 
         n_chunks = -(-args.frames // options.chunk_frames)
-        n_truth = len(truth_frames(args.frames, options.truth_every))
+        n_truth = len(output_centres(args.frames, WINDOW, options.truth_every))
         stages = stage_breakdown(video, options, n_chunks, n_truth, os.path.join(work, "stage.zarr"))
         total = sum(seconds * calls for _, seconds, calls in stages)
         lr = args.size // 4

@@ -16,12 +16,12 @@ import zarr
 
 from pipeline.cluster import check_workers, dask_client
 from pipeline.images import write_image
-from pipeline.reconstruct import ReconstructOptions, checked_method, output_centres, reconstruct
+from pipeline.reconstruct import ReconstructOptions, checked_method, reconstruct
 from pipeline.spike_store import open_spike_store
 from pipeline.storage import check_apart, resolve, zarr_store
 from stages.errors import InputError
 from stages.metrics import psnr, ssim
-from stages.reconstruct import METHODS, NETWORKS, WINDOW
+from stages.reconstruct import METHODS, NETWORKS, WINDOW, output_centres
 from stages.pictures import labelled, side_by_side
 
 

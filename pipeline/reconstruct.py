@@ -39,7 +39,7 @@ from pipeline.video_store import TileWriter, committed_mask, create_video_store,
 from stages.colour import auto_gain
 from stages.errors import InputError
 from stages.numbers import FLOAT32_MAX, check_number
-from stages.reconstruct import METHODS, NETWORKS, WINDOW, Reconstructor, Window, classic
+from stages.reconstruct import METHODS, NETWORKS, WINDOW, Reconstructor, Window, classic, output_centres
 from stages.tfp import tfp_rate
 from stages.tiles import Tile, tile_grid
 
@@ -123,12 +123,6 @@ class Plan:
         return {"method": self.method, "weights": self.weights, "precision": self.precision, "window": self.window,
                 "every": self.every, "gain": self.gain, "scale": self.scale, "source": recorded(self.spikes), "cfa": self.cfa,
                 "reset": self.reset, "tile_lr": self.tile}
-
-
-def output_centres(n_frames: int, window: int, every: int) -> list[int]:
-    """Centre spike frames of the output: W//2, W//2 + K, ... while the window fits."""
-    half = window // 2
-    return list(range(half, n_frames - half, every))
 
 
 @functools.lru_cache(maxsize=4)

@@ -35,7 +35,7 @@ from stages.interpolate import INTERPOLATIONS, estimate_flows
 from stages.numbers import check_number
 from stages.latent import bracket, source_position, still_mosaics, truth_image, upscale_flow, video_mosaics, between
 from stages.motion import CameraPath, render
-from stages.reconstruct import WINDOW
+from stages.reconstruct import WINDOW, output_centres
 
 SCALES = (1, 2, 4)
 MOTIONS = ("static", "random")
@@ -103,12 +103,6 @@ def check_options(options: SimulateOptions, source: FrameSource) -> tuple[int, i
         raise InputError(f"frame size {source.height}x{source.width} is not divisible by 2*scale = {multiple} "
                          f"({cfa} Bayer cells of {options.scale}x{options.scale} HR pixels)")
     return source.height // options.scale, source.width // options.scale
-
-
-def truth_frames(n_frames: int, every: int) -> list[int]:
-    """Spike frames that get ground truth: window centres 20, 20 + K, ... with a full window."""
-    half = WINDOW // 2
-    return list(range(half, n_frames - half, every))
 
 
 # ---- tasks (run on workers; module-level so they pickle by reference) ----
@@ -213,7 +207,7 @@ def simulate(src: str, dest: str, options: SimulateOptions = SimulateOptions(), 
         path = CameraPath.random(options.frames, source.height, source.width, seed=options.seed,
                                  speed=options.speed, deform=options.deform)
     scene = Scene(source, path)
-    truth_at = truth_frames(options.frames, options.truth_every)
+    truth_at = output_centres(options.frames, WINDOW, options.truth_every)  # window centres with a full window
     meta = SpikeMeta(height=height, width=width, cfa=options.cfa, fps=options.fps, source=recorded(src),
                      reset=options.reset, gain=model.gain, threshold=options.threshold,
                      extra={"brightness": options.brightness, "scale": options.scale, "seed": options.seed,

@@ -19,6 +19,13 @@ from stages.tfp import tfp_rate
 WINDOW = 41  # spike frames per output frame (CSCSR's input, N = 41); also the default step between outputs
 
 
+def output_centres(n_frames: int, window: int, every: int) -> list[int]:
+    """Centre spike frames of the output (and of the simulator's ground truth): W//2, W//2 + K, ...
+    while the window fits."""
+    half = window // 2
+    return list(range(half, n_frames - half, every))
+
+
 @dataclass(frozen=True)
 class Window:
     """One reconstruction input: packed spikes of a (tile of a) window, and how to read them."""

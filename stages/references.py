@@ -21,6 +21,7 @@ import numpy as np
 
 from stages.colour import demosaic, upsample
 from stages.errors import InputError
+from stages.frames import to_uint8
 from stages.sensor import area_downsample, cfa_sample, check_reset
 from stages.tfp import undo_zero_reset
 
@@ -29,10 +30,6 @@ NEVER = 1 << 40  # the period of a pixel that never fires
 
 def _unit(truth: np.ndarray) -> np.ndarray:
     return np.asarray(truth, np.float32) / np.float32(255)
-
-
-def _uint8(rgb: np.ndarray) -> np.ndarray:
-    return np.round(np.clip(rgb, 0, 1) * 255).astype(np.uint8)
 
 
 def _lr_mosaic(truth: np.ndarray, cfa: str, scale: int) -> np.ndarray:
@@ -47,12 +44,12 @@ def _check_brightness(brightness: float) -> None:
 
 def exact_lr_bicubic(truth: np.ndarray, scale: int) -> np.ndarray:
     """(s*H, s*W, 3) uint8 HR truth -> (s*H, s*W, 3) uint8: its exact LR picture enlarged bicubically."""
-    return _uint8(upsample(area_downsample(_unit(truth), scale), scale))
+    return to_uint8(upsample(area_downsample(_unit(truth), scale), scale))
 
 
 def exact_mosaic_demosaicked(truth: np.ndarray, cfa: str, scale: int) -> np.ndarray:
     """(s*H, s*W, 3) uint8 HR truth -> (s*H, s*W, 3) uint8: its exact LR mosaic through ``cfa``, VNG, bicubic."""
-    return _uint8(upsample(demosaic(_lr_mosaic(truth, cfa, scale), cfa), scale))
+    return to_uint8(upsample(demosaic(_lr_mosaic(truth, cfa, scale), cfa), scale))
 
 
 def zero_reset_periods(truth: np.ndarray, cfa: str, scale: int, brightness: float) -> np.ndarray:
@@ -84,7 +81,7 @@ def steady_state_mosaic(truth: np.ndarray, cfa: str, scale: int, brightness: flo
         return exact_mosaic_demosaicked(truth, cfa, scale)
     period = zero_reset_periods(truth, cfa, scale, brightness)  # (H, W)
     intensity = undo_zero_reset((1 / period).astype(np.float32)) / np.float32(brightness)
-    return _uint8(upsample(demosaic(intensity, cfa), scale))
+    return to_uint8(upsample(demosaic(intensity, cfa), scale))
 
 
 def mean_level_per_period(truths: list[np.ndarray], cfa: str, scale: int, brightness: float) -> dict[int, float]:
@@ -107,4 +104,4 @@ def read_periods(truth: np.ndarray, cfa: str, scale: int, brightness: float, lev
     if missing:
         raise InputError(f"no level for period(s) {sorted(missing)[:5]}: fit the levels on this picture too")
     intensity = np.vectorize(levels.__getitem__, otypes=[np.float32])(period)
-    return _uint8(upsample(demosaic(intensity, cfa), scale))
+    return to_uint8(upsample(demosaic(intensity, cfa), scale))

@@ -12,7 +12,8 @@ import pytest
 import zarr
 
 from pipeline.hold import hold_environment
-from pipeline.reconstruct import ReconstructOptions, output_centres, reconstruct
+from pipeline.reconstruct import ReconstructOptions, reconstruct
+from stages.reconstruct import output_centres
 from pipeline.simulate import SimulateOptions, simulate
 from tests.conftest import with_random_heads
 from tests.test_bad_input import assert_refused
