@@ -91,9 +91,12 @@ def consolidate(url: str) -> None:
 
 
 def open_group(url: str, what: str = "store") -> zarr.Group:
-    """The Zarr group at ``url``, read-only; a one-line error if it is missing, an array, or damaged."""
+    """The Zarr group at ``url``, read-only; a one-line error if it is missing, an array, or damaged.
+
+    Read from the arrays' own metadata, not the consolidated copy (that is for xarray): an array added
+    to a store after it was consolidated is still seen."""
     try:
-        return zarr.open_group(zarr_store(url, read_only=True), mode="r")
+        return zarr.open_group(zarr_store(url, read_only=True), mode="r", use_consolidated=False)
     except InputError:
         raise
     except FileNotFoundError:
