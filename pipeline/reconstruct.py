@@ -250,12 +250,10 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
         if gain is None:  # one window: on the cluster if there is one, else here (not worth a cluster of its own)
             args = (store_url, centres[len(centres) // 2], options.window, meta.reset)
             gain = client.submit(_auto_gain, *args).result() if client else _auto_gain(*args)
-        # the file actually used (the shipped one by default); none for a classic method
-        weights = getattr(method, "weights", options.weights) if network else None
         # the spike store as workers find it, whatever their working directory (and as the output records it)
-        plan = Plan(recorded(store_url), out, options.method, weights, options.window, options.every, float(gain),
+        plan = Plan(recorded(store_url), out, options.method, method.weights, options.window, options.every, float(gain),
                     scale, meta.cfa, meta.reset, options.tile, uuid.uuid4().hex, precision, options.gpu_batch)
-        batch = getattr(method, "batch", 1)
+        batch = method.batch
         on_gpus = network and client is not None and gpu_workers(client) > 0  # our own local cluster has none
         done = _prepare_output(plan, options.resume, centres, grid, (meta.height * scale, meta.width * scale),
                                fps=meta.fps / options.every)

@@ -42,6 +42,7 @@ class Reconstructor(Protocol):
     name: str
     halo: int  # LR pixels of context needed on every side (even: keeps the Bayer phase)
     batch: int  # windows of one tile worth reconstructing together
+    weights: str | None  # the weights file a network was loaded from (recorded in its output); None: classic
 
     def __call__(self, window: Window) -> np.ndarray:
         """-> (s*h, s*w, 3) uint8 RGB."""
@@ -69,6 +70,7 @@ class RateReconstructor:
     estimate: callable
     halo: int = 8
     batch: int = 1
+    weights: None = None
 
     def __call__(self, window: Window) -> np.ndarray:
         rate = self.estimate(window.packed, window.width, window.reset)
