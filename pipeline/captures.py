@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.storage import describe, resolve
+from pipeline.storage import resolve, unreachable
 from stages.arrays import binary_to_packed, check_spike_array_header
 from stages.dat import DatLayout, dat_to_packed
 from stages.errors import InputError
@@ -33,15 +33,12 @@ def _open(url: str):
 
 def _why_absent(fs, path: str, url: str) -> str:
     """Why ``exists`` said no: fsspec's HTTP filesystem answers False for a host it cannot reach too
-    (its ``info`` raises FileNotFoundError *from* the connection error), so look at the cause."""
+    (its ``info`` raises FileNotFoundError *from* the connection error), so ask about the cause."""
     try:
         fs.info(path)
-    except FileNotFoundError as error:
-        cause = error.__cause__
-        if cause is not None and getattr(cause, "status", None) != 404 and not isinstance(cause, FileNotFoundError):
-            return f"cannot reach {url}: {type(cause).__name__}: {describe(cause)}"
     except OSError as error:
-        return f"cannot reach {url}: {type(error).__name__}: {describe(error)}"
+        if line := unreachable(error.__cause__ or error, [url]):
+            return line
     return f"cannot read {url}: no such file"
 
 
