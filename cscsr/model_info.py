@@ -1,6 +1,7 @@
 """What ``cscsr model-info`` prints: a configuration's settings and its parameters per step."""
 
 from cscsr.config import CSCSRConfig, named
+from cscsr.integration import NETWORK_SCALES
 
 
 def _count(module) -> int:
@@ -30,7 +31,7 @@ def model_info(config: str | None = None, weights: str | None = None) -> dict[st
         "frames N, window w, stride s -> N'": f"{cfg.frames}, {cfg.length}, {cfg.stride} -> {cfg.time_points}",
         "features C (per colour), F (trunk), ResBlocks": f"{cfg.colour_features}, {cfg.features}, {cfg.blocks}",
         "motion estimation": f"{cfg.motion}, flow guidance {'on' if cfg.flow_guidance else 'off'}",
-        "scales": "2, 4",
+        "scales": ", ".join(map(str, NETWORK_SCALES)),
     }
     rows.update({f"weights: {k}": v for k, v in metadata.items() if k not in ("config", "format")})
     return rows

@@ -24,7 +24,7 @@ from cscsr.bayer import cell_masks, check_bayer, colour_masks
 from cscsr.blocks import ResBlock
 from cscsr.bssr import BSSR
 from cscsr.config import CSCSRConfig
-from cscsr.integration import SCALES, Integration
+from cscsr.integration import NETWORK_SCALES, Integration
 from cscsr.motion import MotionEstimation
 from cscsr.spike_flow import FlowDecoder
 from cscsr.temporal_pixels import TemporalPixels
@@ -81,8 +81,8 @@ class CSCSR(nn.Module):
             raise InputError(f"the {self.config.name} network takes {self.config.frames} frames per clip, got {n}")
         if h % 2 or w % 2 or h < 2 or w < 2:
             raise InputError(f"a Bayer clip needs even height and width, got {h}x{w}")
-        if scale not in SCALES:
-            raise InputError(f"the CSCSR network upsamples by {' or '.join(map(str, SCALES))}, not {scale}")
+        if scale not in NETWORK_SCALES:
+            raise InputError(f"the CSCSR network upsamples by {' or '.join(map(str, NETWORK_SCALES))}, not {scale}")
         return b, n, h, w
 
     def parameter_counts(self) -> dict[str, int]:

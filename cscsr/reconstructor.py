@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from cscsr.integration import SCALES
+from cscsr.integration import NETWORK_SCALES
 from cscsr.weights_io import default_weights, load_model, resolve_weights
 from stages.bits import unpack_rows
 from stages.cfa import flip_horizontally, flip_vertically, transpose
@@ -49,8 +49,8 @@ class NetworkReconstructor:
         if window != config.frames:
             raise InputError(f"the CSCSR network ({self.weights}) takes windows of {config.frames} frames, "
                              f"not --window {window}")
-        if scale not in SCALES:
-            raise InputError(f"the CSCSR network upsamples by {' or '.join(map(str, SCALES))}, not --scale {scale}")
+        if scale not in NETWORK_SCALES:
+            raise InputError(f"the CSCSR network upsamples by {' or '.join(map(str, NETWORK_SCALES))}, not --scale {scale}")
 
     def __call__(self, window: Window) -> np.ndarray:
         return self.many([window])[0]

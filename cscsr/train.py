@@ -15,7 +15,6 @@ every ``checkpoint_every`` steps; the validation PSNR (fixed held-out clips) is 
 import json
 import math
 import os
-import threading
 import time
 import warnings
 from dataclasses import asdict, dataclass
@@ -30,6 +29,7 @@ from cscsr.training_data import (DEAD_LEAVES_SHARE, TRAIN_PICTURES, Clip, batch_
                                  picture_files, random_clip, random_plan, reoriented)
 from cscsr.weights_io import save_weights
 from stages.errors import InputError
+from stages.prefetch import made_ahead
 
 VALIDATION_SEED = 10_000_019  # validation clips: dead leaves from seeds no training step uses
 
@@ -517,18 +517,7 @@ def _prefetch(step: int, options: TrainOptions, pool: dict | None = None,
         cache: dict = {}
         workers = ThreadPoolExecutor(1, thread_name_prefix="batches")
         make, ahead = (lambda n: make_batch(n, options, cache, pool, pictures)), depth
-    pending: list = []
-    n = step
-    try:
-        while True:
-            while n < options.steps and len(pending) < ahead:
-                n += 1
-                pending.append(workers.submit(make, n))
-            if not pending:
-                return
-            yield pending.pop(0).result()
-    finally:  # a run stopped early (time budget) leaves no batches being made behind it
-        workers.shutdown(wait=False, cancel_futures=True)
+    return made_ahead(make, range(step + 1, options.steps + 1), workers, ahead)
 
 
 _WORKER: dict = {}  # a batch worker process's options, pictures and decoded-picture cache

@@ -14,7 +14,7 @@ from pathlib import Path
 import torch
 
 from cscsr.config import CSCSRConfig
-from cscsr.integration import SCALES
+from cscsr.integration import NETWORK_SCALES
 from stages.errors import InputError
 
 FORMAT = "cscsr-weights/1"
@@ -22,7 +22,7 @@ CONVENTIONS = {
     "format": FORMAT,
     "cfa": "pattern names the top-left 2x2 cell row by row, row 0 at the top of the frame as stored",
     "output": "linear firing rate alpha*I/theta per colour (RGB); exposure is applied after",
-    "scales": ",".join(map(str, SCALES)),
+    "scales": ",".join(map(str, NETWORK_SCALES)),
 }
 SHIPPED = Path(__file__).parent / "weights"
 

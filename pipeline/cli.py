@@ -443,10 +443,11 @@ def watch(context: typer.Context,
           workers: Workers = None, scheduler: Scheduler = None):
     """Reconstruct recordings as they land in INBOX, once each, with a ledger in OUTBOX; one timestamped log
     line per event (found, claimed, ingested, reconstructed, exported, done, failed, skipped with -v)."""
-    from pipeline.watch import CaptureDefaults, WatchOptions, parse_interval, watch as run
+    from pipeline.ingest import IngestOptions
+    from pipeline.watch import WatchOptions, parse_interval, watch as run
 
     options = WatchOptions(method, weights, every, tile, settle, max_attempts, backoff,
-                           CaptureDefaults(height, width, cfa, flip, fps, reset))
+                           IngestOptions(height, width, cfa, fps, flip, reset=reset))
     check_watch_options(options, workers)  # before OUTBOX is created
     seconds = parse_interval(interval)
     if log_file is not None:

@@ -1,9 +1,9 @@
 """``cscsr ingest``: a raw capture streamed into a new spike store."""
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 from pipeline.captures import open_capture
-from pipeline.prefetch import prefetched
+from stages.prefetch import prefetched
 from pipeline.progress import progress_bar
 from pipeline.spike_store import SpikeMeta, SpikeStoreWriter, chunk_frames_for
 from pipeline.lease import claimed
@@ -25,6 +25,13 @@ class IngestOptions:
     key: str | None = None
     reset: str = "subtract"
     overwrite: bool = False
+
+
+def capture_fields(options: IngestOptions) -> dict:
+    """What the capture is taken to be (every field but ``overwrite``): the watcher keys its work on these."""
+    fields = asdict(options)
+    del fields["overwrite"]
+    return fields
 
 
 def ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *, progress: bool = True) -> dict:

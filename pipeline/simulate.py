@@ -37,7 +37,7 @@ from stages.latent import bracket, source_position, still_mosaics, truth_image, 
 from stages.motion import CameraPath, render
 from stages.reconstruct import WINDOW, output_centres
 
-SCALES = (1, 2, 4)
+TRUTH_SCALES = (1, 2, 4)  # the HR truth the simulator can draw beside the LR spikes
 MOTIONS = ("static", "random")
 
 
@@ -82,8 +82,8 @@ def check_options(options: SimulateOptions, source: FrameSource) -> tuple[int, i
     cfa = check_cfa(options.cfa)
     if options.interp not in INTERPOLATIONS:
         raise InputError(f"unknown interpolation {options.interp!r}: expected one of {', '.join(INTERPOLATIONS)}")
-    if options.scale not in SCALES:
-        raise InputError(f"scale must be one of {', '.join(map(str, SCALES))}, got {options.scale}")
+    if options.scale not in TRUTH_SCALES:
+        raise InputError(f"scale must be one of {', '.join(map(str, TRUTH_SCALES))}, got {options.scale}")
     if options.frames < WINDOW:
         raise InputError(f"--frames {options.frames} is too few: a reconstruction window needs {WINDOW}")
     if options.motion is not None and options.motion not in MOTIONS:

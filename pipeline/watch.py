@@ -33,14 +33,14 @@ import os
 import re
 import time
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 from fsspec.implementations.local import LocalFileSystem
 
 from pipeline.cluster import dask_client
 from pipeline.export import export_mp4
-from pipeline.ingest import IngestOptions, ingest
+from pipeline.ingest import IngestOptions, capture_fields, ingest
 from pipeline.ledger import Ledger
 from pipeline.reconstruct import ReconstructOptions, reconstruct
 from pipeline.spike_store import open_spike_store
@@ -56,22 +56,9 @@ SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 SIDECAR_FIELDS = {"height": int, "width": int, "cfa": str, "flip": bool, "fps": (int, float), "reset": str,
                   "head_columns": int, "key": str, "name": str}
 SAMPLE = 1 << 20  # bytes read from each end of a file for its fingerprint
+WATCH_DEFAULTS = IngestOptions(cfa="rggb")  # an inbox's raw captures are colour unless a sidecar says otherwise
 
 log = logging.getLogger("cscsr.watch")  # the package is ``pipeline``; the logger is named for the command
-
-
-@dataclass(frozen=True)
-class CaptureDefaults:
-    """What a raw capture without a sidecar (or a sidecar without the field) is taken to be."""
-
-    height: int | None = None
-    width: int | None = None
-    cfa: str = "rggb"
-    flip: bool = False
-    fps: float = 20000.0
-    reset: str = "subtract"
-    head_columns: int = 0
-    key: str | None = None
 
 
 @dataclass(frozen=True)
@@ -83,7 +70,7 @@ class WatchOptions:
     settle: float = 10.0  # seconds a recording must stay unchanged before it is taken
     max_attempts: int = 3  # tries of a recording that fails for other reasons than its input
     backoff: float = 60.0  # seconds before the first retry, doubling each time
-    defaults: CaptureDefaults = field(default_factory=CaptureDefaults)
+    defaults: IngestOptions = WATCH_DEFAULTS  # what a raw capture without a sidecar (or the field) is taken to be
 
 
 @dataclass(frozen=True)
@@ -207,7 +194,7 @@ def fingerprint(candidate: Candidate) -> str:
 def parameters(candidate: Candidate, options: WatchOptions) -> dict:
     params = {"method": options.method, "weights": options.weights, "every": options.every, "tile": options.tile}
     if candidate.kind in RAW:
-        capture = asdict(options.defaults)
+        capture = capture_fields(options.defaults)
         capture.update({k: v for k, v in candidate.sidecar.items() if k != "name"})
         params["capture"] = capture
     return params
@@ -233,10 +220,7 @@ def process(candidate: Candidate, key: str, params: dict, outbox: str, ledger: L
         if candidate.kind in RAW:
             spikes = spike_store_of(out, candidate.name)
             if not (taken_up and _complete_spikes(spikes)):
-                c = params["capture"]
-                attrs = ingest(candidate.url, spikes,
-                               IngestOptions(c["height"], c["width"], c["cfa"], c["fps"], c["flip"], c["head_columns"],
-                                             c["key"], c["reset"], overwrite=True), progress=False)
+                attrs = ingest(candidate.url, spikes, IngestOptions(**params["capture"], overwrite=True), progress=False)
                 log.info("%s: ingested %s -> %s (%d spikes)", candidate.name, candidate.url, spikes,
                          attrs["spike_count"])
             else:

@@ -14,7 +14,7 @@ from stages.cfa import opencv_bayer_code
 from stages.errors import InputError
 from stages.numbers import FLOAT32_MAX, check_number
 
-SCALES = (1, 2, 3, 4, 8)  # what the classic methods and previews upsample by
+CLASSIC_SCALES = (1, 2, 3, 4, 8)  # what the classic methods and previews upsample by
 _MID_GREY = 0.45
 _CLIP_QUANTILE = 0.99
 
@@ -51,8 +51,8 @@ def upsample(rgb: np.ndarray, scale: int) -> np.ndarray:
 
 def check_scale(name: str, scale) -> None:
     """Refuse an upsampling factor the classic methods cannot make (``name``: the flag or attribute)."""
-    if scale not in SCALES or isinstance(scale, bool):
-        raise InputError(f"{name} must be one of {', '.join(map(str, SCALES))}, got {scale}")
+    if scale not in CLASSIC_SCALES or isinstance(scale, bool):
+        raise InputError(f"{name} must be one of {', '.join(map(str, CLASSIC_SCALES))}, got {scale}")
 
 
 def rate_to_rgb(rate: np.ndarray, cfa: str, gain: float, scale: int = 1) -> np.ndarray:

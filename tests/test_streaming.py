@@ -73,7 +73,7 @@ def test_interrupted_ingest_leaves_nothing(tmp_path, monkeypatch):
 
 
 def test_prefetched_keeps_order_and_passes_errors_on():
-    from pipeline.prefetch import prefetched
+    from stages.prefetch import prefetched
 
     assert list(prefetched(iter(range(50)), depth=3)) == list(range(50))
 

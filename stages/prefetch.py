@@ -1,8 +1,14 @@
-"""Run an iterator one step ahead in a background thread, so reading overlaps computing."""
+"""Work made ahead of its consumer, in order, with errors raised where the consumer asks.
+
+The one home for prefetching: ingest reads the next block while it writes this one
+(``prefetched``), training makes the next batches while the network steps (``made_ahead``).
+Neither may swallow an error: a producer that fails raises in the consumer, never leaves it
+waiting."""
 
 import queue
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Executor
 from typing import TypeVar
 
 T = TypeVar("T")
@@ -46,3 +52,23 @@ def prefetched(items: Iterator[T], depth: int = 1) -> Iterator[T]:
     finally:
         stop.set()
         worker.join(timeout=5)
+
+
+def made_ahead(make: Callable[[int], T], keys: Iterable[int], workers: Executor, ahead: int) -> Iterator[T]:
+    """Yield ``make(key)`` for each key in order, with up to ``ahead`` calls running on ``workers``.
+
+    An exception raised by a call (or a worker process that died) is raised in the consumer when it
+    reaches that key; closing the consumer cancels the calls not yet started and does not wait for
+    the running ones.
+    """
+    keys = iter(keys)
+    pending: list = []
+    try:
+        while True:
+            while len(pending) < ahead and (key := next(keys, _DONE)) is not _DONE:
+                pending.append(workers.submit(make, key))
+            if not pending:
+                return
+            yield pending.pop(0).result()
+    finally:
+        workers.shutdown(wait=False, cancel_futures=True)
