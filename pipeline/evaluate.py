@@ -12,13 +12,14 @@ import csv
 import time
 
 import numpy as np
-import zarr
 
 from pipeline.cluster import check_workers, dask_client
+from pipeline.ground_truth import read_truth
 from pipeline.images import write_image
 from pipeline.reconstruct import ReconstructOptions, checked_method, reconstruct
 from pipeline.spike_store import open_spike_store
-from pipeline.storage import check_apart, resolve, zarr_store
+from pipeline.storage import check_apart, resolve
+from pipeline.video_store import VIDEO, open_video_store
 from stages.errors import InputError
 from stages.metrics import psnr, ssim
 from stages.reconstruct import METHODS, NETWORKS, WINDOW, output_centres
@@ -45,9 +46,7 @@ def checked_evaluation(store_url: str, methods: list[str], weights: str | None) 
     and weights against it. -> (store, truth frames, options per method)."""
     check_methods(methods, weights)
     store = open_spike_store(store_url)
-    if "truth" not in store.group or "truth_frames" not in store.group:
-        raise InputError(f"{store_url} has no ground truth ('truth', 'truth_frames'): make one with cscsr simulate")
-    truth_frames = store.group["truth_frames"][:]
+    _, truth_frames = read_truth(store)
     every = int(store.attrs.get("truth_every", WINDOW))
     if list(truth_frames) != output_centres(store.n_frames, WINDOW, every)[: len(truth_frames)] or not len(truth_frames):
         raise InputError(f"{store_url}: truth frames {list(truth_frames)[:4]}... are not the 41-frame window centres 20, 20+{every}, ...")
@@ -64,7 +63,7 @@ def evaluate(store_url: str, methods: list[str], out_dir: str, *, weights: str |
     check_apart(out_dir, store_url, weights)
     check_workers(workers)
     store, truth_frames, options = checked_evaluation(store_url, methods, weights)
-    truth = store.group["truth"]
+    truth, _ = read_truth(store)
     fs, root = resolve(out_dir)
     fs.makedirs(root, exist_ok=True)
 
@@ -76,7 +75,7 @@ def evaluate(store_url: str, methods: list[str], out_dir: str, *, weights: str |
             start = time.perf_counter()
             reconstruct(store_url, out, options[method], client=client, progress=progress)
             seconds = time.perf_counter() - start
-            video = zarr.open_group(zarr_store(out, read_only=True), mode="r")["video"]
+            video = open_video_store(out)[VIDEO]
             scores = [(psnr(video[k], truth[k]), ssim(video[k], truth[k])) for k in range(len(truth_frames))]
             per_frame += [{"method": method, "frame": int(f), "psnr": p, "ssim": s} for f, (p, s) in zip(truth_frames, scores)]
             rows.append({"method": method, "psnr": float(np.mean([p for p, _ in scores])),

@@ -14,6 +14,7 @@ from pipeline.lease import claimed
 from pipeline.progress import progress_bar
 from pipeline.spike_store import open_spike_store
 from pipeline.storage import check_apart, claim_output, new_output, open_group, resolve
+from pipeline.video_store import FRAMES, VIDEO, open_video_store
 from stages.dat import DatLayout, packed_to_dat
 from stages.errors import InputError
 
@@ -26,7 +27,7 @@ VIDEO_FPS = 10
 def export(store_url: str, dest: str, *, overwrite: bool = False, progress: bool = True) -> None:
     """Write the store at ``store_url`` to ``dest``: the kind of store and ``dest``'s extension decide how."""
     check_apart(dest, store_url)
-    is_video = "video" in open_group(store_url)
+    is_video = VIDEO in open_group(store_url)
     suffix = str(dest).lower().rsplit(".", 1)[-1] if "." in str(dest).rsplit("/", 1)[-1] else ""
     if is_video:
         if suffix not in ("mp4", ""):
@@ -41,8 +42,6 @@ def export(store_url: str, dest: str, *, overwrite: bool = False, progress: bool
 
 
 def _complete_video(store_url: str):
-    from pipeline.video_store import open_video_store
-
     group = open_video_store(store_url)
     if group.attrs.get("state") != "complete":
         raise InputError(f"video store {store_url} is incomplete: finish it with cscsr reconstruct --resume")
@@ -55,7 +54,7 @@ def export_mp4(store_url: str, dest: str, *, overwrite: bool = False, progress: 
 
     check_apart(dest, store_url)
     group = _complete_video(store_url)
-    video = group["video"]
+    video = group[VIDEO]
     claim_output(dest, overwrite=overwrite)
     fs, path = resolve(dest)
     with tempfile.TemporaryDirectory() as scratch:  # ffmpeg writes files, not streams
@@ -76,7 +75,7 @@ def export_pngs(store_url: str, dest: str, *, overwrite: bool = False, progress:
 
     check_apart(dest, store_url)
     group = _complete_video(store_url)
-    video, frames = group["video"], group["frames"][:]
+    video, frames = group[VIDEO], group[FRAMES][:]
     with new_output(dest, overwrite=overwrite), progress_bar(f"export {dest}", video.shape[0], enabled=progress) as advance:
         for index, centre in enumerate(frames):
             write_image(f"{str(dest).rstrip('/')}/frame_{centre:08d}.png", video[index])

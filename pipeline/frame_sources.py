@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.images import IMAGE_SUFFIXES, decode_image
-from pipeline.storage import is_local, resolve, zarr_store
+from pipeline.storage import is_local, resolve
 from stages.errors import InputError
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".gif")
@@ -47,9 +47,9 @@ class FrameSource:
         if self.kind == "folder":
             return _read_image_bytes(fs, self.files[index])
         if self.kind == "zarr":
-            import zarr
+            from pipeline.video_store import video_array
 
-            return zarr.open_group(zarr_store(self.url, read_only=True), mode="r")["video"][index]
+            return video_array(self.url)[index]
         return _video_frame(self.url, index)
 
 
@@ -88,12 +88,9 @@ def open_frame_source(url: str) -> FrameSource:
         raise InputError(f"cannot read {url}: no such file or folder")
     if fs.isdir(path):
         if fs.exists(f"{path.rstrip('/')}/zarr.json"):
-            import zarr
+            from pipeline.video_store import video_array
 
-            group = zarr.open_group(zarr_store(url, read_only=True), mode="r")
-            if "video" not in group:
-                raise InputError(f"{url} is a Zarr group without a 'video' array (t, y, x, c)")
-            video = group["video"]
+            video = video_array(url)
             if video.ndim != 4 or video.shape[-1] != 3:
                 raise InputError(f"{url}: 'video' has shape {video.shape}, expected (T, H, W, 3)")
             return FrameSource(url, "zarr", video.shape[0], video.shape[1], video.shape[2])

@@ -35,7 +35,7 @@ from pipeline.progress import progress_bar
 from pipeline.segments import Outcome, in_segments
 from pipeline.spike_store import SpikeStore, open_spike_store, read_frames
 from pipeline.storage import check_apart, claim_output, exists, recorded
-from pipeline.video_store import TileWriter, committed_mask, create_video_store, open_video_store
+from pipeline.video_store import VIDEO, TileWriter, committed_mask, create_video_store, open_video_store
 from stages.colour import auto_gain
 from stages.errors import InputError
 from stages.numbers import FLOAT32_MAX, check_number
@@ -343,7 +343,7 @@ def _prepare_output(plan: Plan, resume: bool, centres: list[int], grid: list[lis
             found["source"] = recorded(found["source"])
         expected = plan.attrs()
         changed = [k for k in expected if found[k] != expected[k]]
-        if changed or group["video"].shape[0] != len(centres):
+        if changed or group[VIDEO].shape[0] != len(centres):
             what = ", ".join(f"{k} {found[k]!r} -> {expected[k]!r}" for k in changed) or "frame count"
             raise InputError(f"cannot resume {plan.out}: it was made with other parameters ({what})")
         return committed_mask(group)

@@ -25,7 +25,8 @@ from pipeline.cluster import check_workers, dask_client
 from pipeline.frame_sources import FrameSource, open_frame_source
 from pipeline.lease import claimed, held
 from pipeline.progress import progress_bar
-from pipeline.spike_store import SpikeMeta, SpikeStoreWriter, chunk_frames_for, write_region
+from pipeline.ground_truth import declare_truth, write_flow, write_truth
+from pipeline.spike_store import SPIKES, SpikeMeta, SpikeStoreWriter, chunk_frames_for, write_region
 from pipeline.storage import check_apart, new_output, recorded
 from stages import sensor
 from stages.cfa import check_cfa
@@ -143,7 +144,7 @@ def _state(fired: sensor.Fired) -> np.ndarray:
 
 
 def _write_spikes(url: str, start: int, fired: sensor.Fired) -> tuple[int, int]:
-    write_region(url, "spikes", start, fired.packed)
+    write_region(url, SPIKES, start, fired.packed)
     return fired.packed.shape[0], fired.spikes
 
 
@@ -157,11 +158,11 @@ def _write_truth(url: str, index: int, scene: Scene, frame: int, options: Simula
         frame1 = frame0 if w == 0 else _hr_frame(scene.source, i + 1)
         flows = None if lr_flows is None else tuple(upscale_flow(f, options.scale) for f in lr_flows)
         rgb = between(frame0, frame1, w, flows)
-    write_region(url, "truth", index, truth_image(rgb, options.cfa)[None])
+    write_truth(url, index, truth_image(rgb, options.cfa))
 
 
 def _write_flow(url: str, index: int, path: CameraPath, frame0: int, frame1: int) -> None:
-    write_region(url, "flow", index, path.flow(frame0, frame1)[None])
+    write_flow(url, index, path.flow(frame0, frame1))
 
 
 # ---- the graph ----
@@ -219,18 +220,7 @@ def simulate(src: str, dest: str, options: SimulateOptions = SimulateOptions(), 
             dask_client(workers=workers, scheduler=scheduler) as client:
         writer = SpikeStoreWriter(dest, meta, options.frames, chunk_frames=chunk)
         hr = (options.scale * height, options.scale * width)
-        # dimension names mean one thing in the store: y, x are the sensor's (spikes), hr_y, hr_x the HR
-        # pictures'; k counts truth frames, k_flow the flow fields between them (one fewer)
-        writer.add_array("truth", (len(truth_at), *hr, 3), (1, *hr, 3), np.uint8, ("k", "hr_y", "hr_x", "c"),
-                         {"units": "8-bit RGB, the source's values", "coordinates": "truth_frames"})
-        writer.add_array("truth_frames", (len(truth_at),), (max(len(truth_at), 1),), np.int64, ("k",),
-                         {"units": "spike frame index", "fps": options.fps})
-        writer.group["truth_frames"][:] = np.asarray(truth_at, np.int64)
-        if path is not None and len(truth_at) > 1:
-            writer.add_array("flow", (len(truth_at) - 1, *hr, 2), (1, *hr, 2), np.float32,
-                             ("k_flow", "hr_y", "hr_x", "d"), {"units": "HR pixels, (dx, dy)"})
-            writer.group.attrs["flow_convention"] = "flow[k] (dx, dy) HR pixels: truth[k] at x is truth[k+1] at x + flow"
-
+        declare_truth(writer, truth_at, hr, options.fps, with_flow=path is not None)
         pairs = None if scene.is_still else _SourcePairs(client, source, options)
         submissions = _submissions(client, scene, pairs, options, model, chunk, truth_at, dest, height, width)
         spikes = 0

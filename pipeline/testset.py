@@ -128,20 +128,18 @@ def average_per_alpha(rows: list[dict], keys: tuple[str, ...]) -> list[dict]:
 
 def _crops(testset: str, out: str, methods: list[str], chosen: list[Item]) -> np.ndarray:
     """One 96x96 HR crop per test picture (its middle alpha, middle truth frame): truth, then every method."""
-    import zarr
-
-    from pipeline.storage import zarr_store
-
-    def opened(url: str):
-        return zarr.open_group(zarr_store(url, read_only=True), mode="r")
+    from pipeline.ground_truth import read_truth
+    from pipeline.spike_store import open_spike_store
+    from pipeline.video_store import VIDEO, open_video_store
 
     window = (1, slice(80, 176), slice(80, 176))
     rows = []
     for picture in dict.fromkeys(item.picture for item in chosen):
         alphas = [item for item in chosen if item.picture == picture]
         name = alphas[len(alphas) // 2].name
-        tiles = [labelled(opened(f"{testset.rstrip('/')}/{name}.zarr")["truth"][window], "truth")]
-        tiles += [labelled(opened(f"{out.rstrip('/')}/{name}/{method}.zarr")["video"][window], method)
+        truth, _ = read_truth(open_spike_store(f"{testset.rstrip('/')}/{name}.zarr"))
+        tiles = [labelled(truth[window], "truth")]
+        tiles += [labelled(open_video_store(f"{out.rstrip('/')}/{name}/{method}.zarr")[VIDEO][window], method)
                   for method in methods]
         rows.append(side_by_side(*tiles))
     return np.concatenate(rows, axis=0)

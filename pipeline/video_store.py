@@ -17,7 +17,7 @@ import zarr
 import cscsr
 from zarr.codecs import ZstdCodec
 
-from pipeline.storage import consolidate, zarr_store
+from pipeline.storage import consolidate, open_group, zarr_store
 from stages.errors import InputError
 
 VIDEO, FRAMES, COMMITTED = "video", "frames", "committed"
@@ -57,6 +57,15 @@ def open_video_store(url: str, *, writable: bool = False) -> zarr.Group:
     if VIDEO not in group or FRAMES not in group:
         raise InputError(f"{url} is not an HR video store: it needs '{VIDEO}' and '{FRAMES}'")
     return group
+
+
+def video_array(url: str) -> zarr.Array:
+    """The ``video`` array of the Zarr group at ``url``, read-only: a video store, or any group holding
+    frames as ``video`` (T, H, W, 3) uint8, as the simulator takes them for a source."""
+    group = open_group(url)
+    if VIDEO not in group:
+        raise InputError(f"{url} is a Zarr group without a '{VIDEO}' array (t, y, x, c)")
+    return group[VIDEO]
 
 
 def is_video_store(group: zarr.Group) -> bool:
