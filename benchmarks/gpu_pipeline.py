@@ -88,9 +88,9 @@ def simulate_recording(work: Path, side: int, frames: int) -> tuple[str, float]:
 
 def task_windows(store_url: str, batch: int, halo: int, tile: int):
     """What each pipeline task reconstructs, in the pipeline's order: a list of lists of Windows."""
-    from stages.reconstruct import output_centres
+    from stages.methods import output_centres
     from pipeline.spike_store import open_spike_store, read_frames
-    from stages.reconstruct import Window
+    from stages.methods import Window
     from stages.tiles import tile_grid
 
     store = open_spike_store(store_url)

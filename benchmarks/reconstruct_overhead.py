@@ -97,7 +97,7 @@ def spike_store(frames: int, height: int, width: int, dest: Path) -> str:
 
 def middle_gain(store_url: str, window: int, every: int) -> float:
     """The automatic exposure of the middle output window (what ``reconstruct`` would pick)."""
-    from stages.reconstruct import output_centres
+    from stages.methods import output_centres
     from pipeline.spike_store import open_spike_store
     from stages.colour import auto_gain
     from stages.tfp import tfp_rate
@@ -141,7 +141,7 @@ def outputs_equal(url_a: str, url_b: str) -> bool:
 
 def plain_loop(store_url: str, out: str, every: int, gain: float) -> int:
     """(a): read, tfp_image, write each frame into a Zarr array like the pipeline's output."""
-    from stages.reconstruct import output_centres
+    from stages.methods import output_centres
     from pipeline.spike_store import open_spike_store
     from pipeline.video_store import VIDEO, create_video_store
     from stages.tfp import tfp_image

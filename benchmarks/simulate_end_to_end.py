@@ -43,7 +43,7 @@ def stage_breakdown(video: str, options, n_chunks: int, n_truth: int, dest: str)
     """(stage, seconds per call, calls in the run) for every stage of the graph."""
     from pipeline.frame_sources import open_frame_source
     from pipeline.simulate import _lr_frame, _hr_frame, _increments, _fire, Scene, _write_truth
-    from stages.reconstruct import WINDOW, output_centres
+    from stages.methods import WINDOW, output_centres
     from pipeline.spike_store import SpikeMeta, SpikeStoreWriter
     from stages import sensor
     from stages.interpolate import estimate_flows
@@ -88,7 +88,7 @@ def main() -> None:
 
     from pipeline.frame_sources import open_frame_source
     from pipeline.simulate import SimulateOptions, simulate
-    from stages.reconstruct import WINDOW, output_centres
+    from stages.methods import WINDOW, output_centres
 
     work = tempfile.mkdtemp(prefix="cscsr-sim-bench-")
     try:

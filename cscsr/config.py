@@ -9,7 +9,7 @@ import json
 from dataclasses import asdict, dataclass, fields, replace
 
 from stages.errors import InputError
-from stages.reconstruct import WINDOW
+from stages.methods import WINDOW
 
 MOTIONS = ("joint", "assembled")
 

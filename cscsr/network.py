@@ -4,7 +4,7 @@ Algorithm 1 of the paper, one module per step:
 
     spikes (B, N, H, W), CFA per clip
       -> BSSR per colour R, G, B          (B, N', C, H, W) each          cscsr.bssr
-      -> joint motion estimation          (B, N', 2, H, W) flows         cscsr.motion
+      -> joint motion estimation          (B, N', 2, H, W) flows         cscsr.motion_estimation
       -> temporal-pixel features          (B, C, H, W) per colour        cscsr.temporal_pixels
       -> integration, pixel shuffle x s   (B, 3, sH, sW) residual        cscsr.integration
          (also fed the demosaicked TFP over the clip and its middle w frames, (B, 6, H, W))
@@ -25,7 +25,7 @@ from cscsr.blocks import ResBlock
 from cscsr.bssr import BSSR
 from cscsr.config import CSCSRConfig
 from cscsr.integration import NETWORK_SCALES, Integration
-from cscsr.motion import MotionEstimation
+from cscsr.motion_estimation import MotionEstimation
 from cscsr.spike_flow import FlowDecoder
 from cscsr.temporal_pixels import TemporalPixels
 from stages.errors import InputError

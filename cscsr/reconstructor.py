@@ -19,7 +19,7 @@ from stages.bits import unpack_rows
 from stages.cfa import flip_horizontally, flip_vertically, transpose
 from stages.colour import expose
 from stages.errors import InputError
-from stages.reconstruct import Window
+from stages.methods import Window
 
 HALO = 32  # LR pixels: the flow pyramid sees far; tiles agree with the whole frame closely, not exactly
 PRECISIONS = ("fp32", "bf16")

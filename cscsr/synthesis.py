@@ -100,7 +100,7 @@ def synthesise(batch: PreparedBatch, device: torch.device | str) -> dict:
 def sample_grid(plans: list[ClipPlan], t: float, device: torch.device) -> torch.Tensor:
     """(B, s*lr, s*lr, 2) grid_sample coordinates of frame t over each clip's area of its scene.
 
-    ``stages.motion.CameraPath.sample_map`` in float64, for the clip's pixels alone.
+    ``stages.camera_path.CameraPath.sample_map`` in float64, for the clip's pixels alone.
     """
     plan = plans[0]
     size, first = plan.picture.shape[0], plan.margin * plan.scale

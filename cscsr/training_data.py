@@ -1,7 +1,7 @@
 """Training, validation and test clips simulated on the fly, with their exact truth.
 
 A clip is what the network sees and what it should give: 41 LR Bayer spike frames of a
-picture moving along a smooth random camera path (``stages.motion``), the HR picture at
+picture moving along a smooth random camera path (``stages.camera_path``), the HR picture at
 the middle frame in rate units α·I/θ, and the exact LR flows from the middle frame to
 frames 11 and 29 (motion supervision). The sensor is the project's simulator
 (``stages.sensor``, Algorithm 2): brightness α in [0.6, 1.0], random initial integrator
@@ -21,11 +21,11 @@ import numpy as np
 
 from cscsr.frame_motion import FrameMotion, choices, source_names
 from stages.cfa import BAYER_PATTERNS, flip_horizontally, flip_vertically, transpose
-from stages.frames import to_unit_rgb
-from stages.motion import CameraPath, render
+from stages.intensities import to_unit_rgb
+from stages.camera_path import CameraPath, render
 from stages.bits import unpack_rows
 from stages.errors import InputError
-from stages.reconstruct import WINDOW
+from stages.methods import WINDOW
 from stages.sensor import SensorModel, area_downsample, cfa_sample, fire, increments, initial_state
 
 TRAIN_PICTURES = ("rocket", "motorcycle_left", "motorcycle_right", "hubble_deep_field", "immunohistochemistry",

@@ -14,9 +14,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.storage import resolve, unreachable
-from stages.arrays import binary_to_packed, check_spike_array_header
+from stages.spike_arrays import binary_to_packed, check_spike_array_header
 from stages.dat import DatLayout, dat_to_packed
-from stages.errors import InputError
+from stages.errors import InputError, describe
 
 KINDS = (".dat", ".npy", ".npz")
 DEFAULT_NPZ_KEY = "spk"
@@ -108,7 +108,7 @@ class ArrayCapture:
             read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
             shape, fortran, dtype = read_header(stream)
         except (ValueError, SyntaxError, TypeError, tokenize.TokenError, zipfile.BadZipFile, zlib.error, EOFError) as error:
-            raise InputError(f"{self.url} is not a valid .npy array: {' '.join(str(error).split())}") from None
+            raise InputError(f"{self.url} is not a valid .npy array: {describe(error)}") from None
         check_spike_array_header(shape, dtype)
         frame_bytes = int(np.prod(shape[1:], dtype=object)) * dtype.itemsize
         if self.key is None and frame_bytes * shape[0] > self.fs.size(self.path):  # checked before reading anything
@@ -130,7 +130,7 @@ class ArrayCapture:
                 try:
                     data = stream.read(nbytes)
                 except (zlib.error, zipfile.BadZipFile, EOFError) as error:
-                    raise InputError(f"{self.url} is damaged near frame {start}: {' '.join(str(error).split())}") from None
+                    raise InputError(f"{self.url} is damaged near frame {start}: {describe(error)}") from None
                 if len(data) != nbytes:
                     raise InputError(f"{self.url} is truncated: frame {start + len(data) // (frame_items * self.dtype.itemsize)} of {self.n_frames} is incomplete")
                 frames = np.frombuffer(data, self.dtype).reshape(count, self.height, self.width)

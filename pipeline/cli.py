@@ -16,7 +16,7 @@ from rich.console import Console
 from rich.table import Table
 
 from stages.cfa import PATTERNS
-from stages.reconstruct import METHODS, WINDOW
+from stages.methods import METHODS, WINDOW
 
 app = typer.Typer(no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False,
                   help="Reconstruction pipeline for colour spike cameras: ingest, inspect, export, reconstruct.")
@@ -122,8 +122,9 @@ def one_line_errors(command):
             if os.environ.get("CSCSR_DEBUG"):
                 raise
             from pipeline.storage import unreachable
+            from stages.errors import describe
 
-            message = " ".join(str(error).split()) or type(error).__name__
+            message = describe(error)
             if reach := unreachable(error, [*args, *kwargs.values()]):
                 message = reach
             elif isinstance(error, FileNotFoundError):

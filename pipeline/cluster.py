@@ -19,7 +19,7 @@ from collections.abc import Iterator
 import dask
 from distributed import Client, LocalCluster, WorkerPlugin
 
-from stages.errors import InputError
+from stages.errors import InputError, describe
 from stages.numbers import check_number
 
 CONNECT_TIMEOUT = "5s"
@@ -73,7 +73,7 @@ def dask_client(*, workers: int | None = None, scheduler: str | None = None) -> 
         try:
             client = Client(address, timeout=CONNECT_TIMEOUT)
         except (OSError, TimeoutError) as error:
-            raise InputError(f"cannot reach Dask scheduler {address}: {' '.join(str(error).split())}") from None
+            raise InputError(f"cannot reach Dask scheduler {address}: {describe(error)}") from None
         with client:
             yield client
         return

@@ -26,7 +26,7 @@ from pipeline.preview import preview
 from pipeline.simulate import SimulateOptions, simulate
 from pipeline.storage import check_apart
 from stages.metrics import correlation, psnr
-from stages.pictures import side_by_side
+from stages.montage import side_by_side
 
 METHODS = ["tfp", "tfi", "cscsr"]
 SCENE_SIZE = 256  # HR pixels: LR 64x64 at x4

@@ -22,8 +22,8 @@ from pipeline.storage import check_apart, resolve
 from pipeline.video_store import VIDEO, open_video_store
 from stages.errors import InputError
 from stages.metrics import psnr, ssim
-from stages.reconstruct import METHODS, NETWORKS, WINDOW, output_centres
-from stages.pictures import labelled, side_by_side
+from stages.methods import METHODS, NETWORKS, WINDOW, output_centres
+from stages.montage import labelled, side_by_side
 
 
 def check_methods(methods: list[str], weights: str | None = None) -> None:

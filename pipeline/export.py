@@ -13,7 +13,8 @@ import tempfile
 from pipeline.lease import claimed
 from pipeline.progress import progress_bar
 from pipeline.spike_store import open_spike_store
-from pipeline.storage import check_apart, claim_output, new_output, open_group, resolve
+from pipeline.outputs import claim_output, new_output
+from pipeline.storage import check_apart, open_group, resolve
 from pipeline.video_store import FRAMES, VIDEO, open_video_store
 from stages.dat import DatLayout, packed_to_dat
 from stages.errors import InputError

@@ -2,7 +2,7 @@
 
 Each source knows its frame count and size from its header and reads frame ``i`` on
 demand, so Dask workers read only the frames their task needs. Frames come back as the
-file holds them (uint8/uint16, grey or RGB[A]); :func:`stages.frames.to_unit_rgb` turns
+file holds them (uint8/uint16, grey or RGB[A]); :func:`stages.intensities.to_unit_rgb` turns
 them into intensities.
 """
 
@@ -13,7 +13,7 @@ import numpy as np
 
 from pipeline.images import IMAGE_SUFFIXES, decode_image
 from pipeline.storage import is_local, resolve
-from stages.errors import InputError
+from stages.errors import InputError, describe
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".gif")
 
@@ -77,7 +77,7 @@ def _video_header(url: str) -> tuple[int, int, int]:
             n = reader.count_frames()
             height, width = reader.get_data(0).shape[:2]
     except Exception as error:
-        raise InputError(f"cannot read video {url}: {' '.join(str(error).split())[:200]}") from None
+        raise InputError(f"cannot read video {url}: {describe(error)[:200]}") from None
     return n, height, width
 
 

@@ -5,7 +5,8 @@ import os
 import imageio.v3 as iio
 import numpy as np
 
-from pipeline.storage import new_output, resolve
+from pipeline.outputs import new_output
+from pipeline.storage import resolve
 from stages.errors import InputError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")

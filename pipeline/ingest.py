@@ -7,7 +7,8 @@ from stages.prefetch import prefetched
 from pipeline.progress import progress_bar
 from pipeline.spike_store import SpikeMeta, SpikeStoreWriter, chunk_frames_for
 from pipeline.lease import claimed
-from pipeline.storage import check_apart, new_output, recorded
+from pipeline.outputs import new_output
+from pipeline.storage import check_apart, recorded
 from stages.bits import count_spikes, packed_width
 from stages.cfa import check_cfa, flip_vertically
 

@@ -23,8 +23,7 @@ from contextlib import closing
 from dataclasses import dataclass
 from pathlib import Path
 
-from pipeline.storage import describe
-from stages.errors import InputError
+from stages.errors import InputError, describe
 
 STATES = ("queued", "running", "done", "failed", "quarantined")
 FILENAME = "ledger.sqlite"

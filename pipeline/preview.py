@@ -8,7 +8,7 @@ from pipeline.spike_store import open_spike_store
 from stages.colour import check_scale
 from stages.errors import InputError
 from stages.numbers import FLOAT32_MAX, check_number
-from stages.reconstruct import WINDOW
+from stages.methods import WINDOW
 from stages.tfp import tfp_image
 
 

@@ -27,19 +27,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.batches import in_bounded_window, window_size
+from pipeline.submission_window import in_bounded_window, window_size
 from pipeline.cluster import GPU, check_workers, dashboard_link, dask_client, gpu_workers, scheduler_address
 from pipeline.hold import hold_point
 from pipeline.lease import check_free, claimed, held
 from pipeline.progress import progress_bar
 from pipeline.segments import Outcome, in_segments
 from pipeline.spike_store import SpikeStore, open_spike_store, read_frames
-from pipeline.storage import check_apart, claim_output, exists, recorded
+from pipeline.outputs import claim_output
+from pipeline.storage import check_apart, exists, recorded
 from pipeline.video_store import VIDEO, TileWriter, committed_mask, create_video_store, open_video_store
 from stages.colour import auto_gain
-from stages.errors import InputError
+from stages.errors import InputError, describe
 from stages.numbers import FLOAT32_MAX, check_number
-from stages.reconstruct import METHODS, NETWORKS, WINDOW, Reconstructor, Window, classic, output_centres
+from stages.methods import METHODS, NETWORKS, WINDOW, Reconstructor, Window, classic, output_centres
 from stages.tfp import tfp_rate
 from stages.tiles import Tile, tile_grid
 
@@ -306,7 +307,7 @@ def run_groups(client, groups: Iterable, *, plan: Plan, centres: list[int], grid
         frames, block = group_of.pop(future.key)
         error = None
         if future.status != "finished":  # the task raised: report it, go on with the others
-            error = " ".join(str(future.exception()).split()) or type(future.exception()).__name__
+            error = describe(future.exception())
         for ty, tx in block:
             yield Outcome(frames.start, frames.stop, ty, tx, error)
 

@@ -22,7 +22,7 @@ import sys
 from collections.abc import Callable, Iterable, Iterator
 from typing import NamedTuple
 
-from stages.errors import InputError
+from stages.errors import InputError, describe
 
 
 class Outcome(NamedTuple):
@@ -94,7 +94,7 @@ def _segment(run, items, workers, show_dashboard, messages) -> None:
                 messages.put(("outcome", *outcome))
         messages.put((_END,))
     except Exception as error:  # reported by the parent, which owns the user's terminal and exit code
-        messages.put((_FAILED, type(error).__name__, " ".join(str(error).split()) or type(error).__name__))
+        messages.put((_FAILED, type(error).__name__, describe(error)))
     finally:
         messages.close()
         messages.join_thread()

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from distributed import Client
 
-from pipeline.batches import in_bounded_window, window_size
+from pipeline.submission_window import in_bounded_window, window_size
 
 from pipeline.cluster import check_workers, dask_client
 from pipeline.frame_sources import FrameSource, open_frame_source
@@ -27,16 +27,17 @@ from pipeline.lease import claimed, held
 from pipeline.progress import progress_bar
 from pipeline.ground_truth import declare_truth, write_flow, write_truth
 from pipeline.spike_store import SPIKES, SpikeMeta, SpikeStoreWriter, chunk_frames_for, write_region
-from pipeline.storage import check_apart, new_output, recorded
+from pipeline.outputs import new_output
+from pipeline.storage import check_apart, recorded
 from stages import sensor
 from stages.cfa import check_cfa
 from stages.errors import InputError
-from stages.frames import to_unit_rgb
+from stages.intensities import to_unit_rgb
 from stages.interpolate import INTERPOLATIONS, estimate_flows
 from stages.numbers import check_number
 from stages.latent import bracket, source_position, still_mosaics, truth_image, upscale_flow, video_mosaics, between
-from stages.motion import CameraPath, render
-from stages.reconstruct import WINDOW, output_centres
+from stages.camera_path import CameraPath, render
+from stages.methods import WINDOW, output_centres
 
 TRUTH_SCALES = (1, 2, 4)  # the HR truth the simulator can draw beside the LR spikes
 MOTIONS = ("static", "random")

@@ -19,12 +19,12 @@ import zarr
 from zarr.codecs import ZstdCodec
 
 import cscsr
-from pipeline.storage import consolidate, describe, open_group, zarr_store
+from pipeline.storage import consolidate, open_group, zarr_store
 from pipeline.video_store import describe_video_store, is_video_store
 from stages.bits import packed_width
 from stages.cfa import check_cfa
 from stages.dat import check_head_side
-from stages.errors import InputError
+from stages.errors import InputError, describe
 from stages.numbers import FLOAT32_MAX, check_number
 from stages.sensor import check_reset
 
@@ -181,7 +181,7 @@ def read_frames(spikes: zarr.Array, url: str, start: int, stop: int, region: tup
         return spikes[(slice(start, stop), *region)]
     except (RuntimeError, ValueError) as error:
         raise InputError(f"spike store {url}: frames {start}..{stop - 1} cannot be read, a chunk is damaged "
-                         f"({' '.join(str(error).split())})") from None
+                         f"({describe(error)})") from None
 
 
 def open_spike_store(url: str, *, allow_incomplete: bool = False) -> SpikeStore:

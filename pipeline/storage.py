@@ -1,4 +1,4 @@
-"""fsspec URLs -> filesystems and Zarr stores, and removal of outputs that did not finish.
+"""fsspec URLs -> filesystems and Zarr stores; an output kept apart from its inputs; removing a store.
 
 Any location is a URL: a plain path, ``file://``, ``memory://`` (shared within one process),
 ``s3://`` (s3fs; endpoint and credentials from the usual AWS variables or fsspec's
@@ -6,18 +6,16 @@ Any location is a URL: a plain path, ``file://``, ``memory://`` (shared within o
 directories as needed), everything else to ``FsspecStore``.
 """
 
-import contextlib
 import itertools
 import os
 import posixpath
 import warnings
-from collections.abc import Iterator
 
 import fsspec
 import zarr
 from fsspec.implementations.local import LocalFileSystem
 
-from stages.errors import InputError
+from stages.errors import InputError, describe
 
 
 def resolve(url: str) -> tuple[fsspec.AbstractFileSystem, str]:
@@ -107,11 +105,6 @@ def open_group(url: str, what: str = "store") -> zarr.Group:
         raise InputError(f"cannot read {what} {url}: its Zarr metadata is damaged ({describe(error)})") from None
 
 
-def describe(error: BaseException) -> str:
-    """An exception as one line of text."""
-    return " ".join(str(error).split()) or type(error).__name__
-
-
 def missing_chunks(array: zarr.Array) -> list[tuple[int, ...]]:
     """The chunks of ``array`` (grid coordinates) that have no object in its store, from one listing of
     the array's keys (no chunk is read). Our writers store every chunk, empty or not, so a chunk that
@@ -181,34 +174,3 @@ def check_apart(output: str, *inputs: str | None) -> None:
         real = f" (both are {in_path})" if relation == "is the same as" and str(output) != str(source) else ""
         raise InputError(f"output {output} {relation} input {source}{real}: writing there would destroy or "
                          f"corrupt the input; choose another output")
-
-
-def claim_output(url: str, *, overwrite: bool, flag: str = "--overwrite") -> None:
-    """Refuse an existing output unless ``overwrite``; with it, clear the old output (never one that
-    another live job is writing: see :mod:`pipeline.lease`)."""
-    if exists(url):
-        from pipeline.lease import check_free
-
-        check_free(url)
-        if not overwrite:
-            raise InputError(f"output {url} already exists (pass {flag} to replace it)")
-        remove(url)
-
-
-@contextlib.contextmanager
-def removed_on_failure(url: str) -> Iterator[None]:
-    """Delete ``url`` if the block raises (or is interrupted): no half-written output stays."""
-    try:
-        yield
-    except BaseException:
-        with contextlib.suppress(Exception):
-            remove(url)
-        raise
-
-
-@contextlib.contextmanager
-def new_output(url: str, *, overwrite: bool, flag: str = "--overwrite") -> Iterator[None]:
-    """Claim ``url`` for a new output (refusing an existing one first), removed if the block fails."""
-    claim_output(url, overwrite=overwrite, flag=flag)
-    with removed_on_failure(url):
-        yield

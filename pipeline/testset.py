@@ -20,9 +20,10 @@ from pipeline.cluster import check_workers, dask_client
 from pipeline.evaluate import check_methods, checked_evaluation, evaluate
 from pipeline.images import write_image
 from pipeline.simulate import SimulateOptions, simulate
-from pipeline.storage import check_apart, claim_output, resolve
+from pipeline.outputs import claim_output
+from pipeline.storage import check_apart, resolve
 from stages.errors import InputError
-from stages.pictures import labelled, side_by_side
+from stages.montage import labelled, side_by_side
 
 ALPHAS = (0.6, 0.8, 1.0)
 HR_SIDE, SCALE, FRAMES, TRUTH_EVERY, SPEED = 256, 4, 123, 41, 0.5

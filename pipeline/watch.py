@@ -46,8 +46,8 @@ from pipeline.reconstruct import ReconstructOptions, reconstruct
 from pipeline.spike_store import open_spike_store
 from pipeline.storage import check_apart, exists, is_local, resolve
 from pipeline.video_store import open_video_store
-from stages.errors import InputError
-from stages.reconstruct import WINDOW
+from stages.errors import InputError, describe
+from stages.methods import WINDOW
 
 RAW = ("dat", "npz", "npy")
 KINDS = ("zarr",) + RAW
@@ -239,12 +239,12 @@ def process(candidate: Candidate, key: str, params: dict, outbox: str, ledger: L
         log.info("%s: exported %s", candidate.name, preview)
     except InputError as error:
         ledger.fail(key, str(error), final=True, retry_in=None, quarantine=False)
-        log.error("%s: failed: %s", candidate.name, " ".join(str(error).split()))
+        log.error("%s: failed: %s", candidate.name, describe(error))
         return
     except Exception as error:  # anything else may pass: retry later, up to a bound
         attempts = ledger.get(key).attempts
         quarantine = attempts >= options.max_attempts
-        message = f"{type(error).__name__}: {' '.join(str(error).split())}"
+        message = f"{type(error).__name__}: {describe(error)}"
         ledger.fail(key, message, final=False, retry_in=options.backoff * 2 ** (attempts - 1), quarantine=quarantine)
         if quarantine:
             log.error("%s: quarantined after %d attempts: %s", candidate.name, attempts, message)

@@ -6,13 +6,13 @@ bidirectional flow with OpenCV DIS, approximates the flows from the in-between t
 frames as Super SloMo does, sharpens them at motion boundaries with two fixed-point steps of
 linear motion (F_w0(x) = -w F01(x + F_w0(x))), backward-warps both frames there and blends
 them, down-weighting pixels that a forward-backward check marks as occluded in the other frame. Flow vectors follow
-:func:`stages.motion.CameraPath.flow`: frame0(x) ~ frame1(x + flow01(x)).
+:func:`stages.camera_path.CameraPath.flow`: frame0(x) ~ frame1(x + flow01(x)).
 """
 
 import numpy as np
 
 from stages.errors import InputError
-from stages.motion import backward_warp, check_image
+from stages.camera_path import backward_warp, check_image
 
 INTERPOLATIONS = ("flow", "linear")
 

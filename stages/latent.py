@@ -13,9 +13,9 @@ Ground truth is always rendered at HR.
 
 import numpy as np
 
-from stages.frames import luma_rgb, to_uint8
+from stages.intensities import luma_rgb, to_uint8
 from stages.interpolate import flow_interpolate, linear
-from stages.motion import CameraPath, render
+from stages.camera_path import CameraPath, render
 from stages.sensor import area_downsample, cfa_sample
 
 

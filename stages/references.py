@@ -21,7 +21,7 @@ import numpy as np
 
 from stages.colour import demosaic, upsample
 from stages.errors import InputError
-from stages.frames import to_uint8
+from stages.intensities import to_uint8
 from stages.sensor import area_downsample, cfa_sample, check_reset
 from stages.tfp import undo_zero_reset
 

@@ -37,7 +37,7 @@ import numpy as np
 from stages.bits import count_spikes, packed_width
 from stages.cfa import check_cfa, colour_index
 from stages.errors import InputError
-from stages.frames import LUMA
+from stages.intensities import LUMA
 
 UNITS: int = 1 << 24
 RESETS = ("subtract", "zero")  # integrator resets: keep the charge above the threshold (cameras), or drop it

@@ -202,7 +202,7 @@ def test_one_pass_per_tile_shape_when_tiles_are_joined(wide):
     windows a pass, each image where it belongs; on the CPU by default one pass per tile, ``many``'s bytes."""
     from cscsr.reconstructor import load_reconstructor
     from pipeline.spike_store import open_spike_store
-    from stages.reconstruct import Window
+    from stages.methods import Window
 
     store = open_spike_store(wide)
     meta = store.meta

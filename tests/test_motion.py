@@ -1,4 +1,4 @@
-"""Stages: camera paths with exact flow (motion) and frame interpolation (interpolate)."""
+"""Stages: camera paths with exact flow (camera_path) and frame interpolation (interpolate)."""
 
 import pickle
 
@@ -8,7 +8,7 @@ import pytest
 
 from stages.errors import InputError
 from stages.interpolate import estimate_flows, flow_interpolate, linear
-from stages.motion import CameraPath, backward_warp, render
+from stages.camera_path import CameraPath, backward_warp, render
 
 HEIGHT, WIDTH = 96, 128
 

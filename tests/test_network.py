@@ -12,7 +12,7 @@ from cscsr.warp import warp
 from cscsr.weights_io import load_model, save_weights
 from stages.bits import pack_rows
 from stages.errors import InputError
-from stages.reconstruct import Window
+from stages.methods import Window
 from stages.tiles import tile_grid
 from tests.conftest import with_random_heads
 

@@ -13,7 +13,7 @@ import zarr
 
 from pipeline.hold import hold_environment
 from pipeline.reconstruct import ReconstructOptions, reconstruct
-from stages.reconstruct import output_centres
+from stages.methods import output_centres
 from pipeline.simulate import SimulateOptions, simulate
 from tests.conftest import with_random_heads
 from tests.test_bad_input import assert_refused
@@ -174,7 +174,7 @@ def test_bad_input(cli, recording, tmp_path):
 
 def test_submission_stays_in_a_bounded_window(client):
     """However many tasks a job has, at most ``limit`` are submitted and unfinished at once."""
-    from pipeline.batches import in_bounded_window
+    from pipeline.submission_window import in_bounded_window
 
     submitted, finished = [0], [0]
 
@@ -256,7 +256,7 @@ def test_cscsr_ensemble_on_the_cluster_matches_the_self_ensemble_run_directly(re
     workers as the reconstructor run in this process, and not the plain network's bytes."""
     from cscsr.reconstructor import load_reconstructor
     from pipeline.spike_store import open_spike_store
-    from stages.reconstruct import Window
+    from stages.methods import Window
 
     out = str(tmp_path / "ensemble.zarr")
     reconstruct(recording, out, ReconstructOptions(method="cscsr-ensemble", weights=random_weights, every=41),

@@ -15,7 +15,7 @@ from pipeline.spike_store import open_spike_store
 from stages.bits import unpack_rows
 from stages.cfa import colour_index
 from stages.metrics import psnr
-from stages.motion import backward_warp
+from stages.camera_path import backward_warp
 from stages.sensor import area_downsample
 from tests.test_bad_input import assert_refused
 

@@ -11,7 +11,7 @@ from cscsr.training_data import FRAMES, random_plan, run_plan
 from stages import sensor as simulator
 from stages.bits import unpack_rows
 from stages.cfa import BAYER_PATTERNS
-from stages.motion import CameraPath
+from stages.camera_path import CameraPath
 
 
 def plans_covering_every_case() -> list:

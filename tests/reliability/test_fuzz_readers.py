@@ -185,7 +185,7 @@ def test_ingest_refuses(cli, tmp_path, name, data, args, fragments):
 
 
 def test_binary_arrays_of_other_dtypes_are_accepted(cli, tmp_path):
-    """By design (stages.arrays) 0/1 floats, int16 and booleans are spike arrays too."""
+    """By design (stages.spike_arrays) 0/1 floats, int16 and booleans are spike arrays too."""
     for dtype in (np.float32, np.float64, np.int16, np.bool_):
         np.savez(tmp_path / "a.npz", spk=SPIKES.astype(dtype))
         result = cli("ingest", tmp_path / "a.npz", tmp_path / "s.zarr", "--overwrite")

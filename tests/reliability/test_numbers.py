@@ -198,7 +198,7 @@ def test_non_finite_pixels_are_never_marked_complete(tmp_path, store, monkeypatc
     from distributed import Client
 
     import pipeline.reconstruct as module
-    from stages.reconstruct import RateReconstructor
+    from stages.methods import RateReconstructor
 
     def nan_rate(packed, width, reset):
         return np.full((packed.shape[1], width), np.nan, np.float32)
