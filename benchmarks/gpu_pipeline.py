@@ -228,7 +228,8 @@ def main() -> None:
 
     from cscsr.reconstructor import load_reconstructor
     from pipeline.cluster import dask_client
-    from pipeline.reconstruct import DEFAULT_TILE, ReconstructOptions, reconstruct
+    from pipeline.reconstruct import ReconstructOptions, reconstruct
+    from pipeline.reconstruct_plan import DEFAULT_TILE
 
     load_start = load_average()
     CACHE.mkdir(parents=True, exist_ok=True)

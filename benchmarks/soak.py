@@ -5,7 +5,7 @@ What: for recordings of ``--lengths`` frames (default 100,000, 300,000 and 1,000
 straight into a spike store in blocks), ``pipeline.reconstruct.reconstruct`` with TFP, window
 41, an output frame every 41 spike frames (2,439, 7,317 and 24,390 output frames; one task
 each), as ``cscsr reconstruct --workers 2`` runs it: in segments of ``--segment`` tasks, each in
-a fresh process with a fresh local cluster of 2 workers (``pipeline.segments``). Measured per
+a fresh process with a fresh local cluster of 2 workers (``pipeline.executor.in_segments``). Measured per
 length, in a fresh interpreter, by sampling the job's process tree every second: wall time,
 output frames per second, peak RSS (VmHWM) of the largest worker, of the largest segment
 process (client and scheduler) and of the job's own process. Reference: the shortest

@@ -11,6 +11,8 @@ from dataclasses import asdict, dataclass, fields, replace
 from stages.errors import InputError
 from stages.methods import WINDOW
 
+PRECISIONS = ("fp32", "bf16")  # the network's arithmetic: float32, or bfloat16 autocast (weights stay float32)
+
 MOTIONS = ("joint", "assembled")
 
 

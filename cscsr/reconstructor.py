@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from cscsr.config import PRECISIONS
 from cscsr.integration import NETWORK_SCALES
 from cscsr.weights_io import default_weights, load_model, resolve_weights
 from stages.bits import unpack_rows
@@ -22,7 +23,6 @@ from stages.errors import InputError
 from stages.methods import Window
 
 HALO = 32  # LR pixels: the flow pyramid sees far; tiles agree with the whole frame closely, not exactly
-PRECISIONS = ("fp32", "bf16")
 
 
 @dataclass

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cscsr.config import CSCSRConfig, named
+from cscsr.config import PRECISIONS, CSCSRConfig, named
 from cscsr.network import CSCSR, use_channels_last
 from cscsr.training_data import (DEAD_LEAVES_SHARE, TRAIN_PICTURES, Clip, batch_arrays, check_not_test_pictures,
                                  picture_files, random_clip, random_plan, reoriented)
@@ -118,7 +118,6 @@ class TrainOptions:
 MAY_CHANGE_ON_RESUME = frozenset({"steps", "decay_every", "checkpoint_every", "validate_every", "validation_clips",
                                   "pool", "device", "precision", "time_budget", "synthesis", "init",
                                   "channels_last"})
-PRECISIONS = ("fp32", "bf16")
 SYNTHESES = ("auto", "numpy", "torch")
 
 

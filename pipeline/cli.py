@@ -445,11 +445,13 @@ def watch(context: typer.Context,
     """Reconstruct recordings as they land in INBOX, once each, with a ledger in OUTBOX; one timestamped log
     line per event (found, claimed, ingested, reconstructed, exported, done, failed, skipped with -v)."""
     from pipeline.ingest import IngestOptions
+    from pipeline.cluster import check_workers
     from pipeline.watch import WatchOptions, parse_interval, watch as run
 
     options = WatchOptions(method, weights, every, tile, settle, max_attempts, backoff,
                            IngestOptions(height, width, cfa, fps, flip, reset=reset))
-    check_watch_options(options, workers)  # before OUTBOX is created
+    check_workers(workers)
+    options.check()  # before OUTBOX is created
     seconds = parse_interval(interval)
     if log_file is not None:
         check_log_file(log_file, inbox, outbox)
@@ -467,28 +469,6 @@ def check_log_file(path: str, inbox: str, outbox: str) -> None:
     if not os.path.isdir(os.path.dirname(os.path.abspath(path))):
         raise InputError(f"--log-file {path}: its folder does not exist")
     check_apart(path, inbox)
-
-
-def check_watch_options(options, workers: int | None) -> None:
-    """The watcher's options, refused before it creates OUTBOX rather than once per recording."""
-    from pipeline.cluster import check_workers
-    from pipeline.reconstruct import ReconstructOptions
-    from stages.cfa import check_cfa
-    from stages.numbers import check_number
-    from stages.sensor import check_reset
-
-    check_workers(workers)
-    ReconstructOptions(method=options.method, every=options.every, tile=options.tile, weights=options.weights).check()
-    check_number("--settle", options.settle, at_least=0)
-    check_number("--max-attempts", options.max_attempts, at_least=1, integer=True)
-    check_number("--backoff", options.backoff, at_least=0)
-    defaults = options.defaults
-    for name in ("height", "width"):
-        if getattr(defaults, name) is not None:
-            check_number(f"--{name}", getattr(defaults, name), at_least=1, integer=True)
-    check_number("--fps", defaults.fps, above=0)
-    check_cfa(defaults.cfa)
-    check_reset(defaults.reset)
 
 
 @command()

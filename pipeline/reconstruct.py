@@ -4,10 +4,11 @@ Output frame j is centred on spike frame ``c_j = W//2 + j*K`` and made from fram
 ``[c_j - W//2, c_j + W//2]``. A task is a few consecutive output frames (the method's
 ``batch``) of one tile; it reads its windows and halo straight from Zarr (no overlap graph),
 reconstructs, crops the halo and writes one chunk per (frame, tile), each then recorded in
-``committed``. Tasks are submitted in a bounded window. The reconstructor (a model, for
+``committed``. The plan (``pipeline.reconstruct_plan``) is frozen data; ``pipeline.executor`` submits
+its tasks in a bounded window. The reconstructor (a model, for
 ``cscsr``) is built once per worker process and reused. A job that starts its own local
 cluster runs its tasks in segments, each in a fresh process and cluster
-(``pipeline.segments``), so that memory stays bounded over millions of tasks.
+(``pipeline.executor``), so that memory stays bounded over millions of tasks.
 
 GPU workers: when the cluster has workers that advertise the ``GPU`` resource (``dask worker
 --resources GPU=1``), network tasks ask for one (so they run there and only there) and each
@@ -23,108 +24,25 @@ import functools
 import sys
 import uuid
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
-from pipeline.submission_window import in_bounded_window, window_size
 from pipeline.cluster import GPU, check_workers, dashboard_link, dask_client, gpu_workers, scheduler_address
 from pipeline.hold import hold_point
 from pipeline.lease import check_free, claimed, held
 from pipeline.progress import progress_bar
-from pipeline.segments import Outcome, in_segments
+from pipeline.reconstruct_plan import Plan, ReconstructOptions, task_groups, tile_blocks
+from pipeline.executor import in_segments, submitted
 from pipeline.spike_store import SpikeStore, open_spike_store, read_frames
 from pipeline.outputs import claim_output
 from pipeline.storage import check_apart, exists, recorded
 from pipeline.video_store import VIDEO, TileWriter, committed_mask, create_video_store, open_video_store
 from stages.colour import auto_gain
 from stages.errors import InputError, describe
-from stages.numbers import FLOAT32_MAX, check_number
-from stages.methods import METHODS, NETWORKS, WINDOW, Reconstructor, Window, classic, output_centres
+from stages.methods import NETWORKS, Reconstructor, Window, classic, output_centres
 from stages.tfp import tfp_rate
 from stages.tiles import Tile, tile_grid
-
-SEGMENT_TASKS = 10_000  # minutes of work on any real frame size; a fresh process and cluster cost ~5 s
-DEFAULT_TILE = 256  # LR pixels: a 1000x1000 frame becomes 16 tasks of 1024x1024 HR
-GPU_BATCH = 16  # windows per network pass on a GPU worker: 4 frames x 4 tiles of 320x320 LR (tile 256 + halos),
-# about 25 GB of GPU memory for the lite network in fp32 (measured 15.4 GB for one 1000x1000 window)
-PRECISIONS = ("fp32", "bf16")
-
-
-@dataclass(frozen=True)
-class ReconstructOptions:
-    method: str = "tfp"
-    every: int = WINDOW
-    window: int = WINDOW
-    gain: float | None = None
-    scale: int | None = None  # default: the store's scale, else 4
-    tile: int = DEFAULT_TILE
-    weights: str | None = None
-    resume: bool = False
-    overwrite: bool = False
-    segment_tasks: int = SEGMENT_TASKS  # tasks per fresh cluster when the job starts its own (bounded memory)
-    precision: str = "fp32"  # the network's: fp32, or bf16 (autocast on the worker's device)
-    gpu_batch: int = GPU_BATCH  # windows per task and per network pass on GPU workers
-
-    def check(self) -> None:
-        """Every check that needs no recording (see :func:`check_options` for the rest)."""
-        if self.method not in METHODS:
-            raise InputError(f"unknown method {self.method!r}: expected one of {', '.join(METHODS)}")
-        if self.window <= 0 or self.window % 2 == 0:
-            raise InputError(f"--window must be a positive odd number of frames, got {self.window}")
-        if self.every <= 0:
-            raise InputError(f"--every must be >= 1, got {self.every}")
-        if self.gain is not None:  # inf would pass "> 0" and expose every pixel to NaN or full white
-            check_number("--gain", self.gain, above=0, at_most=FLOAT32_MAX)
-        if self.scale is not None:  # 0 must not mean "the default"
-            check_number("--scale", self.scale, at_least=1, integer=True)
-        if self.tile <= 0 or self.tile % 8:
-            raise InputError(f"--tile must be a positive multiple of 8 LR pixels, got {self.tile}")
-        if self.resume and self.overwrite:
-            raise InputError("--resume and --overwrite contradict each other: choose one")
-        if self.segment_tasks < 1:
-            raise InputError(f"--segment-tasks must be >= 1, got {self.segment_tasks}")
-        if self.precision not in PRECISIONS:
-            raise InputError(f"--precision must be {' or '.join(PRECISIONS)}, got {self.precision!r}")
-        if self.precision != "fp32" and self.method not in NETWORKS:
-            raise InputError(f"--precision {self.precision} is for the network (--method cscsr or cscsr-ensemble); "
-                             f"{self.method} has no network to run in it")
-        if self.weights is not None and self.method not in NETWORKS:  # a classic method has none: never recorded
-            raise InputError(f"--weights is for the network (--method cscsr or cscsr-ensemble); {self.method} has "
-                             f"no weights to load: leave --weights out")
-        if self.gpu_batch < 1:
-            raise InputError(f"--gpu-batch must be >= 1, got {self.gpu_batch}")
-
-
-@dataclass(frozen=True)
-class Plan:
-    """What every task shares: where to read and write, and how to reconstruct.
-
-    Constant in size: a task's own centre and tile travel beside it, so task messages do not
-    grow with the recording (the scheduler keeps recent messages).
-    """
-
-    spikes: str
-    out: str
-    method: str
-    weights: str | None
-    window: int
-    every: int
-    gain: float
-    scale: int
-    cfa: str
-    reset: str
-    tile: int  # LR tile side
-    run: str  # unique per call: worker-side caches of opened stores never outlive their run
-    precision: str | None = None  # the network's (None for classic methods)
-    gpu_batch: int = GPU_BATCH  # most windows per network pass, where a reconstructor joins tiles (GPU)
-
-    def attrs(self) -> dict:
-        """What the output store records (and ``--resume`` checks)."""
-        return {"method": self.method, "weights": self.weights, "precision": self.precision, "window": self.window,
-                "every": self.every, "gain": self.gain, "scale": self.scale, "source": recorded(self.spikes), "cfa": self.cfa,
-                "reset": self.reset, "tile_lr": self.tile}
-
 
 @functools.lru_cache(maxsize=4)
 def reconstructor(method: str, weights: str | None, precision: str | None = "fp32"):
@@ -165,34 +83,6 @@ def _reconstruct_tiles(plan: Plan, frames: tuple[tuple[int, int], ...],
     return len(frames) * len(tiles)
 
 
-def tile_blocks(grid: list[list[Tile]], per_task: int) -> list[tuple[tuple[int, int], ...]]:
-    """The tiles (ty, tx) that go into one task together: ``per_task`` tiles of the same read shape
-    (so that they can run as one batch), in the grid's order of their first tiles. One tile per
-    task gives the grid in row-major order."""
-    by_shape: dict[tuple[int, int], list[tuple[int, int]]] = {}
-    for ty, row in enumerate(grid):
-        for tx, tile in enumerate(row):
-            by_shape.setdefault((tile.ry1 - tile.ry0, tile.rx1 - tile.rx0), []).append((ty, tx))
-    blocks = [tuple(tiles[i : i + per_task]) for tiles in by_shape.values() for i in range(0, len(tiles), per_task)]
-    return sorted(blocks)
-
-
-def task_groups(n_frames: int, batch: int, blocks: list[tuple[tuple[int, int], ...]],
-                done: np.ndarray) -> Iterator[tuple[range, tuple[tuple[int, int], ...]]]:
-    """(frames, tiles) of every task still to run: ``batch`` consecutive output frames of a block of tiles.
-
-    Groups are fixed by frame number and tile block, not by what is left, so a resumed job runs
-    every batch exactly as an uninterrupted one would (a batch's numbers can depend on its size);
-    a group with any (frame, tile) not committed runs whole. Generated as consumed: a terabyte
-    capture has millions of tasks, and the job's process should not hold them all.
-    """
-    for start in range(0, n_frames, batch):
-        frames = range(start, min(start + batch, n_frames))
-        for block in blocks:
-            if not all(done[frames.start : frames.stop, ty, tx].all() for ty, tx in block):
-                yield frames, block
-
-
 def _auto_gain(spikes: str, centre: int, window: int, reset: str) -> float:
     """Task: the automatic exposure of the window around ``centre``, whole frame."""
     store = open_spike_store(spikes)
@@ -223,7 +113,7 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
 
     Runs on ``client`` if given, else on the scheduler named by ``scheduler`` (or the environment),
     else in segments of ``options.segment_tasks`` tasks, each on a fresh local cluster of
-    ``workers`` (see :mod:`pipeline.segments`). Returns
+    ``workers`` (see :mod:`pipeline.executor`). Returns
     counts: output frames, tasks run now, tasks found already committed.
     """
     check_workers(workers)
@@ -289,22 +179,29 @@ class JobIncomplete(RuntimeError):
         self.failed = failed
 
 
+class Outcome(NamedTuple):
+    """One finished task: output frames ``start:stop`` of tile (ty, tx), and its error if it raised."""
+
+    start: int
+    stop: int
+    ty: int
+    tx: int
+    error: str | None
+
+
 def run_groups(client, groups: Iterable, *, plan: Plan, centres: list[int], grid,
                resources: dict | None = None) -> Iterator[Outcome]:
-    """Submit ``groups`` in a bounded window, each task needing ``resources`` (e.g. ``{"GPU": 1}``: only
-    workers that advertise them run it); yield the outcome of each of a group's tiles as it finishes."""
+    """Run the plan's ``groups`` on ``client`` (``pipeline.executor``), each task needing ``resources``
+    (e.g. ``{"GPU": 1}``: only workers that advertise them run it); yield the outcome of each of a
+    group's tiles as it finishes."""
     shared = client.scatter(plan, broadcast=True)  # sent to each worker once, not with every task
-    group_of = {}  # future key -> (frames, tiles) (cheaper than fetching each result)
 
-    def submissions():
-        for frames, block in groups:
-            future = client.submit(_reconstruct_tiles, shared, tuple((i, centres[i]) for i in frames),
-                                   tuple((ty, tx, grid[ty][tx]) for ty, tx in block), pure=False, resources=resources)
-            group_of[future.key] = (frames, block)
-            yield future
+    def submit(group):
+        frames, block = group
+        return client.submit(_reconstruct_tiles, shared, tuple((i, centres[i]) for i in frames),
+                             tuple((ty, tx, grid[ty][tx]) for ty, tx in block), pure=False, resources=resources)
 
-    for future in in_bounded_window(submissions(), window_size(client)):
-        frames, block = group_of.pop(future.key)
+    for (frames, block), future in submitted(client, groups, submit):
         error = None
         if future.status != "finished":  # the task raised: report it, go on with the others
             error = describe(future.exception())

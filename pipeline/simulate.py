@@ -6,9 +6,9 @@ The graph, per time chunk of the output:
       -> fire (a chain: the integer accumulator passes from chunk to chunk, exactly)
       -> write (one task per chunk region of ``spikes``: no two writers share a chunk)
 
-plus one task per ground-truth frame (and per flow field for synthetic motion). Chunks are
-submitted in a bounded window, so memory and graph size stay bounded however long the
-recording is. The accumulator is an integer (``stages.sensor.UNITS`` per threshold) and all
+plus one task per ground-truth frame (and per flow field for synthetic motion). The steps are
+planned as frozen data (``pipeline.simulate_plan``) and submitted in a bounded window
+(``pipeline.executor``), so memory and graph size stay bounded however long the recording is. The accumulator is an integer (``stages.sensor.UNITS`` per threshold) and all
 noise is keyed by frame index, so the bytes written do not depend on the chunking or on the
 number of workers.
 """
@@ -19,12 +19,12 @@ from dataclasses import dataclass
 import numpy as np
 from distributed import Client
 
-from pipeline.submission_window import in_bounded_window, window_size
-
 from pipeline.cluster import check_workers, dask_client
+from pipeline.executor import submitted
 from pipeline.frame_sources import FrameSource, open_frame_source
 from pipeline.lease import claimed, held
 from pipeline.progress import progress_bar
+from pipeline.simulate_plan import SpikeChunk, Step, TruthFrame, simulation_steps
 from pipeline.ground_truth import declare_truth, write_flow, write_truth
 from pipeline.spike_store import SPIKES, SpikeMeta, SpikeStoreWriter, chunk_frames_for, write_region
 from pipeline.outputs import new_output
@@ -187,13 +187,39 @@ class _SourcePairs:
             self.flows[i] = self.client.submit(estimate_flows, self.frame(i), self.frame(i + 1))
         return self.flows[i]
 
-    def for_frames(self, frames: range) -> dict:
-        n = self.source.n_frames
-        needed = sorted({bracket(source_position(t, self.options.frames, n), n)[0] for t in frames})
+    def for_pairs(self, needed: tuple[int, ...]) -> dict:
         for old in [i for i in self.frames if i < needed[0]]:
             del self.frames[old]
             self.flows.pop(old, None)
         return {i: (self.frame(i), self.frame(i + 1), self.flow(i)) for i in needed}
+
+
+class _Tasks:
+    """A simulation's steps as Dask tasks: the sensor's fixed draws made once, the integrator's state
+    passed from chunk to chunk (a chain: the bytes do not depend on chunking or workers), a video's
+    frames and flows made once each."""
+
+    def __init__(self, client: Client, scene: Scene, options: SimulateOptions, dest: str, height: int, width: int):
+        model = options.sensor_model()
+        self.client, self.scene, self.options, self.dest = client, scene, options, dest
+        self.dark = client.submit(sensor.dark_increments, model, height, width)
+        self.thresholds = client.submit(sensor.pixel_thresholds, model, height, width)
+        self.state = client.submit(sensor.initial_state, model, height, width)
+        self.pairs = None if scene.is_still else _SourcePairs(client, scene.source, options)
+
+    def submit(self, step: Step):
+        """The future of the step's write: (frames, spikes) for a spikes chunk, None for truth or flow."""
+        submit, scene, options = self.client.submit, self.scene, self.options
+        if isinstance(step, SpikeChunk):
+            pairs = self.pairs and self.pairs.for_pairs(step.source_frames)
+            increments = submit(_increments, scene, pairs, step.frames, options, self.dark)
+            fired = submit(_fire, increments, self.state, options.reset, self.thresholds)
+            self.state = submit(_state, fired)
+            return submit(_write_spikes, self.dest, step.frames.start, fired)
+        if isinstance(step, TruthFrame):
+            flows = self.pairs.flow(step.source_frame) if self.pairs else None
+            return submit(_write_truth, self.dest, step.index, scene, step.frame, options, flows)
+        return submit(_write_flow, self.dest, step.index, scene.path, step.frame0, step.frame1)
 
 
 def simulate(src: str, dest: str, options: SimulateOptions = SimulateOptions(), *, workers: int | None = None,
@@ -222,35 +248,14 @@ def simulate(src: str, dest: str, options: SimulateOptions = SimulateOptions(), 
         writer = SpikeStoreWriter(dest, meta, options.frames, chunk_frames=chunk)
         hr = (options.scale * height, options.scale * width)
         declare_truth(writer, truth_at, hr, options.fps, with_flow=path is not None)
-        pairs = None if scene.is_still else _SourcePairs(client, source, options)
-        submissions = _submissions(client, scene, pairs, options, model, chunk, truth_at, dest, height, width)
+        steps = simulation_steps(options.frames, chunk, truth_at, None if scene.is_still else source.n_frames,
+                                 camera_moves=path is not None)
+        tasks = _Tasks(client, scene, options, dest, height, width)
         spikes = 0
         with held(dest), progress_bar(f"simulate {src}", options.frames, enabled=progress) as advance:
-            for future in in_bounded_window(submissions, window_size(client)):
+            for _, future in submitted(client, steps, tasks.submit):
                 if (written := future.result()) is not None:  # a spikes chunk: (frames, spikes)
                     advance(written[0])
                     spikes += written[1]
         writer.finish(spike_count=spikes)
         return dict(writer.group.attrs)
-
-
-def _submissions(client: Client, scene: Scene, pairs, options: SimulateOptions, model, chunk: int,
-                 truth_at: list[int], dest: str, height: int, width: int):
-    """Submit the graph chunk by chunk, yielding the futures of writes as they are made."""
-    dark = client.submit(sensor.dark_increments, model, height, width)
-    thresholds = client.submit(sensor.pixel_thresholds, model, height, width)
-    state = client.submit(sensor.initial_state, model, height, width)
-    n_source = scene.source.n_frames
-    for start in range(0, options.frames, chunk):
-        frames = range(start, min(start + chunk, options.frames))
-        increments = client.submit(_increments, scene, pairs and pairs.for_frames(frames), frames, options, dark)
-        fired = client.submit(_fire, increments, state, options.reset, thresholds)
-        state = client.submit(_state, fired)
-        yield client.submit(_write_spikes, dest, start, fired)
-        for k, frame in enumerate(truth_at):
-            if frame not in frames:
-                continue
-            flows = pairs.flow(bracket(source_position(frame, options.frames, n_source), n_source)[0]) if pairs else None
-            yield client.submit(_write_truth, dest, k, scene, frame, options, flows)
-            if scene.path is not None and k + 1 < len(truth_at):
-                yield client.submit(_write_flow, dest, k, scene.path, frame, truth_at[k + 1])

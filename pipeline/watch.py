@@ -46,8 +46,11 @@ from pipeline.reconstruct import ReconstructOptions, reconstruct
 from pipeline.spike_store import open_spike_store
 from pipeline.storage import check_apart, exists, is_local, resolve
 from pipeline.video_store import open_video_store
+from stages.cfa import check_cfa
 from stages.errors import InputError, describe
 from stages.methods import WINDOW
+from stages.numbers import check_number
+from stages.sensor import check_reset
 
 RAW = ("dat", "npz", "npy")
 KINDS = ("zarr",) + RAW
@@ -71,6 +74,19 @@ class WatchOptions:
     max_attempts: int = 3  # tries of a recording that fails for other reasons than its input
     backoff: float = 60.0  # seconds before the first retry, doubling each time
     defaults: IngestOptions = WATCH_DEFAULTS  # what a raw capture without a sidecar (or the field) is taken to be
+
+    def check(self) -> None:
+        """Refused before the watcher creates OUTBOX, rather than once per recording."""
+        ReconstructOptions(method=self.method, every=self.every, tile=self.tile, weights=self.weights).check()
+        check_number("--settle", self.settle, at_least=0)
+        check_number("--max-attempts", self.max_attempts, at_least=1, integer=True)
+        check_number("--backoff", self.backoff, at_least=0)
+        for name in ("height", "width"):
+            if getattr(self.defaults, name) is not None:
+                check_number(f"--{name}", getattr(self.defaults, name), at_least=1, integer=True)
+        check_number("--fps", self.defaults.fps, above=0)
+        check_cfa(self.defaults.cfa)
+        check_reset(self.defaults.reset)
 
 
 @dataclass(frozen=True)

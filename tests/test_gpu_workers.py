@@ -18,7 +18,8 @@ import pytest
 import zarr
 from distributed import Client, Nanny, Scheduler, SpecCluster, get_task_stream
 
-from pipeline.reconstruct import ReconstructOptions, reconstruct, task_groups, tile_blocks
+from pipeline.reconstruct import ReconstructOptions, reconstruct
+from pipeline.reconstruct_plan import task_groups, tile_blocks
 from pipeline.simulate import SimulateOptions, simulate
 from stages.tiles import tile_grid
 from tests.test_bad_input import assert_refused

@@ -174,7 +174,7 @@ def test_bad_input(cli, recording, tmp_path):
 
 def test_submission_stays_in_a_bounded_window(client):
     """However many tasks a job has, at most ``limit`` are submitted and unfinished at once."""
-    from pipeline.submission_window import in_bounded_window
+    from pipeline.executor import in_bounded_window
 
     submitted, finished = [0], [0]
 
@@ -294,7 +294,7 @@ def test_network_refusals(method, cli, recording, random_weights, tmp_path):
 
 
 def test_task_groups_are_fixed_by_frame_number():
-    from pipeline.reconstruct import task_groups
+    from pipeline.reconstruct_plan import task_groups
 
     done = np.zeros((10, 1, 2), bool)
     tiles = [((0, 0),), ((0, 1),)]  # one tile per task

@@ -5,7 +5,8 @@ import os
 
 import pytest
 
-from pipeline.segments import Outcome, in_segments
+from pipeline.executor import in_segments
+from pipeline.reconstruct import Outcome
 from stages.errors import InputError
 
 

@@ -177,3 +177,18 @@ def test_bad_sources(cli, tmp_path):
     assert_refused(cli("simulate", tmp_path / "odd.png", out, "--motion", "static", "--workers", 1), "not divisible by 2*scale = 8")
     assert_refused(cli("simulate", tmp_path / "none.mp4", out, "--workers", 1), "none.mp4")
     assert not out.exists()
+
+
+def test_the_plan_is_frozen_steps_in_submission_order():
+    from pipeline.simulate_plan import FlowField, SpikeChunk, TruthFrame, simulation_steps
+
+    still = list(simulation_steps(100, 40, [20, 61], None, camera_moves=True))
+    assert still == [SpikeChunk(range(0, 40), ()), TruthFrame(0, 20, None), FlowField(0, 20, 61),
+                     SpikeChunk(range(40, 80), ()), TruthFrame(1, 61, None), SpikeChunk(range(80, 100), ())]
+    assert list(simulation_steps(100, 40, [20, 61], None, camera_moves=False)) == [
+        step for step in still if not isinstance(step, FlowField)]
+    video = list(simulation_steps(100, 40, [20, 61], 4, camera_moves=False))  # 4 source frames: pairs 0, 1, 2
+    chunks = [step for step in video if isinstance(step, SpikeChunk)]
+    assert [c.source_frames for c in chunks] == [(0, 1), (1, 2), (2,)]
+    assert [step.source_frame for step in video if isinstance(step, TruthFrame)] == [0, 1]
+    assert len({hash(step) for step in video}) == len(video)  # frozen: hashable, each step distinct

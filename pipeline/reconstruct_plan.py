@@ -1,0 +1,124 @@
+"""What a reconstruction job will do, as frozen data: its options, what every task shares (``Plan``)
+and which tasks there are (``tile_blocks``, ``task_groups``). Nothing here touches a cluster or a
+store; ``pipeline.reconstruct`` checks a job, makes its plan and runs it (``pipeline.executor``).
+"""
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from cscsr.config import PRECISIONS
+from pipeline.storage import recorded
+from stages.errors import InputError
+from stages.methods import METHODS, NETWORKS, WINDOW
+from stages.numbers import FLOAT32_MAX, check_number
+from stages.tiles import Tile
+
+SEGMENT_TASKS = 10_000  # minutes of work on any real frame size; a fresh process and cluster cost ~5 s
+DEFAULT_TILE = 256  # LR pixels: a 1000x1000 frame becomes 16 tasks of 1024x1024 HR
+GPU_BATCH = 16  # windows per network pass on a GPU worker: 4 frames x 4 tiles of 320x320 LR (tile 256 + halos),
+# about 25 GB of GPU memory for the lite network in fp32 (measured 15.4 GB for one 1000x1000 window)
+
+
+@dataclass(frozen=True)
+class ReconstructOptions:
+    method: str = "tfp"
+    every: int = WINDOW
+    window: int = WINDOW
+    gain: float | None = None
+    scale: int | None = None  # default: the store's scale, else 4
+    tile: int = DEFAULT_TILE
+    weights: str | None = None
+    resume: bool = False
+    overwrite: bool = False
+    segment_tasks: int = SEGMENT_TASKS  # tasks per fresh cluster when the job starts its own (bounded memory)
+    precision: str = "fp32"  # the network's: fp32, or bf16 (autocast on the worker's device)
+    gpu_batch: int = GPU_BATCH  # windows per task and per network pass on GPU workers
+
+    def check(self) -> None:
+        """Every check that needs no recording (see :func:`check_options` for the rest)."""
+        if self.method not in METHODS:
+            raise InputError(f"unknown method {self.method!r}: expected one of {', '.join(METHODS)}")
+        if self.window <= 0 or self.window % 2 == 0:
+            raise InputError(f"--window must be a positive odd number of frames, got {self.window}")
+        if self.every <= 0:
+            raise InputError(f"--every must be >= 1, got {self.every}")
+        if self.gain is not None:  # inf would pass "> 0" and expose every pixel to NaN or full white
+            check_number("--gain", self.gain, above=0, at_most=FLOAT32_MAX)
+        if self.scale is not None:  # 0 must not mean "the default"
+            check_number("--scale", self.scale, at_least=1, integer=True)
+        if self.tile <= 0 or self.tile % 8:
+            raise InputError(f"--tile must be a positive multiple of 8 LR pixels, got {self.tile}")
+        if self.resume and self.overwrite:
+            raise InputError("--resume and --overwrite contradict each other: choose one")
+        if self.segment_tasks < 1:
+            raise InputError(f"--segment-tasks must be >= 1, got {self.segment_tasks}")
+        if self.precision not in PRECISIONS:
+            raise InputError(f"--precision must be {' or '.join(PRECISIONS)}, got {self.precision!r}")
+        if self.precision != "fp32" and self.method not in NETWORKS:
+            raise InputError(f"--precision {self.precision} is for the network (--method cscsr or cscsr-ensemble); "
+                             f"{self.method} has no network to run in it")
+        if self.weights is not None and self.method not in NETWORKS:  # a classic method has none: never recorded
+            raise InputError(f"--weights is for the network (--method cscsr or cscsr-ensemble); {self.method} has "
+                             f"no weights to load: leave --weights out")
+        if self.gpu_batch < 1:
+            raise InputError(f"--gpu-batch must be >= 1, got {self.gpu_batch}")
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What every task shares: where to read and write, and how to reconstruct.
+
+    Constant in size: a task's own centre and tile travel beside it, so task messages do not
+    grow with the recording (the scheduler keeps recent messages).
+    """
+
+    spikes: str
+    out: str
+    method: str
+    weights: str | None
+    window: int
+    every: int
+    gain: float
+    scale: int
+    cfa: str
+    reset: str
+    tile: int  # LR tile side
+    run: str  # unique per call: worker-side caches of opened stores never outlive their run
+    precision: str | None = None  # the network's (None for classic methods)
+    gpu_batch: int = GPU_BATCH  # most windows per network pass, where a reconstructor joins tiles (GPU)
+
+    def attrs(self) -> dict:
+        """What the output store records (and ``--resume`` checks)."""
+        return {"method": self.method, "weights": self.weights, "precision": self.precision, "window": self.window,
+                "every": self.every, "gain": self.gain, "scale": self.scale, "source": recorded(self.spikes), "cfa": self.cfa,
+                "reset": self.reset, "tile_lr": self.tile}
+
+
+def tile_blocks(grid: list[list[Tile]], per_task: int) -> list[tuple[tuple[int, int], ...]]:
+    """The tiles (ty, tx) that go into one task together: ``per_task`` tiles of the same read shape
+    (so that they can run as one batch), in the grid's order of their first tiles. One tile per
+    task gives the grid in row-major order."""
+    by_shape: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for ty, row in enumerate(grid):
+        for tx, tile in enumerate(row):
+            by_shape.setdefault((tile.ry1 - tile.ry0, tile.rx1 - tile.rx0), []).append((ty, tx))
+    blocks = [tuple(tiles[i : i + per_task]) for tiles in by_shape.values() for i in range(0, len(tiles), per_task)]
+    return sorted(blocks)
+
+
+def task_groups(n_frames: int, batch: int, blocks: list[tuple[tuple[int, int], ...]],
+                done: np.ndarray) -> Iterator[tuple[range, tuple[tuple[int, int], ...]]]:
+    """(frames, tiles) of every task still to run: ``batch`` consecutive output frames of a block of tiles.
+
+    Groups are fixed by frame number and tile block, not by what is left, so a resumed job runs
+    every batch exactly as an uninterrupted one would (a batch's numbers can depend on its size);
+    a group with any (frame, tile) not committed runs whole. Generated as consumed: a terabyte
+    capture has millions of tasks, and the job's process should not hold them all.
+    """
+    for start in range(0, n_frames, batch):
+        frames = range(start, min(start + batch, n_frames))
+        for block in blocks:
+            if not all(done[frames.start : frames.stop, ty, tx].all() for ty, tx in block):
+                yield frames, block
