@@ -36,7 +36,7 @@ from pipeline.reconstruct_plan import Plan, ReconstructOptions, task_groups, til
 from pipeline.executor import in_segments, submitted
 from pipeline.spike_store import SpikeStore, open_spike_store, read_frames
 from pipeline.outputs import claim_output
-from pipeline.storage import check_apart, exists, recorded
+from pipeline.storage import check_apart, exists, recorded, remove_partial_writes
 from pipeline.video_store import VIDEO, TileWriter, committed_mask, create_video_store, open_video_store
 from stages.colour import auto_gain
 from stages.errors import InputError, describe
@@ -162,6 +162,7 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
             failed = _tally(outcomes, done, advance)
         if failed:
             raise JobIncomplete(out, failed, len(centres))
+        remove_partial_writes(out)  # a worker killed mid-write leaves its temporary file
         open_video_store(out, writable=True).attrs["state"] = "complete"  # still under the claim
     skipped = int(done.sum())
     return {"frames": len(centres), "tasks_run": done.size - skipped, "tasks_skipped": skipped}

@@ -19,7 +19,7 @@ import zarr
 from zarr.codecs import ZstdCodec
 
 import cscsr
-from pipeline.storage import consolidate, open_group, zarr_store
+from pipeline.storage import consolidate, open_group, remove_partial_writes, zarr_store
 from pipeline.video_store import describe_video_store, is_video_store
 from stages.bits import packed_width
 from stages.cfa import check_cfa
@@ -243,6 +243,7 @@ class SpikeStoreWriter:
     def finish(self, **attrs) -> None:
         """Record final attributes, consolidate the metadata, and mark the store complete (the last write)."""
         self.group.attrs.update(attrs)
+        remove_partial_writes(self.url)  # a worker killed mid-write leaves its temporary file
         consolidate(self.url)
         # reopened: the group held here knows nothing of the consolidated copy, and would drop it on writing
         self.group = zarr.open_group(zarr_store(self.url, read_only=False), mode="r+")

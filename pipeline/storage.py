@@ -71,6 +71,22 @@ def zarr_store(url: str, *, read_only: bool) -> zarr.abc.store.Store:
     return zarr.storage.FsspecStore.from_url(str(url), read_only=read_only)
 
 
+def remove_partial_writes(url: str) -> list[str]:
+    """Remove the temporary files of chunk writes that never finished from the store at ``url``.
+
+    Zarr's ``LocalStore`` writes a chunk to ``KEY.<uuid>.partial`` and renames it; a worker killed
+    between the two leaves the temporary file behind (the task reruns elsewhere and writes the chunk).
+    Called by a job when every task has finished, before it marks the store complete, so a complete
+    store holds its chunks and nothing else. Other filesystems write in one step: nothing to do."""
+    if not is_local(url):
+        return []
+    fs, root = resolve(url)
+    partial = [name for name in fs.find(root) if name.endswith(".partial")]
+    for name in partial:
+        fs.rm_file(name)
+    return partial
+
+
 def recorded(url: str) -> str:
     """A location as a store records it (``source``): a URL as given, a local path made absolute, so
     that the record still points to the same place when the store is moved or read from elsewhere."""
