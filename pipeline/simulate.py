@@ -14,6 +14,7 @@ number of workers.
 """
 
 import functools
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,9 +34,9 @@ from stages import sensor
 from stages.cfa import check_cfa
 from stages.errors import InputError
 from stages.intensities import to_unit_rgb
-from stages.interpolate import INTERPOLATIONS, estimate_flows
+from stages.interpolate import INTERPOLATIONS, PairMotion, estimate_motion
 from stages.numbers import check_number
-from stages.latent import bracket, source_position, still_mosaics, truth_image, upscale_flow, video_mosaics, between
+from stages.latent import bracket, between, source_position, still_mosaics, truth_image, upscale_motion, video_mosaics
 from stages.camera_path import CameraPath, render
 from stages.methods import WINDOW, output_centres
 
@@ -110,16 +111,34 @@ def check_options(options: SimulateOptions, source: FrameSource) -> tuple[int, i
 # ---- tasks (run on workers; module-level so they pickle by reference) ----
 
 def _lr_frame(source: FrameSource, index: int, scale: int) -> np.ndarray:
-    return sensor.area_downsample(to_unit_rgb(source.read(index)), scale)
+    return sensor.area_downsample(_hr_frame(source, index), scale)
 
 
 @functools.lru_cache(maxsize=2)
 def _hr_frame(source: FrameSource, index: int) -> np.ndarray:
     """Source frame ``index`` as intensities, decoded once per worker process: a still is read by
-    every chunk and truth task, and neighbouring truth frames share their bracketing frames."""
+    every chunk and truth task, a video frame by its LR task and the truth frames beside it."""
     frame = to_unit_rgb(source.read(index))
     frame.flags.writeable = False  # shared between tasks
     return frame
+
+
+class _LastPair:
+    """A worker's HR motion of the last video pair it drew truth for (its checks at HR cost as much
+    as a truth frame, and the several truth frames of one pair come in a row): one pair held."""
+
+    def __init__(self):
+        self.lock, self.key, self.motion = threading.Lock(), None, None
+
+    def hr_motion(self, key: tuple, lr_motion: PairMotion, scale: int) -> PairMotion:
+        with self.lock:
+            if self.key != key:
+                self.key, self.motion = None, None  # free the old pair before making the new one
+                self.motion, self.key = upscale_motion(lr_motion, scale), key
+            return self.motion
+
+
+_last_pair = _LastPair()
 
 
 def _increments(scene: Scene, pairs: dict | None, frames: range, options: SimulateOptions, dark) -> np.ndarray:
@@ -149,7 +168,8 @@ def _write_spikes(url: str, start: int, fired: sensor.Fired) -> tuple[int, int]:
     return fired.packed.shape[0], fired.spikes
 
 
-def _write_truth(url: str, index: int, scene: Scene, frame: int, options: SimulateOptions, lr_flows) -> None:
+def _write_truth(url: str, index: int, scene: Scene, frame: int, options: SimulateOptions,
+                 lr_motion: PairMotion | None) -> None:
     if scene.is_still:
         image = _hr_frame(scene.source, 0)
         rgb = image if scene.path is None else render(image, scene.path, frame)
@@ -157,8 +177,9 @@ def _write_truth(url: str, index: int, scene: Scene, frame: int, options: Simula
         i, w = bracket(source_position(frame, options.frames, scene.source.n_frames), scene.source.n_frames)
         frame0 = _hr_frame(scene.source, i)
         frame1 = frame0 if w == 0 else _hr_frame(scene.source, i + 1)
-        flows = None if lr_flows is None else tuple(upscale_flow(f, options.scale) for f in lr_flows)
-        rgb = between(frame0, frame1, w, flows)
+        motion = None if lr_motion is None or w == 0 else \
+            _last_pair.hr_motion((scene.source, i, options.scale), lr_motion, options.scale)
+        rgb = between(frame0, frame1, w, motion)
     write_truth(url, index, truth_image(rgb, options.cfa))
 
 
@@ -169,29 +190,29 @@ def _write_flow(url: str, index: int, path: CameraPath, frame0: int, frame1: int
 # ---- the graph ----
 
 class _SourcePairs:
-    """Futures of LR source frames and their flows, made once each and dropped when passed."""
+    """Futures of LR source frames and their pairs' motion, made once each and dropped when passed."""
 
     def __init__(self, client: Client, source: FrameSource, options: SimulateOptions):
         self.client, self.source, self.options = client, source, options
-        self.frames, self.flows = {}, {}
+        self.frames, self.motions = {}, {}
 
     def frame(self, i: int):
         if i not in self.frames:
             self.frames[i] = self.client.submit(_lr_frame, self.source, i, self.options.scale)
         return self.frames[i]
 
-    def flow(self, i: int):
+    def motion(self, i: int):
         if self.options.interp != "flow":
             return None
-        if i not in self.flows:
-            self.flows[i] = self.client.submit(estimate_flows, self.frame(i), self.frame(i + 1))
-        return self.flows[i]
+        if i not in self.motions:
+            self.motions[i] = self.client.submit(estimate_motion, self.frame(i), self.frame(i + 1))
+        return self.motions[i]
 
     def for_pairs(self, needed: tuple[int, ...]) -> dict:
         for old in [i for i in self.frames if i < needed[0]]:
             del self.frames[old]
-            self.flows.pop(old, None)
-        return {i: (self.frame(i), self.frame(i + 1), self.flow(i)) for i in needed}
+            self.motions.pop(old, None)
+        return {i: (self.frame(i), self.frame(i + 1), self.motion(i)) for i in needed}
 
 
 class _Tasks:
@@ -217,8 +238,8 @@ class _Tasks:
             self.state = submit(_state, fired)
             return submit(_write_spikes, self.dest, step.frames.start, fired)
         if isinstance(step, TruthFrame):
-            flows = self.pairs.flow(step.source_frame) if self.pairs else None
-            return submit(_write_truth, self.dest, step.index, scene, step.frame, options, flows)
+            motion = self.pairs.motion(step.source_frame) if self.pairs else None
+            return submit(_write_truth, self.dest, step.index, scene, step.frame, options, motion)
         return submit(_write_flow, self.dest, step.index, scene.path, step.frame0, step.frame1)
 
 

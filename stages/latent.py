@@ -14,7 +14,8 @@ Ground truth is always rendered at HR.
 import numpy as np
 
 from stages.intensities import luma_rgb, to_uint8
-from stages.interpolate import flow_interpolate, linear
+from stages.cfa import colour_index
+from stages.interpolate import PairMotion, interpolate, interpolate_mosaic, linear, pair_motion
 from stages.camera_path import CameraPath, render
 from stages.sensor import area_downsample, cfa_sample
 
@@ -30,13 +31,13 @@ def bracket(position: float, n_source_frames: int) -> tuple[int, float]:
     return i, float(position - i)
 
 
-def between(frame0: np.ndarray, frame1: np.ndarray, w: float, flows: tuple | None) -> np.ndarray:
-    """The frame a fraction ``w`` from frame0 to frame1; flow-based when flows are given."""
+def between(frame0: np.ndarray, frame1: np.ndarray, w: float, motion: PairMotion | None) -> np.ndarray:
+    """The frame a fraction ``w`` from frame0 to frame1; flow-based when the pair's motion is given."""
     if w == 0:
         return frame0
     if w == 1:
         return frame1
-    return linear(frame0, frame1, w) if flows is None else flow_interpolate(frame0, frame1, *flows, w)
+    return linear(frame0, frame1, w) if motion is None else interpolate(frame0, frame1, motion, w)
 
 
 def upscale_flow(flow: np.ndarray, scale: int) -> np.ndarray:
@@ -47,17 +48,30 @@ def upscale_flow(flow: np.ndarray, scale: int) -> np.ndarray:
     return cv2.resize(flow, (width * scale, height * scale), interpolation=cv2.INTER_LINEAR) * np.float32(scale)
 
 
+def upscale_motion(motion: PairMotion, scale: int) -> PairMotion:
+    """A pair's motion estimated at LR, for its HR frames: the flows upscaled, the checks made at HR."""
+    return pair_motion(upscale_flow(motion.flow01, scale), upscale_flow(motion.flow10, scale))
+
+
 def video_mosaics(pairs: dict[int, tuple], positions: list[float], n_source_frames: int, cfa: str) -> np.ndarray:
     """LR mosaics (n, H, W) float32 at source ``positions``.
 
-    ``pairs[i]`` is ``(lr_frame_i, lr_frame_i+1, flows_or_None)`` for every bracket needed.
+    ``pairs[i]`` is ``(lr_frame_i, lr_frame_i+1, motion_or_None)`` for every bracket needed.
+    Behind a Bayer filter, flow interpolation computes only the channel each pixel keeps
+    (:func:`stages.interpolate.interpolate_mosaic`: the same bytes, half the work).
     """
-    frames = []
-    for position in positions:
+    planes = {}  # pair i -> both frames as (3, H, W) planes, made once per pair
+
+    def mosaic(position: float) -> np.ndarray:
         i, w = bracket(position, n_source_frames)
-        frame0, frame1, flows = pairs[i]
-        frames.append(cfa_sample(between(frame0, frame1, w, flows), cfa))
-    return np.stack(frames)
+        frame0, frame1, motion = pairs[i]
+        if motion is None or cfa == "mono":
+            return cfa_sample(between(frame0, frame1, w, motion), cfa)
+        if i not in planes:
+            planes[i] = tuple(np.ascontiguousarray(np.moveaxis(frame, 2, 0), np.float32) for frame in (frame0, frame1))
+        return interpolate_mosaic(*planes[i], motion, w, colour_index(cfa, 2, 2))
+
+    return np.stack([mosaic(position) for position in positions])
 
 
 def still_mosaics(image: np.ndarray, path: CameraPath, times: list[int], scale: int, cfa: str) -> np.ndarray:

@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 from stages.errors import InputError
-from stages.interpolate import estimate_flows, flow_interpolate, linear
+from stages.cfa import BAYER_PATTERNS, colour_index
+from stages.interpolate import estimate_flows, flow_interpolate, interpolate, interpolate_mosaic, linear, pair_motion
+from stages.sensor import cfa_sample
 from stages.camera_path import CameraPath, backward_warp, render
 
 HEIGHT, WIDTH = 96, 128
@@ -174,3 +176,23 @@ def test_flow_interpolation_prefers_the_frame_that_sees_an_occluded_background()
     assert flow_error < 0.5 * np.abs(linear(frame(0), frame(8), 0.5) - frame(4)).mean()
     # Uncovered background just behind the square (x 30..33 at t = 0.5) comes from frame 1 only.
     assert np.abs(middle - frame(4))[32:68, 30:34].mean() < 0.02
+
+
+@pytest.mark.parametrize("cfa", BAYER_PATTERNS)
+def test_a_mosaic_interpolated_alone_is_the_whole_frame_sampled_byte_for_byte(cfa):
+    # Flows of up to ~25 px on a 48x64 frame: many samples fall outside and take the reflected border.
+    frame0, frame1 = texture(48, 64, seed=3), texture(48, 64, seed=4)
+    rng = np.random.default_rng(0)
+    flow01 = cv2.resize(rng.normal(0, 10, (6, 8, 2)).astype(np.float32), (64, 48), interpolation=cv2.INTER_CUBIC)
+    flow10 = cv2.resize(rng.normal(0, 10, (6, 8, 2)).astype(np.float32), (64, 48), interpolation=cv2.INTER_CUBIC)
+    motion = pair_motion(flow01, flow10)
+    planes0, planes1 = (np.ascontiguousarray(np.moveaxis(f, 2, 0)) for f in (frame0, frame1))
+    for w in (0, 0.3, 0.77, 1):
+        whole = cfa_sample(interpolate(frame0, frame1, motion, w), cfa)
+        alone = interpolate_mosaic(planes0, planes1, motion, w, colour_index(cfa, 2, 2))
+        assert alone.dtype == np.float32
+        np.testing.assert_array_equal(alone, whole)
+    # ...and a motion made once per pair gives what the flows give frame by frame.
+    np.testing.assert_array_equal(interpolate(frame0, frame1, motion, 0.4),
+                                  flow_interpolate(frame0, frame1, flow01, flow10, 0.4))
+    assert not np.array_equal(interpolate(frame0, frame1, motion, 0.4), interpolate(frame0, frame1, motion, 0.5))

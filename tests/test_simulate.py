@@ -1,5 +1,6 @@
 """The simulator end to end on a real two-worker LocalCluster, real Zarr stores, real files."""
 
+import hashlib
 import os
 
 import cv2
@@ -153,6 +154,41 @@ def test_video_and_folder_sources(tmp_path, interp):
         assert list(arrays["truth_frames"]) == [20, 61]
         rate = unpack_rows(arrays["spikes"], 16).mean()
         assert 0.05 < rate < 0.6
+
+
+def test_a_video_s_bytes_are_unchanged_since_the_first_simulator(tmp_path):
+    """Known answer: the bytes simulated from these PNG frames, as the simulator wrote them before
+    pair motions were shared and mosaics interpolated alone. A change to the latent frames, the
+    sensor or the truth changes this digest: say so in docs/simulator.md (reproducibility)."""
+    base = cv2.resize(data.astronaut(), (128, 128), interpolation=cv2.INTER_AREA)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i in range(4):
+        iio.imwrite(folder / f"{i:03d}.png", np.roll(base, (2 * i, 5 * i), axis=(0, 1))[:64, :96])
+    store = str(tmp_path / "gbrg.zarr")
+    simulate(str(folder), store, SimulateOptions(scale=4, cfa="gbrg", frames=82, interp="flow", truth_every=20,
+                                                 chunk_frames=16), workers=2, progress=False)
+    arrays = read_arrays(store)
+    digest = hashlib.sha256(arrays["spikes"].tobytes() + arrays["truth"].tobytes()).hexdigest()
+    assert digest[:16] == "1c2e7e17b9e30dd3"
+
+
+def test_a_worker_decodes_each_source_frame_once(tmp_path, monkeypatch):
+    from pipeline import simulate as simulation
+    from pipeline.frame_sources import FrameSource, open_frame_source
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i in range(3):
+        iio.imwrite(folder / f"{i:03d}.png", np.roll(picture("astronaut", 64), 4 * i, axis=1))
+    source = open_frame_source(str(folder))
+    reads = []
+    monkeypatch.setattr(FrameSource, "read", lambda self, index: reads.append(index) or iio.imread(self.files[index]))
+    simulation._hr_frame.cache_clear()
+    lr = [simulation._lr_frame(source, i, 4) for i in range(3)]  # each frame's LR task...
+    hr = [simulation._hr_frame(source, i) for i in (1, 2)]  # ...then truth between frames 1 and 2
+    assert reads == [0, 1, 2]
+    np.testing.assert_array_equal(lr[1], area_downsample(hr[0], 4))
 
 
 @pytest.mark.parametrize("args,fragment", [
