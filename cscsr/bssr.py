@@ -28,10 +28,21 @@ class BSSR(nn.Module):
 
     def forward(self, spikes: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         b, _, h, w = spikes.shape
-        raw = self.window((spikes * mask)[:, None])  # (B, C, N', H, W)
+        raw = self.windows(spikes * mask)  # (B, C, N', H, W)
         samples = F.conv2d(mask, torch.ones(1, 1, 3, 3, device=mask.device, dtype=mask.dtype), padding=1)
         x = raw * (9 / samples.clamp(min=1))[:, :, None] + self.bias[:, None, None, None]  # partial conv
         x = self.mix(torch.relu(x))  # (B, C, N', H, W)
         c, t = x.shape[1], x.shape[2]
         x = x.transpose(1, 2).reshape(b, t * c, h, w)  # (B, N'*C, H, W): every window's channels
         return self.attention(x).reshape(b, t, c, h, w)  # (B, N', C, H, W)
+
+    def windows(self, spikes: torch.Tensor) -> torch.Tensor:
+        """``self.window`` (the 3D convolution) as one 2D convolution over the w frames of every time
+        point: the same sums, but on PyTorch's fast 2D path (the CPU's 3D path with one input channel
+        is a slow fallback, 2x the time). (B, N, H, W) -> (B, C, N', H, W)."""
+        b, _, h, w = spikes.shape
+        length, stride = self.window.kernel_size[0], self.window.stride[0]
+        frames = spikes.unfold(1, length, stride)  # (B, N', H, W, w): a view
+        frames = frames.permute(0, 1, 4, 2, 3).reshape(-1, length, h, w)  # (B*N', w, H, W)
+        raw = F.conv2d(frames, self.window.weight[:, 0], padding=1)  # (B*N', C, H, W)
+        return raw.view(b, -1, raw.shape[1], h, w).transpose(1, 2)  # (B, C, N', H, W)

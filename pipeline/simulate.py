@@ -14,7 +14,6 @@ number of workers.
 """
 
 import functools
-import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -123,24 +122,6 @@ def _hr_frame(source: FrameSource, index: int) -> np.ndarray:
     return frame
 
 
-class _LastPair:
-    """A worker's HR motion of the last video pair it drew truth for (its checks at HR cost as much
-    as a truth frame, and the several truth frames of one pair come in a row): one pair held."""
-
-    def __init__(self):
-        self.lock, self.key, self.motion = threading.Lock(), None, None
-
-    def hr_motion(self, key: tuple, lr_motion: PairMotion, scale: int) -> PairMotion:
-        with self.lock:
-            if self.key != key:
-                self.key, self.motion = None, None  # free the old pair before making the new one
-                self.motion, self.key = upscale_motion(lr_motion, scale), key
-            return self.motion
-
-
-_last_pair = _LastPair()
-
-
 def _increments(scene: Scene, pairs: dict | None, frames: range, options: SimulateOptions, dark) -> np.ndarray:
     if scene.is_still:
         image = _hr_frame(scene.source, 0)
@@ -169,7 +150,7 @@ def _write_spikes(url: str, start: int, fired: sensor.Fired) -> tuple[int, int]:
 
 
 def _write_truth(url: str, index: int, scene: Scene, frame: int, options: SimulateOptions,
-                 lr_motion: PairMotion | None) -> None:
+                 hr_motion: PairMotion | None) -> None:
     if scene.is_still:
         image = _hr_frame(scene.source, 0)
         rgb = image if scene.path is None else render(image, scene.path, frame)
@@ -177,9 +158,7 @@ def _write_truth(url: str, index: int, scene: Scene, frame: int, options: Simula
         i, w = bracket(source_position(frame, options.frames, scene.source.n_frames), scene.source.n_frames)
         frame0 = _hr_frame(scene.source, i)
         frame1 = frame0 if w == 0 else _hr_frame(scene.source, i + 1)
-        motion = None if lr_motion is None or w == 0 else \
-            _last_pair.hr_motion((scene.source, i, options.scale), lr_motion, options.scale)
-        rgb = between(frame0, frame1, w, motion)
+        rgb = between(frame0, frame1, w, hr_motion)
     write_truth(url, index, truth_image(rgb, options.cfa))
 
 
@@ -190,11 +169,13 @@ def _write_flow(url: str, index: int, path: CameraPath, frame0: int, frame1: int
 # ---- the graph ----
 
 class _SourcePairs:
-    """Futures of LR source frames and their pairs' motion, made once each and dropped when passed."""
+    """Futures of LR source frames and their pairs' motion (at LR for the spikes, at HR for the truth),
+    made once each and dropped when passed. A pair's HR motion (384 MB at 4000x4000) stays on the
+    worker that made it, and Dask runs the pair's truth frames there rather than move it."""
 
     def __init__(self, client: Client, source: FrameSource, options: SimulateOptions):
         self.client, self.source, self.options = client, source, options
-        self.frames, self.motions = {}, {}
+        self.frames, self.motions, self.hr_motions = {}, {}, {}
 
     def frame(self, i: int):
         if i not in self.frames:
@@ -208,10 +189,18 @@ class _SourcePairs:
             self.motions[i] = self.client.submit(estimate_motion, self.frame(i), self.frame(i + 1))
         return self.motions[i]
 
+    def hr_motion(self, i: int):
+        if self.options.interp != "flow":
+            return None
+        if i not in self.hr_motions:
+            self.hr_motions[i] = self.client.submit(upscale_motion, self.motion(i), self.options.scale)
+        return self.hr_motions[i]
+
     def for_pairs(self, needed: tuple[int, ...]) -> dict:
         for old in [i for i in self.frames if i < needed[0]]:
             del self.frames[old]
             self.motions.pop(old, None)
+            self.hr_motions.pop(old, None)
         return {i: (self.frame(i), self.frame(i + 1), self.motion(i)) for i in needed}
 
 
@@ -238,7 +227,10 @@ class _Tasks:
             self.state = submit(_state, fired)
             return submit(_write_spikes, self.dest, step.frames.start, fired)
         if isinstance(step, TruthFrame):
-            motion = self.pairs.motion(step.source_frame) if self.pairs else None
+            motion = None
+            if self.pairs:  # a video: the HR motion of the pair the frame lies in, unless it is a source frame
+                _, w = bracket(source_position(step.frame, options.frames, scene.source.n_frames), scene.source.n_frames)
+                motion = self.pairs.hr_motion(step.source_frame) if w else None
             return submit(_write_truth, self.dest, step.index, scene, step.frame, options, motion)
         return submit(_write_flow, self.dest, step.index, scene.path, step.frame0, step.frame1)
 

@@ -263,3 +263,20 @@ def test_channels_last_gives_the_same_image_and_the_default_layout_stays():
         assert torch.allclose(nhwc[key], default[key], atol=1e-5), key
     assert all(torch.allclose(a, b, atol=1e-5) for a, b in zip(nhwc["flows"], default["flows"]))
     assert torch.equal(again["image"], default["image"]) and conv.weight.is_contiguous()
+
+
+def test_bssr_s_windows_are_its_3d_convolution_as_one_2d_convolution():
+    from cscsr.bssr import BSSR
+
+    torch.manual_seed(0)
+    bssr = BSSR(features=6, length=11, stride=3, time_points=11)
+    spikes = clip(24, 20, batch=2)  # (2, 41, 24, 20)
+    mask = (torch.rand(2, 1, 24, 20) < 0.5).float()
+    with torch.no_grad():
+        by_3d = bssr.window((spikes * mask)[:, None])  # (2, 6, 11, 24, 20): what the weights were trained as
+        by_2d = bssr.windows(spikes * mask)
+        shifted = bssr.windows(torch.roll(spikes * mask, 3, dims=1))  # one time point later: not the same
+    assert by_2d.shape == by_3d.shape == (2, 6, 11, 24, 20)
+    torch.testing.assert_close(by_2d, by_3d, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(shifted[:, :, 1:], by_3d[:, :, :-1], rtol=1e-5, atol=1e-5)
+    assert not torch.allclose(shifted, by_3d, atol=1e-3)
