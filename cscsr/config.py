@@ -12,6 +12,7 @@ from stages.errors import InputError
 from stages.methods import WINDOW
 
 PRECISIONS = ("fp32", "bf16")  # the network's arithmetic: float32, or bfloat16 autocast (weights stay float32)
+BACKENDS = ("torch", "onnx")  # what runs the network: PyTorch, or ONNX Runtime on the CPU (cscsr.onnx_runtime)
 
 MOTIONS = ("joint", "assembled")
 

@@ -4,7 +4,8 @@ Loaded once per worker process by the pipeline and reused; windows of the same s
 as one batch under ``torch.inference_mode``, on the worker's GPU when it has one, else on
 one CPU thread per worker (so the bytes do not depend on the number of workers). On a GPU
 the windows of several tiles of the same shape go through together (:meth:`many_tiles`).
-``precision="bf16"`` runs the network under ``torch.autocast`` (bfloat16) on its device.
+``precision="bf16"`` runs the network under ``torch.autocast`` (bfloat16) on its device;
+``backend="onnx"`` runs it on ONNX Runtime instead (CPU, fp32: :mod:`cscsr.onnx_runtime`).
 """
 
 import contextlib
@@ -13,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from cscsr.config import PRECISIONS
+from cscsr.config import BACKENDS, PRECISIONS
 from cscsr.integration import NETWORK_SCALES
 from cscsr.weights_io import default_weights, load_model, resolve_weights
 from stages.bits import unpack_rows
@@ -36,6 +37,12 @@ class NetworkReconstructor:
     # network is not exactly equivariant, and its errors under different turns partly cancel (EDSR's "+")
     precision: str = "fp32"  # or "bf16": torch.autocast on the device
     join_tiles: bool | None = None  # tiles of one shape in one pass (many_tiles); None: on a GPU only
+    backend: str = "torch"  # or "onnx": ONNX Runtime on the CPU
+
+    def __post_init__(self):
+        from cscsr.onnx_runtime import OnnxNetwork
+
+        self._onnx = OnnxNetwork(self.model) if self.backend == "onnx" else None
 
     @property
     def name(self) -> str:
@@ -106,7 +113,11 @@ class NetworkReconstructor:
             spikes, cfa = spikes.flip(-1), flip_horizontally(cfa, spikes.shape[-1])
         if orientation & 4:
             spikes, cfa = spikes.flip(-2), flip_vertically(cfa, spikes.shape[-2])
-        image = self.model(spikes.contiguous(), cfa, window.reset == "zero", window.scale)["image"]
+        zero_reset = window.reset == "zero"
+        if self._onnx is not None:
+            image = self._onnx(spikes.contiguous(), cfa, zero_reset, window.scale)
+        else:
+            image = self.model(spikes.contiguous(), cfa, zero_reset, window.scale)["image"]
         if orientation & 4:
             image = image.flip(-2)
         if orientation & 2:
@@ -130,18 +141,36 @@ def one_thread_on_cpu(device: torch.device):
 
 
 def load_reconstructor(weights: str | None, device: str | None = None, *, self_ensemble: bool = False,
-                       precision: str = "fp32", channels_last: bool = False) -> NetworkReconstructor:
+                       precision: str = "fp32", channels_last: bool = False,
+                       backend: str = "torch") -> NetworkReconstructor:
     """The network from ``weights`` (a file, or "lite" or "full" for the shipped ones; default lite, the
     faster on a CPU), on a GPU if there is one; with ``self_ensemble``, every window is reconstructed
     under the 8 flips and quarter turns and averaged; ``precision`` fp32, or bf16 (autocast);
-    ``channels_last`` runs the convolutions on NHWC tensors (``cscsr.network.use_channels_last``)."""
+    ``channels_last`` runs the convolutions on NHWC tensors (``cscsr.network.use_channels_last``);
+    ``backend`` "onnx" runs the network on ONNX Runtime (CPU, fp32)."""
     from cscsr.network import use_channels_last
 
-    if precision not in PRECISIONS:
-        raise InputError(f"--precision must be {' or '.join(PRECISIONS)}, got {precision!r}")
+    check_backend(backend, precision)
     path = resolve_weights(weights) if weights else default_weights("lite")
+    if backend == "onnx":
+        device = "cpu"
     device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
     model, _ = load_model(path, device)
     if channels_last:
         use_channels_last(model)
-    return NetworkReconstructor(model, device, str(path), self_ensemble=self_ensemble, precision=precision)
+    return NetworkReconstructor(model, device, str(path), self_ensemble=self_ensemble, precision=precision,
+                                backend=backend)
+
+
+def check_backend(backend: str, precision: str = "fp32") -> None:
+    """The backend and precision, checked together (ONNX Runtime runs the network in fp32, on the CPU)."""
+    if precision not in PRECISIONS:
+        raise InputError(f"--precision must be {' or '.join(PRECISIONS)}, got {precision!r}")
+    if backend not in BACKENDS:
+        raise InputError(f"--backend must be {' or '.join(BACKENDS)}, got {backend!r}")
+    if backend == "onnx":
+        if precision != "fp32":
+            raise InputError(f"--backend onnx runs the network in fp32 on the CPU: --precision {precision} is for torch")
+        from cscsr.onnx_runtime import check_available
+
+        check_available()

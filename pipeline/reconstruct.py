@@ -45,13 +45,14 @@ from stages.tfp import tfp_rate
 from stages.tiles import Tile, tile_grid
 
 @functools.lru_cache(maxsize=4)
-def reconstructor(method: str, weights: str | None, precision: str | None = "fp32"):
+def reconstructor(method: str, weights: str | None, precision: str | None = "fp32", backend: str | None = "torch"):
     """Built once per worker process (this cache lives in the worker) and reused by its tasks:
     for the network, it is loaded from its weights once, onto the worker's GPU if any."""
     if method in NETWORKS:
         from cscsr.reconstructor import load_reconstructor
 
-        return load_reconstructor(weights, self_ensemble=method == "cscsr-ensemble", precision=precision or "fp32")
+        return load_reconstructor(weights, self_ensemble=method == "cscsr-ensemble", precision=precision or "fp32",
+                                  backend=backend or "torch")
     return classic(method)
 
 
@@ -70,7 +71,7 @@ def _reconstruct_tiles(plan: Plan, frames: tuple[tuple[int, int], ...],
     hold_point()  # inert unless a fault test asks (pipeline.hold)
     half = plan.window // 2
     spikes, writer = _opened(plan.spikes, plan.out, plan.run)
-    method = reconstructor(plan.method, plan.weights, plan.precision)
+    method = reconstructor(plan.method, plan.weights, plan.precision, plan.backend)
     windows = []
     for _, _, tile in tiles:
         region = (slice(tile.ry0, tile.ry1), slice(tile.rx0 // 8, -(-tile.rx1 // 8)))
@@ -101,8 +102,9 @@ def checked_method(store: SpikeStore, options: ReconstructOptions) -> tuple[int,
     scale (``--scale``, else the store's, else 4) and the method, its weights loaded. -> (scale, method)."""
     check_options(options, store.n_frames)
     scale = options.scale if options.scale is not None else int(store.attrs.get("scale", 4))
-    precision = options.precision if options.method in NETWORKS else None
-    method = reconstructor(options.method, options.weights, precision)  # loads and checks the weights here too
+    network = options.method in NETWORKS
+    precision, backend = (options.precision, options.backend) if network else (None, None)
+    method = reconstructor(options.method, options.weights, precision, backend)  # loads and checks the weights here too
     method.check(options.window, scale, store.meta.cfa)
     return scale, method
 
@@ -123,7 +125,7 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
     meta = store.meta
     scale, method = checked_method(store, options)
     network = options.method in NETWORKS
-    precision = options.precision if network else None
+    precision, backend = (options.precision, options.backend) if network else (None, None)
     if options.resume and not exists(out):
         raise InputError(f"cannot resume: {out} does not exist")
     centres = output_centres(store.n_frames, options.window, options.every)
@@ -143,9 +145,9 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
             gain = client.submit(_auto_gain, *args).result() if client else _auto_gain(*args)
         # the spike store as workers find it, whatever their working directory (and as the output records it)
         plan = Plan(recorded(store_url), out, options.method, method.weights, options.window, options.every, float(gain),
-                    scale, meta.cfa, meta.reset, options.tile, uuid.uuid4().hex, precision, options.gpu_batch)
+                    scale, meta.cfa, meta.reset, options.tile, uuid.uuid4().hex, precision, options.gpu_batch, backend)
         batch = method.batch
-        on_gpus = network and client is not None and gpu_workers(client) > 0  # our own local cluster has none
+        on_gpus = backend == "torch" and client is not None and gpu_workers(client) > 0  # our local cluster has none
         done = _prepare_output(plan, options.resume, centres, grid, (meta.height * scale, meta.width * scale),
                                fps=meta.fps / options.every)
         blocks = tile_blocks(grid, max(1, options.gpu_batch // batch) if on_gpus else 1)
@@ -236,7 +238,8 @@ def _prepare_output(plan: Plan, resume: bool, centres: list[int], grid: list[lis
     tile_hr = ((first.y1 - first.y0) * plan.scale, (first.x1 - first.x0) * plan.scale)
     if resume:
         group = open_video_store(plan.out, writable=True)
-        before = {"precision": "fp32" if plan.method in NETWORKS else None}  # stores from before --precision
+        network = plan.method in NETWORKS  # stores from before --precision and --backend:
+        before = {"precision": "fp32" if network else None, "backend": "torch" if network else None}
         found = {k: group.attrs.get(k, before.get(k)) for k in plan.attrs()}
         if isinstance(found["source"], str):  # stores from before sources were absolute: as seen from here
             found["source"] = recorded(found["source"])

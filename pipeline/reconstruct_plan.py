@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cscsr.config import PRECISIONS
+from cscsr.config import BACKENDS, PRECISIONS
 from pipeline.storage import recorded
 from stages.errors import InputError
 from stages.methods import METHODS, NETWORKS, WINDOW
@@ -35,6 +35,7 @@ class ReconstructOptions:
     segment_tasks: int = SEGMENT_TASKS  # tasks per fresh cluster when the job starts its own (bounded memory)
     precision: str = "fp32"  # the network's: fp32, or bf16 (autocast on the worker's device)
     gpu_batch: int = GPU_BATCH  # windows per task and per network pass on GPU workers
+    backend: str = "torch"  # what runs the network: torch, or onnx (ONNX Runtime, CPU)
 
     def check(self) -> None:
         """Every check that needs no recording (see :func:`check_options` for the rest)."""
@@ -59,6 +60,11 @@ class ReconstructOptions:
         if self.precision != "fp32" and self.method not in NETWORKS:
             raise InputError(f"--precision {self.precision} is for the network (--method cscsr or cscsr-ensemble); "
                              f"{self.method} has no network to run in it")
+        if self.backend not in BACKENDS:
+            raise InputError(f"--backend must be {' or '.join(BACKENDS)}, got {self.backend!r}")
+        if self.backend != "torch" and self.method not in NETWORKS:
+            raise InputError(f"--backend {self.backend} is for the network (--method cscsr or cscsr-ensemble); "
+                             f"{self.method} has no network to run on it")
         if self.weights is not None and self.method not in NETWORKS:  # a classic method has none: never recorded
             raise InputError(f"--weights is for the network (--method cscsr or cscsr-ensemble); {self.method} has "
                              f"no weights to load: leave --weights out")
@@ -88,10 +94,12 @@ class Plan:
     run: str  # unique per call: worker-side caches of opened stores never outlive their run
     precision: str | None = None  # the network's (None for classic methods)
     gpu_batch: int = GPU_BATCH  # most windows per network pass, where a reconstructor joins tiles (GPU)
+    backend: str | None = None  # what runs the network (None for classic methods)
 
     def attrs(self) -> dict:
         """What the output store records (and ``--resume`` checks)."""
-        return {"method": self.method, "weights": self.weights, "precision": self.precision, "window": self.window,
+        return {"method": self.method, "weights": self.weights, "precision": self.precision, "backend": self.backend,
+                "window": self.window,
                 "every": self.every, "gain": self.gain, "scale": self.scale, "source": recorded(self.spikes), "cfa": self.cfa,
                 "reset": self.reset, "tile_lr": self.tile}
 

@@ -138,20 +138,20 @@ def test_batched_path_is_the_same_bytes_on_one_or_two_gpu_workers(wide, two_gpus
 
 def test_bf16_on_the_cpu_is_close_to_fp32(cli, wide, mixed, fp32_on_mixed, tmp_path):
     """Through the command line against the cluster's scheduler: routed like fp32, recorded, and within
-    35 dB PSNR of the fp32 output (measured 40 dB), but not the same arithmetic. Two output frames
-    (every 30: centres 20 and 50, the fp32 run's frames 0 and 3): a CPU without native bfloat16
-    (no AVX512_BF16) emulates it, and the six frames of the fp32 run took 5 minutes there."""
+    35 dB PSNR of the fp32 output (measured 40 dB), but not the same arithmetic. One output frame
+    (every 60: centre 20, the fp32 run's frame 0): a CPU without native bfloat16 (no AVX512_BF16)
+    emulates it, and the six frames of the fp32 run took 5 minutes there."""
     out = tmp_path / "bf16.zarr"
     start = time.time()
-    result = cli("reconstruct", wide, out, "--method", "cscsr", "--every", 30, "--tile", 32, "--precision", "bf16",
+    result = cli("reconstruct", wide, out, "--method", "cscsr", "--every", 60, "--tile", 32, "--precision", "bf16",
                  "--scheduler", mixed.cluster.scheduler_address)
     assert result.exit_code == 0, result.stderr
     tasks = tasks_in(mixed.get_task_stream(start=start), mixed)
     assert len(tasks) == 2 and {worker for _, worker in tasks} == {"gpu"}  # one frame group x two tile blocks
     group = zarr.open_group(str(out), mode="r")
     assert group.attrs["precision"] == "bf16" and group.attrs["state"] == "complete"
-    assert list(group["frames"][:]) == [20, 50]
-    bf16, fp32 = video(str(out)), video(fp32_on_mixed[0])[[0, 3]]
+    assert list(group["frames"][:]) == [20]
+    bf16, fp32 = video(str(out)), video(fp32_on_mixed[0])[[0]]
     assert psnr(bf16, fp32) > 35
     assert np.abs(bf16.astype(int) - fp32).mean() < 3  # 8-bit levels
     assert not np.array_equal(bf16, fp32)
