@@ -2,7 +2,6 @@
 bytes from any worker's export, recorded in the output and checked on ``--resume``, refused where it
 does not apply. Small inputs, few kinds of input: each kind costs an export (seconds)."""
 
-import numpy as np
 import pytest
 import torch
 import zarr
@@ -11,10 +10,12 @@ from cscsr.onnx_runtime import OnnxNetwork
 from cscsr.weights_io import default_weights, load_model
 from pipeline.reconstruct import ReconstructOptions, reconstruct
 from tests.test_bad_input import assert_refused
-from tests.test_gpu_workers import psnr, video, wide  # noqa: F401 (wide: a fixture)
+from tests import test_gpu_workers
+from tests.test_gpu_workers import psnr, video
 from tests.test_network import clip
 from tests.test_simulate import chunk_files
 
+wide = test_gpu_workers.wide  # its 32x96 LR recording, a fixture
 CSCSR = dict(method="cscsr", every=20, tile=48)  # 4 frames of the 32x96 recording, 2 tiles of one read shape
 
 
@@ -32,7 +33,7 @@ def test_onnx_runtime_runs_the_network_s_graph():
     assert torch.equal(again, image) and torch.equal(there, image)  # the same bytes from a fresh export
 
 
-def test_reconstruct_on_onnx_runtime(wide, cli, tmp_path):  # noqa: F811
+def test_reconstruct_on_onnx_runtime(wide, cli, tmp_path):
     by_torch, one = (str(tmp_path / f"{name}.zarr") for name in ("torch", "onnx"))
     reconstruct(wide, by_torch, ReconstructOptions(**CSCSR), workers=1, progress=False)
     reconstruct(wide, one, ReconstructOptions(**CSCSR, backend="onnx"), workers=2, progress=False)
@@ -52,7 +53,7 @@ def test_reconstruct_on_onnx_runtime(wide, cli, tmp_path):  # noqa: F811
     (["--method", "tfp", "--backend", "onnx"], "--backend onnx is for the network"),
     (["--method", "cscsr", "--backend", "onnx", "--precision", "bf16"], "--backend onnx runs the network in fp32"),
 ])
-def test_backend_refusals(cli, wide, tmp_path, args, fragment):  # noqa: F811
+def test_backend_refusals(cli, wide, tmp_path, args, fragment):
     out = tmp_path / "out.zarr"
     assert_refused(cli("reconstruct", wide, out, *args, "--workers", 1), fragment)
     assert not out.exists()
