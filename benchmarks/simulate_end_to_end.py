@@ -127,6 +127,7 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--reference", help="a checkout of the code to compare with (e.g. a git worktree)")
+    parser.add_argument("--reference-repeats", type=int, help="runs of the reference (default: --repeats)")
     args = parser.parse_args()
 
     work = tempfile.mkdtemp(prefix="cscsr-sim-bench-")
@@ -137,12 +138,15 @@ def main() -> None:
         print(f"made {args.source_frames}-frame {args.size}x{args.size} video in {time.perf_counter() - start:.0f} s")
         codes = {"this code": str(ROOT)} | ({"reference": os.path.abspath(args.reference)} if args.reference else {})
         walls = {name: [] for name in codes}
+        runs = {"this code": args.repeats, "reference": args.reference_repeats or args.repeats}
         for repeat in range(args.repeats):
             for name, code in codes.items():
+                if repeat >= runs[name]:
+                    continue
                 dest = os.path.join(work, f"{name.replace(' ', '-')}-{repeat}.zarr")
                 walls[name].append(run_once(code, video, dest, args.frames, args.workers))
                 print(f"{name}, run {repeat + 1}: {walls[name][-1]:.1f} s", flush=True)
-                if repeat and name == "reference":  # keep the first runs' outputs for the comparison
+                if repeat:  # keep the first runs' outputs for the comparison
                     shutil.rmtree(dest)
         identical = same_bytes(os.path.join(work, "this-code-0.zarr"), os.path.join(work, "reference-0.zarr")) \
             if args.reference else None
@@ -161,7 +165,8 @@ def main() -> None:
         stage_rows = [[name, f"{seconds * 1000:.0f}", calls, f"{seconds * calls:.1f}", f"{100 * seconds * calls / total:.0f} %"]
                       for name, seconds, calls in stages]
         print(f"\n## simulate: {args.frames} frames, {args.size}x{args.size} video -> LR {lr}x{lr}, "
-              f"{args.workers} workers, median of {args.repeats}\n")
+              f"{args.workers} workers, median of {args.repeats}"
+              + (f" (reference: {runs['reference']})" if args.reference else "") + "\n")
         print(markdown_table(["figure", "value", "reference", "ratio"], rows))
         print("\nStage shares (each stage timed alone in one process x its calls in the run):\n")
         print(markdown_table(["stage", "ms per call", "calls", "s in run", "share"], stage_rows))
