@@ -96,11 +96,19 @@ def _dask_log_level() -> int:
 class QuietExpectedErrors(logging.Filter):
     """Drops a worker's ``Compute Failed`` record (a traceback per task) for a task that raised our own
     :class:`InputError` (a lost or damaged chunk, bad data): the job names every such failure in its one
-    summary line, and a traceback per task would bury it. Any other exception is still logged in full."""
+    summary line, and a traceback per task would bury it. Any other exception is still logged in full.
+
+    Also drops ``Failed to communicate with scheduler during heartbeat`` (with its traceback), which a
+    worker of a local cluster can log when the cluster shuts down at the end of a job or segment while a
+    heartbeat is in flight (seen on a busy machine): the job is over by then, and a scheduler lost
+    mid-job fails the job through the client with its own one-line error."""
 
     EXPECTED = (f"{InputError.__name__}(",)  # how the worker writes the exception: its repr
+    SHUTDOWN_NOISE = ("Failed to communicate with scheduler during heartbeat",)
 
     def filter(self, record: logging.LogRecord) -> bool:
+        if str(record.msg).startswith(self.SHUTDOWN_NOISE):
+            return False
         if not str(record.msg).startswith("Compute Failed") or not isinstance(record.args, tuple):
             return True
         exception = record.args[3] if len(record.args) > 3 else ""
