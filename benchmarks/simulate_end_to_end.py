@@ -104,6 +104,7 @@ def stage_breakdown(video: str, frames: int, dest: str) -> list[tuple[str, float
     truth_at = output_centres(frames, WINDOW, options.truth_every)
     first_pair = [t for t in truth_at if bracket(source_position(t, frames, source.n_frames), source.n_frames)[0] == 0]
     writer.add_array("truth", (1, *frame0.shape), (1, *frame0.shape), np.uint8, ("k", "y", "x", "c"))
+    _hr_frame(source, 0), _hr_frame(source, 1)  # decoded already, as on the worker that made the pair's LR frames
     truth_time, _ = timed(_write_truth, dest, 0, scene, first_pair[-1], options, hr_motion, repeats=1)
     n_chunks = -(-frames // CHUNK_FRAMES)
     pairs_used = source.n_frames - 1

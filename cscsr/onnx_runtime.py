@@ -1,9 +1,9 @@
-"""The network on ONNX Runtime (``--backend onnx``): on a CPU, the same network about 1.4x as fast.
+"""The network on ONNX Runtime (``--backend onnx``): on a CPU, the same network about 1.3x as fast.
 
 PyTorch's tracing exporter fixes what Python computes from the input (the padding to a multiple
 of 16, the CFA masks, the reset mode, the scale) as constants of the graph, so one graph serves
 one kind of input: (batch, frames, height, width), CFA, reset and scale. The first window of each
-kind exports the network to memory and opens an ONNX Runtime session (about 14 s for a 256x256
+kind exports the network to memory and opens an ONNX Runtime session (about 18 s for a 256x256
 tile of ``lite`` on this project's CPU); the sessions are kept for the worker's later tasks. Each
 runs on one thread, like PyTorch on the CPU here, so the bytes do not depend on the number of
 workers. Outputs agree with PyTorch's within float rounding (about 1e-6), not bit for bit.

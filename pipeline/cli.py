@@ -272,7 +272,7 @@ def reconstruct(store: Annotated[str, typer.Argument(help="Spike store URL.")],
                                                             "advertise a GPU resource (dask worker --resources "
                                                             "GPU=1).")] = 16,
                 backend: Annotated[str, typer.Option(help="What runs the network: torch, or onnx (ONNX Runtime on "
-                                                          "the CPU: ~1.4x faster, ~14 s to export per tile shape "
+                                                          "the CPU: ~1.3x faster, ~18 s to export per tile shape "
                                                           "and worker; pip install 'cscsr[onnx]').")] = "torch"):
     """Reconstruct HR colour video from a spike store, over Dask (network tasks on GPU workers if there are any)."""
     from pipeline.reconstruct import ReconstructOptions, reconstruct as run
