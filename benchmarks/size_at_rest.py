@@ -113,7 +113,7 @@ def main() -> None:
     args = parser.parse_args()
     numcodecs.blosc.set_nthreads(1)
     load_start = load_average()
-    _rows, results = [], []
+    results = []
     with tempfile.TemporaryDirectory() as tmp:
         for name, (packed, width, nominal) in samples(np.random.default_rng(0)).items():
             pixels = packed.shape[0] * packed.shape[1] * width

@@ -97,14 +97,17 @@ def check_options(options: ReconstructOptions, n_frames: int) -> None:
         raise InputError(f"--window {options.window} is longer than the recording ({n_frames} frames)")
 
 
+def network_options(options: ReconstructOptions) -> tuple[str | None, str | None]:
+    """(precision, backend) of a network job; (None, None) for the classic methods, which have neither."""
+    return (options.precision, options.backend) if options.method in NETWORKS else (None, None)
+
+
 def checked_method(store: SpikeStore, options: ReconstructOptions) -> tuple[int, Reconstructor]:
     """Every check of a job on ``store`` that needs no output: the options against the recording, the
     scale (``--scale``, else the store's, else 4) and the method, its weights loaded. -> (scale, method)."""
     check_options(options, store.n_frames)
     scale = options.scale if options.scale is not None else int(store.attrs.get("scale", 4))
-    network = options.method in NETWORKS
-    precision, backend = (options.precision, options.backend) if network else (None, None)
-    method = reconstructor(options.method, options.weights, precision, backend)  # loads and checks the weights here too
+    method = reconstructor(options.method, options.weights, *network_options(options))  # loads and checks the weights here too
     method.check(options.window, scale, store.meta.cfa)
     return scale, method
 
@@ -124,8 +127,7 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
     store = open_spike_store(store_url)
     meta = store.meta
     scale, method = checked_method(store, options)
-    network = options.method in NETWORKS
-    precision, backend = (options.precision, options.backend) if network else (None, None)
+    precision, backend = network_options(options)
     if options.resume and not exists(out):
         raise InputError(f"cannot resume: {out} does not exist")
     centres = output_centres(store.n_frames, options.window, options.every)

@@ -30,9 +30,13 @@ def _check_pair(frame0: np.ndarray, frame1: np.ndarray, w: float) -> tuple[np.nd
     frame0, frame1 = check_image(frame0, "frame0"), check_image(frame1, "frame1")
     if frame0.shape != frame1.shape:
         raise InputError(f"frames differ in shape: {frame0.shape} and {frame1.shape}")
+    _check_weight(w)
+    return frame0, frame1
+
+
+def _check_weight(w: float) -> None:
     if not 0 <= w <= 1:
         raise InputError(f"w must be in [0, 1], got {w}")
-    return frame0, frame1
 
 
 def linear(frame0: np.ndarray, frame1: np.ndarray, w: float) -> np.ndarray:
@@ -135,15 +139,12 @@ def interpolate_mosaic(planes0: np.ndarray, planes1: np.ndarray, motion: PairMot
     ``planes0``, ``planes1``: the frames as (C, H, W) float32 planes (``np.moveaxis(frame, 2, 0)``,
     made once per pair by the caller); ``cell``: (2, 2) channel indices.
     """
-    import cv2
-
     planes0, planes1 = np.asarray(planes0, np.float32), np.asarray(planes1, np.float32)
     if planes0.ndim != 3 or planes1.shape != planes0.shape or planes0.shape[1] % 2 or planes0.shape[2] % 2:
         raise InputError(f"expected two (C, H, W) planes of even H and W, got {planes0.shape} and {planes1.shape}")
     height, width = planes0.shape[1:]
     _check_motion(motion, (height, width))
-    if not 0 <= w <= 1:
-        raise InputError(f"w must be in [0, 1], got {w}")
+    _check_weight(w)
     mosaic = np.empty((height, width), np.float32)
     if w == 0 or w == 1:
         for (dy, dx), channel in np.ndenumerate(cell):
@@ -151,16 +152,10 @@ def interpolate_mosaic(planes0: np.ndarray, planes1: np.ndarray, motion: PairMot
         return mosaic
     flow_w0, flow_w1 = _time_flows(motion, w)
     weight0, weight1 = _blend_weights(motion, flow_w0, flow_w1, w)
-    xs, ys = np.arange(width, dtype=np.float32), np.arange(height, dtype=np.float32)[:, None]
-
-    def warped(planes, flow, dy, dx, channel):  # backward_warp(frame, flow)[dy::2, dx::2, channel]
-        map_x = flow[dy::2, dx::2, 0] + xs[dx::2]
-        map_y = flow[dy::2, dx::2, 1] + ys[dy::2]
-        return cv2.remap(planes[channel], map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
-
-    for (dy, dx), channel in np.ndenumerate(cell):
-        mosaic[dy::2, dx::2] = _blend(weight0[dy::2, dx::2], warped(planes0, flow_w0, dy, dx, channel),
-                                      weight1[dy::2, dx::2], warped(planes1, flow_w1, dy, dx, channel))
+    for (dy, dx), channel in np.ndenumerate(cell):  # backward_warp(frame, flow)[dy::2, dx::2, channel]
+        warped0 = backward_warp(planes0[channel], flow_w0, phase=(dy, dx))
+        warped1 = backward_warp(planes1[channel], flow_w1, phase=(dy, dx))
+        mosaic[dy::2, dx::2] = _blend(weight0[dy::2, dx::2], warped0, weight1[dy::2, dx::2], warped1)
     return mosaic
 
 

@@ -61,6 +61,7 @@ def video_mosaics(pairs: dict[int, tuple], positions: list[float], n_source_fram
     (:func:`stages.interpolate.interpolate_mosaic`: the same bytes, half the work).
     """
     planes = {}  # pair i -> both frames as (3, H, W) planes, made once per pair
+    cell = colour_index(cfa, 2, 2) if cfa != "mono" else None  # (2, 2) channel kept at each Bayer phase
 
     def mosaic(position: float) -> np.ndarray:
         i, w = bracket(position, n_source_frames)
@@ -69,7 +70,7 @@ def video_mosaics(pairs: dict[int, tuple], positions: list[float], n_source_fram
             return cfa_sample(between(frame0, frame1, w, motion), cfa)
         if i not in planes:
             planes[i] = tuple(np.ascontiguousarray(np.moveaxis(frame, 2, 0), np.float32) for frame in (frame0, frame1))
-        return interpolate_mosaic(*planes[i], motion, w, colour_index(cfa, 2, 2))
+        return interpolate_mosaic(*planes[i], motion, w, cell)
 
     return np.stack([mosaic(position) for position in positions])
 

@@ -69,6 +69,16 @@ def test_flow_composes_and_reverses():
     assert np.abs(interior(round_trip, margin)).max() < 0.01
 
 
+@pytest.mark.parametrize("phase", [(0, 0), (0, 1), (1, 0), (1, 1)])
+def test_a_warp_at_one_bayer_phase_is_the_whole_warp_sampled_byte_for_byte(phase):
+    flow = CameraPath.random(100, HEIGHT, WIDTH, seed=3, speed=2.0, deform=2.0).flow(4, 40)  # reaches the borders
+    dy, dx = phase
+    for image in (texture(), texture()[:, :, 1]):  # colour and one plane
+        alone = backward_warp(image, flow, phase=phase)
+        assert alone.shape == image[dy::2, dx::2].shape and alone.dtype == np.float32
+        np.testing.assert_array_equal(alone, backward_warp(image, flow)[dy::2, dx::2])
+
+
 def test_scaled_path_moves_the_same_at_a_quarter_size():
     path = CameraPath.random(100, HEIGHT, WIDTH, seed=3, speed=1.0, deform=2.0)
     small = path.scaled(0.25)

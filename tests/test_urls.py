@@ -1,9 +1,6 @@
 """Spike stores and captures at any fsspec URL: path, file://, memory://, and s3:// (moto)."""
 
-import os
-
 import fsspec
-import pytest
 
 from pipeline.export import export
 from pipeline.info import summarize
