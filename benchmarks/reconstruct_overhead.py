@@ -162,10 +162,10 @@ def plain_loop(store_url: str, out: str, every: int, gain: float) -> int:
     return len(centres)
 
 
-def options(every: int, gain: float, tile: int):
+def options(every: int, gain: float, tile: int, method: str = "tfp"):
     from pipeline.reconstruct import ReconstructOptions
 
-    return ReconstructOptions(method="tfp", every=every, window=WINDOW, gain=gain, scale=SCALE, tile=tile, overwrite=True)
+    return ReconstructOptions(method=method, every=every, window=WINDOW, gain=gain, scale=SCALE, tile=tile, overwrite=True)
 
 
 def main() -> None:
