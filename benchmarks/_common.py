@@ -8,6 +8,7 @@ import os
 import platform
 import statistics
 import sys
+import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -16,6 +17,23 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 median = statistics.median
+
+
+def timed(fn, repeats: int) -> tuple[float, object]:
+    """Median seconds of ``repeats`` calls of ``fn``, and its last result."""
+    times, result = [], None
+    for _ in range(repeats):
+        start = time.perf_counter()
+        result = fn()
+        times.append(time.perf_counter() - start)
+    return median(times), result
+
+
+def random_window(side: int, frames: int = 41, rate: float = 0.3, seed: int = 0):
+    """(1, frames, side, side) float32: a window of random spikes, the network benchmarks' input."""
+    import numpy as np
+
+    return (np.random.default_rng(seed).random((1, frames, side, side)) < rate).astype(np.float32)
 
 
 def entropy_bits(p: float) -> float:

@@ -12,18 +12,7 @@ session, or compilation) and the largest difference from PyTorch's image.
 import argparse
 import time
 
-import numpy as np
-
-from _common import load_average, markdown_table, median, save_results
-
-
-def timed(fn, repeats: int) -> tuple[float, object]:
-    times, result = [], None
-    for _ in range(repeats):
-        start = time.perf_counter()
-        result = fn()
-        times.append(time.perf_counter() - start)
-    return median(times), result
+from _common import load_average, markdown_table, random_window, save_results, timed
 
 
 def main() -> None:
@@ -41,7 +30,7 @@ def main() -> None:
     from cscsr.weights_io import default_weights, load_model
 
     torch.set_num_threads(1)
-    spikes = torch.from_numpy((np.random.default_rng(0).random((1, 41, args.side, args.side)) < 0.3).astype(np.float32))
+    spikes = torch.from_numpy(random_window(args.side))
 
     def model():
         return load_model(default_weights(args.config))[0]

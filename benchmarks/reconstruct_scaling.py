@@ -40,7 +40,7 @@ import time
 from pathlib import Path
 
 import psutil
-from _common import load_average, markdown_table, median, save_results
+from _common import load_average, markdown_table, median, random_window, save_results, timed
 from reconstruct_overhead import (
     CACHE,
     SCALE,
@@ -66,24 +66,18 @@ def cpu_seconds(pids: list[int]) -> float:
 
 def _forward_seconds(side: int, repeats: int, start_at: float) -> float:
     """Median seconds of ``lite``'s forward pass on a side x side LR window, one thread, from ``start_at``."""
-    import numpy as np
     import torch
 
     from cscsr.weights_io import default_weights, load_model
 
     torch.set_num_threads(1)
     network = load_model(default_weights("lite"))[0]
-    spikes = torch.from_numpy((np.random.default_rng(0).random((1, WINDOW, side, side)) < 0.3).astype(np.float32))
+    spikes = torch.from_numpy(random_window(side, WINDOW))
     with torch.inference_mode():
         network(spikes, "rggb", False, SCALE)  # warm
         while time.time() < start_at:  # both processes time the same moments
             time.sleep(0.01)
-        times = []
-        for _ in range(repeats):
-            start = time.perf_counter()
-            network(spikes, "rggb", False, SCALE)
-            times.append(time.perf_counter() - start)
-    return median(times)
+        return timed(lambda: network(spikes, "rggb", False, SCALE), repeats)[0]
 
 
 def machine_ceiling(side: int, repeats: int) -> dict:
