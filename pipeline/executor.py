@@ -3,6 +3,11 @@
 - **A bounded window.** At most a few tasks per worker are in flight (``in_bounded_window``,
   ``submitted``): a recording of millions of frames never becomes one graph of millions of
   tasks, and tasks are made from the plan only as the window moves.
+- **Nothing a lost worker takes with it.** Everything a task needs travels in the task itself (the
+  plan is a few hundred bytes), never as scattered data: a task whose worker dies, even the
+  cluster's only worker, is rerun by Dask on whichever worker is there or joins later. A task
+  the cluster drops is submitted again (``idempotent`` tasks) and a failure says whether it was
+  the task's own error or a cluster fault (``failure``).
 - **Outcomes as they happen.** ``submitted`` yields each task of the plan with its finished future,
   in the order they finish, for the job to count (progress bars) or to report.
 - **Segments.** A job that starts its own local cluster runs its tasks ``size`` at a time in a
@@ -28,38 +33,80 @@ from collections.abc import Callable, Iterable, Iterator
 from typing import TypeVar
 
 from distributed import Future, as_completed
+from distributed.scheduler import KilledWorker
 
 from stages.errors import InputError, describe
 
 T = TypeVar("T")
 
 
-def submitted(client, tasks: Iterable[T], submit: Callable[[T], Future]) -> Iterator[tuple[T, Future]]:
+def submitted(client, tasks: Iterable[T], submit: Callable[[T], Future], *,
+              idempotent: bool = False) -> Iterator[tuple[T, Future]]:
     """``submit(task)`` for each task of a plan, a bounded window at a time; yield (task, future) as
-    each finishes (its result or error is the caller's to read)."""
-    task_of = {}  # future key -> task
+    each finishes (its result or error is the caller's to read: :func:`failure`).
 
-    def futures():
-        for task in tasks:
-            future = submit(task)
-            task_of[future.key] = task
-            yield future
+    A task whose worker dies is rerun by Dask itself (its inputs travel in the task, never as scattered
+    data, which a lost worker takes with it). ``idempotent`` tasks (whole chunks written, the same bytes
+    each time) are also submitted again when the cluster drops them (a future cancelled under the job,
+    e.g. by a scheduler restart), up to :data:`ATTEMPTS` times in all."""
+    task_of, attempt_of = {}, {}  # future key -> task, -> how many times it was submitted
 
-    for future in in_bounded_window(futures(), window_size(client)):
+    def start(task: T, attempt: int) -> Future:
+        future = submit(task)
+        task_of[future.key], attempt_of[future.key] = task, attempt
+        return future
+
+    def again(future: Future) -> Future | None:
+        if not idempotent or future.status != "cancelled" or attempt_of[future.key] >= ATTEMPTS:
+            return None
+        return start(task_of.pop(future.key), attempt_of.pop(future.key) + 1)
+
+    futures = (start(task, 1) for task in tasks)
+    for future in in_bounded_window(futures, window_size(client), again=again):
+        attempt_of.pop(future.key)
         yield task_of.pop(future.key), future
 
 
-def in_bounded_window(futures: Iterator[Future], limit: int) -> Iterator[Future]:
-    """Pull futures from ``futures`` (which submits as it is pulled); yield each once finished."""
+ATTEMPTS = 3  # submissions of an idempotent task the cluster keeps dropping, before it is reported failed
+
+
+def failure(future: Future) -> str | None:
+    """Why a finished future has no result, in one line: the task's own error, or what the cluster did
+    to it (a task run on workers that all died, a task the cluster dropped); None if it has one."""
+    if future.status == "finished":
+        return None
+    if future.status == "error":
+        error = future.exception()
+        if isinstance(error, KilledWorker):  # a cluster fault, not the task's: say so
+            return (f"cluster fault: every worker that ran this task died (KilledWorker; Dask gives up after "
+                    f"distributed.scheduler.allowed-failures deaths): {describe(error)}")
+        return describe(error)
+    return (f"cluster fault: the task was {future.status} by the cluster (workers lost or the scheduler "
+            f"restarted) and not finished")
+
+
+def in_bounded_window(futures: Iterator[Future], limit: int, *,
+                      again: Callable[[Future], Future | None] = lambda future: None) -> Iterator[Future]:
+    """Pull futures from ``futures`` (which submits as it is pulled); yield each once finished, unless
+    ``again(future)`` gives a future to wait for instead (a resubmission)."""
     done = as_completed()
+
+    def next_finished() -> Future:
+        while True:
+            future = next(done)
+            if (replacement := again(future)) is None:
+                return future
+            done.add(replacement)
+
     in_flight = 0
     for future in futures:
         done.add(future)
         in_flight += 1
         while in_flight >= limit:
-            yield next(done)
+            yield next_finished()
             in_flight -= 1
-    yield from done
+    for _ in range(in_flight):
+        yield next_finished()
 
 
 def window_size(client) -> int:

@@ -33,7 +33,7 @@ from pipeline.hold import hold_point
 from pipeline.lease import check_free, claimed, held
 from pipeline.progress import progress_bar
 from pipeline.reconstruct_plan import Plan, ReconstructOptions, task_groups, tile_blocks
-from pipeline.executor import in_segments, submitted
+from pipeline.executor import failure, in_segments, submitted
 from pipeline.spike_store import SpikeStore, open_spike_store, read_frames
 from pipeline.outputs import claim_output
 from pipeline.storage import check_apart, exists, recorded, remove_partial_writes
@@ -199,17 +199,13 @@ def run_groups(client, groups: Iterable, *, plan: Plan, centres: list[int], grid
     """Run the plan's ``groups`` on ``client`` (``pipeline.executor``), each task needing ``resources``
     (e.g. ``{"GPU": 1}``: only workers that advertise them run it); yield the outcome of each of a
     group's tiles as it finishes."""
-    shared = client.scatter(plan, broadcast=True)  # sent to each worker once, not with every task
-
-    def submit(group):
+    def submit(group):  # the plan travels in each task (scattered data dies with the workers holding it)
         frames, block = group
-        return client.submit(_reconstruct_tiles, shared, tuple((i, centres[i]) for i in frames),
+        return client.submit(_reconstruct_tiles, plan, tuple((i, centres[i]) for i in frames),
                              tuple((ty, tx, grid[ty][tx]) for ty, tx in block), pure=False, resources=resources)
 
-    for (frames, block), future in submitted(client, groups, submit):
-        error = None
-        if future.status != "finished":  # the task raised: report it, go on with the others
-            error = describe(future.exception())
+    for (frames, block), future in submitted(client, groups, submit, idempotent=True):
+        error = failure(future)  # the task raised, or the cluster failed it: report it, go on with the others
         for ty, tx in block:
             yield Outcome(frames.start, frames.stop, ty, tx, error)
 

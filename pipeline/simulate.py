@@ -22,6 +22,7 @@ from distributed import Client
 from pipeline.cluster import check_workers, dask_client
 from pipeline.executor import submitted
 from pipeline.frame_sources import FrameSource, open_frame_source
+from pipeline.hold import hold_point
 from pipeline.lease import claimed, held
 from pipeline.progress import progress_bar
 from pipeline.simulate_plan import SpikeChunk, Step, TruthFrame, simulation_steps
@@ -145,6 +146,7 @@ def _state(fired: sensor.Fired) -> np.ndarray:
 
 
 def _write_spikes(url: str, start: int, fired: sensor.Fired) -> tuple[int, int]:
+    hold_point()  # inert unless a fault test asks (pipeline.hold)
     write_region(url, SPIKES, start, fired.packed)
     return fired.packed.shape[0], fired.spikes
 
