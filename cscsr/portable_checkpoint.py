@@ -120,19 +120,24 @@ def portable_parts(folder: str | Path, complete: bool = True) -> list[Path]:
 def read_portable(folder: str | Path) -> tuple[dict, dict]:
     """(tensors as float32, metadata) of the portable checkpoint in ``folder``, as ``read_checkpoint`` gives
     an exact one. Refused if parts are missing or come from different checkpoints."""
-    from safetensors import safe_open
+    from safetensors import SafetensorError, safe_open
+
+    from stages.errors import describe
 
     tensors, metadata = {}, None
     for path in portable_parts(folder):
-        with safe_open(str(path), "pt") as f:
-            about = {k: v for k, v in f.metadata().items() if k != "part"}
-            if metadata is None:
-                metadata = about
-            elif about != metadata:
-                raise InputError(f"{path} belongs to another checkpoint than the other parts in {folder}")
-            for name in f.keys():
-                value = f.get_tensor(name)
-                tensors[name] = value.float() if value.is_floating_point() else value
+        try:
+            with safe_open(str(path), "pt") as f:
+                about = {k: v for k, v in (f.metadata() or {}).items() if k != "part"}
+                if metadata is None:
+                    metadata = about
+                elif about != metadata:
+                    raise InputError(f"{path} belongs to another checkpoint than the other parts in {folder}")
+                for name in f.keys():
+                    value = f.get_tensor(name)
+                    tensors[name] = value.float() if value.is_floating_point() else value
+        except (SafetensorError, OSError) as error:  # cut short, overwritten, not a safetensors file
+            raise InputError(f"portable checkpoint part {path} is damaged: {describe(error)}") from None
     if metadata is None:
         raise InputError(f"no portable checkpoint (checkpoint.part-I-of-N.safetensors) in {folder}")
     return tensors, metadata

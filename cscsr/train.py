@@ -29,9 +29,30 @@ from cscsr.training_data import (DEAD_LEAVES_SHARE, TRAIN_PICTURES, Clip, batch_
                                  picture_files, random_clip, random_plan, reoriented)
 from cscsr.weights_io import save_weights
 from stages.errors import InputError
+from stages.numbers import check_number
 from stages.prefetch import made_ahead
 
 VALIDATION_SEED = 10_000_019  # validation clips: dead leaves from seeds no training step uses
+# Bounds of the options that size a run (TrainOptions.check), each with its reason:
+MAX_LEARNING_RATE = 0.1  # Adam moves each weight by up to the rate per step; the recipes use 1e-4 to 1e-3
+# A lower bound of one training step's memory per LR pixel of each clip in the batch: the tensors autograd keeps
+# for the backward pass, measured at LR 16 to 48, x4 (saved-tensor hooks): lite 38 KB in fp32 and 25 KB in bf16,
+# full 82 KB in fp32; gradients, Adam's moments and workspaces come on top.
+STEP_BYTES_PER_LR_PIXEL = 16 * 2**10
+# A pooled clip held in memory, per LR pixel: 41 frames of uint8 spikes, the x4 truth (3 float32 per HR pixel,
+# 16 HR pixels per LR pixel) and two float32 (x, y) flows.
+CLIP_BYTES_PER_LR_PIXEL = 41 + 3 * 4 * 16 + 2 * 2 * 4
+
+
+def memory_of(device: torch.device) -> int | None:
+    """Bytes of memory of a training device: the GPU's, or the machine's for the CPU (None if unknown)."""
+    if device.type == "cuda":
+        return torch.cuda.get_device_properties(torch.cuda.current_device() if device.index is None
+                                                else device.index).total_memory
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):  # no sysconf (Windows): not checked
+        return None
 
 
 @dataclass(frozen=True)
@@ -72,14 +93,23 @@ class TrainOptions:
         return named(self.config).ablate(motion=self.motion, flow_guidance=self.flow_guidance)
 
     def check(self) -> "TrainOptions":
+        """Refuse options that cannot train, before any output exists (the command line and the Python API)."""
         self.network()
         for label, value in (("steps", self.steps), ("batch", self.batch), ("checkpoint_every", self.checkpoint_every),
                              ("validate_every", self.validate_every), ("warmup", self.warmup),
                              ("decay_every", self.decay_every)):
-            if value < 1:
-                raise InputError(f"{label} must be >= 1, got {value}")
+            check_number(label, value, at_least=1, integer=True)
+        check_number("lr_side", self.lr_side, integer=True)
         if self.lr_side < 16 or self.lr_side % 2:
             raise InputError(f"lr_side must be even and >= 16, got {self.lr_side}")
+        check_number("pool", self.pool, at_least=0, integer=True)  # -1 was truthy: a pool of no clips, then a crash
+        # nan and -1 failed in Adam after OUT existed, inf left a NaN checkpoint, 0 ships the random weights
+        check_number("learning_rate", self.learning_rate, at_least=0, at_most=MAX_LEARNING_RATE,
+                     why="Adam moves every weight by up to the rate at each step, and trained weights are mostly "
+                         "smaller: median 0.02 to 0.04")
+        if self.learning_rate == 0 and not self.init:
+            raise InputError(f"learning_rate must be > 0, got {self.learning_rate}: at 0 the run would ship its random "
+                             "initial weights untrained (0 is for --init, to keep the weights it starts from)")
         if self.precision not in PRECISIONS:
             raise InputError(f"unknown precision {self.precision!r}: expected one of {', '.join(PRECISIONS)}")
         if not (math.isfinite(self.time_budget) and self.time_budget >= 0):
@@ -94,11 +124,34 @@ class TrainOptions:
             raise InputError(f"unknown device {self.device!r}: expected cpu, cuda or cuda:N")
         if device.type == "cuda" and not torch.cuda.is_available():
             raise InputError(f"device {self.device!r} asked for, but torch sees no CUDA GPU here")
+        if device.type == "cuda" and (device.index or 0) >= torch.cuda.device_count():
+            count = torch.cuda.device_count()
+            raise InputError(f"device {self.device!r} asked for, but torch sees {count} CUDA GPU(s) here "
+                             f"(cuda:0 to cuda:{count - 1})")
         if self.synthesis not in SYNTHESES:
             raise InputError(f"unknown synthesis {self.synthesis!r}: expected one of {', '.join(SYNTHESES)}")
         if self.pool and self.on_device_synthesis:
             raise InputError("--pool is for numpy synthesis on the CPU: on-device synthesis makes every clip fresh")
+        self._check_memory(device)
         return self
+
+    def _check_memory(self, device: torch.device) -> None:
+        """Refuse a batch, crop or pool that cannot fit in the memory of the machine (or GPU) at all: by a lower
+        bound of what it needs, so that no run that could fit is refused (batch 100000 started and was killed)."""
+        pixels = self.lr_side**2  # LR pixels of one clip
+        step = self.batch * pixels * STEP_BYTES_PER_LR_PIXEL
+        memory = memory_of(device)
+        if memory is not None and step > memory:
+            raise InputError(f"batch {self.batch} of LR {self.lr_side}x{self.lr_side} clips needs at least "
+                             f"{step / 2**30:,.1f} GiB for one step (the activations kept for backpropagation, "
+                             f"{STEP_BYTES_PER_LR_PIXEL // 1024} KiB per LR pixel of a clip), more than the "
+                             f"{memory / 2**30:,.1f} GiB of memory on {device}: lower batch or lr_side")
+        held = self.pool * pixels * CLIP_BYTES_PER_LR_PIXEL
+        ram = memory_of(torch.device("cpu"))
+        if ram is not None and held > ram:
+            raise InputError(f"pool {self.pool} of LR {self.lr_side}x{self.lr_side} clips needs at least "
+                             f"{held / 2**30:,.1f} GiB held in memory ({CLIP_BYTES_PER_LR_PIXEL} bytes per LR pixel "
+                             f"of a clip), more than the {ram / 2**30:,.1f} GiB of this machine: lower pool")
 
     @property
     def on_device_synthesis(self) -> bool:
@@ -270,13 +323,19 @@ def save_checkpoint(path: Path, model: CSCSR, optimiser: torch.optim.Optimizer, 
 
 
 def read_checkpoint(path: Path) -> tuple[dict, dict]:
-    """(tensors, metadata) of a checkpoint file."""
-    from safetensors import safe_open
+    """(tensors, metadata) of a checkpoint file; one that cannot be read (cut short, overwritten, not a
+    safetensors file) is refused in one line naming it."""
+    from safetensors import SafetensorError, safe_open
     from safetensors.torch import load_file
 
-    with safe_open(str(path), "pt") as f:
-        metadata = f.metadata()
-    return load_file(str(path)), metadata
+    from stages.errors import describe
+
+    try:
+        with safe_open(str(path), "pt") as f:
+            metadata = f.metadata()
+        return load_file(str(path)), metadata or {}
+    except (SafetensorError, OSError) as error:
+        raise InputError(f"checkpoint {path} is damaged: {describe(error)}") from None
 
 
 def resumable(out: Path) -> Path:
@@ -302,21 +361,30 @@ def load_checkpoint(path: Path, model: CSCSR, optimiser: torch.optim.Optimizer, 
     """Restore a run from its exact checkpoint file, or from a folder holding a portable checkpoint's parts
     (``cscsr.portable_checkpoint``: close, not bit-exact). Returns the step it had reached."""
     from cscsr.portable_checkpoint import read_portable
+    from stages.errors import describe
 
     tensors, metadata = read_portable(path) if Path(path).is_dir() else read_checkpoint(path)
-    recorded = json.loads(metadata["options"])
-    changed = [k for k, value in asdict(options).items()
-               if k not in MAY_CHANGE_ON_RESUME and recorded.get(k, getattr(TrainOptions, k)) != value]
-    if changed:
-        raise InputError(f"cannot resume {path}: it was trained with other options ({', '.join(changed)})")
-    model.load_state_dict(model_weights(tensors))
-    state = {"state": {}, "param_groups": json.loads(metadata["param_groups"])}
-    for key, value in tensors.items():
-        if key.startswith("optimiser."):
-            _, index, name = key.split(".", 2)
-            state["state"].setdefault(int(index), {})[name] = value
-    optimiser.load_state_dict(state)
-    return int(metadata["step"])
+    try:
+        recorded = json.loads(metadata["options"])
+        changed = [k for k, value in asdict(options).items()
+                   if k not in MAY_CHANGE_ON_RESUME and recorded.get(k, getattr(TrainOptions, k)) != value]
+        if changed:
+            raise InputError(f"cannot resume {path}: it was trained with other options ({', '.join(changed)})")
+        model.load_state_dict(model_weights(tensors))
+        state = {"state": {}, "param_groups": json.loads(metadata["param_groups"])}
+        for key, value in tensors.items():
+            if key.startswith("optimiser."):
+                _, index, name = key.split(".", 2)
+                state["state"].setdefault(int(index), {})[name] = value
+        optimiser.load_state_dict(state)
+        return int(metadata["step"])
+    except InputError:
+        raise
+    except (KeyError, TypeError, ValueError, AttributeError, RuntimeError) as error:  # readable, but not ours
+        cause = describe(error)
+        cause = cause if len(cause) <= 200 else cause[:200] + "..."  # torch names every missing parameter
+        raise InputError(f"cannot resume from {path}: it is damaged or not a cscsr training checkpoint "
+                         f"({type(error).__name__}: {cause})") from None
 
 
 def train(options: TrainOptions, out: str | os.PathLike, *, resume: bool = False, log=print,
@@ -465,32 +533,76 @@ def _about(step: int, options: TrainOptions, command: str) -> dict:
 
 
 def export_weights(folder: str | os.PathLike, dest: str | os.PathLike, command: str = "",
-                   storage: str = "float32") -> int:
+                   storage: str = "float32", *, overwrite: bool = False) -> int:
     """The latest checkpoint of a training folder as a weights file (a run need not be finished);
-    ``storage="float16"`` halves the file (what comes back from a GPU lease)."""
+    ``storage="float16"`` halves the file (what comes back from a GPU lease). An existing ``dest`` is
+    refused unless ``overwrite`` and it is a weights file; it is replaced only once the new one is written."""
     checkpoint = Path(folder) / "checkpoint.safetensors"
     if not checkpoint.exists():
         raise InputError(f"{checkpoint} does not exist: nothing trained there yet")
+    dest = Path(dest)
+    _claim_weights_file(dest, overwrite)
     tensors, metadata = read_checkpoint(checkpoint)
     model = CSCSR(CSCSRConfig.from_json(metadata["config"]))
     model.load_state_dict(model_weights(tensors))
     options = TrainOptions(**json.loads(metadata["options"]))
     step = int(metadata["step"])
-    save_weights(model, dest, storage=storage,
-                 **_about(step, options, command or "cscsr train (exported from a checkpoint)"))
+    partial = dest.with_name(dest.name + ".partial")  # beside it: the old file stays until the new one is whole
+    try:
+        save_weights(model, partial, storage=storage,
+                     **_about(step, options, command or "cscsr train (exported from a checkpoint)"))
+        os.replace(partial, dest)
+    finally:
+        partial.unlink(missing_ok=True)
     return step
 
 
+def _claim_weights_file(dest: Path, overwrite: bool) -> None:
+    """Refuse an existing ``dest`` unless it is a weights file (what export-weights writes) and ``overwrite``."""
+    if not (dest.exists() or dest.is_symlink()):
+        return
+    if not _is_weights_file(dest):
+        raise InputError(f"output {dest} already exists and is not a weights file (a .safetensors file with a CSCSR "
+                         f"configuration): cscsr replaces only its own outputs, even with --overwrite; choose "
+                         f"another output, or move it away yourself")
+    if not overwrite:
+        raise InputError(f"output {dest} already exists (pass --overwrite to replace it)")
+
+
+def _is_weights_file(path: Path) -> bool:
+    """A file holding nothing, or a safetensors file with a network configuration and no optimiser state (a
+    weights file, not a training checkpoint)."""
+    from safetensors import safe_open
+
+    if not path.is_file():
+        return False
+    if path.stat().st_size == 0:
+        return True  # nothing to lose
+    try:
+        with safe_open(str(path), "pt") as handle:
+            metadata = handle.metadata() or {}
+    except Exception:  # not safetensors at all: safetensors raises its own error types
+        return False
+    return "config" in metadata and "param_groups" not in metadata
+
+
 def export_portable(folder: str | os.PathLike, dest: str | os.PathLike, weights: str = "float32",
-                    part_bytes: int | None = None) -> tuple[int, list[Path]]:
+                    part_bytes: int | None = None, *, overwrite: bool = False) -> tuple[int, list[Path]]:
     """The latest checkpoint of a training folder as a portable checkpoint in ``dest`` (parts of at most
     16 MiB, ``cscsr.portable_checkpoint``), which ``train --resume`` continues on another machine.
-    Returns (step, parts)."""
-    from cscsr.portable_checkpoint import PART_BYTES, write_portable
+    A folder that already holds a portable checkpoint's parts is refused unless ``overwrite`` (its other
+    files are never touched). Returns (step, parts)."""
+    from cscsr.portable_checkpoint import PART_BYTES, portable_parts, write_portable
 
     checkpoint = Path(folder) / "checkpoint.safetensors"
     if not checkpoint.exists():
         raise InputError(f"{checkpoint} does not exist: nothing trained there yet")
+    dest = Path(dest)
+    if dest.exists() and not dest.is_dir():
+        raise InputError(f"output {dest} is a file, not a folder: --portable writes a folder of parts")
+    if dest.is_dir() and portable_parts(dest, complete=False) and not overwrite:
+        raise InputError(f"output {dest} already holds a portable checkpoint's parts "
+                         f"(pass --overwrite to replace them)")
     tensors, metadata = read_checkpoint(checkpoint)
     parts = write_portable(tensors, metadata, dest, weights=weights, part_bytes=part_bytes or PART_BYTES)
     return int(metadata["step"]), parts

@@ -24,7 +24,7 @@ from stages.cfa import BAYER_PATTERNS, flip_horizontally, flip_vertically, trans
 from stages.intensities import to_unit_rgb
 from stages.camera_path import CameraPath, render
 from stages.bits import unpack_rows
-from stages.errors import InputError
+from stages.errors import InputError, describe
 from stages.methods import WINDOW
 from stages.sensor import SensorModel, area_downsample, cfa_sample, fire, increments, initial_state
 
@@ -88,12 +88,16 @@ def bundled_picture(name: str) -> np.ndarray:
 
 
 def picture(name: str) -> np.ndarray:
-    """A training picture by name: a bundled scikit-image picture, or the path of an image file."""
+    """A training picture by name: a bundled scikit-image picture, or the path of an image file (a file that
+    is not a picture we can use is refused in one line naming it)."""
     if name in TRAIN_PICTURES or name in TEST_PICTURES:
         return bundled_picture(name)
     import imageio.v3 as iio
 
-    return to_unit_rgb(iio.imread(name))
+    try:
+        return to_unit_rgb(iio.imread(name))
+    except (OSError, ValueError, RuntimeError, SyntaxError, IndexError) as error:  # what imageio's plugins raise
+        raise InputError(f"training picture {name} cannot be used: {describe(error)}") from None
 
 
 def picture_files(folders) -> tuple[str, ...]:

@@ -6,6 +6,7 @@ text on how it was made (training command, steps, data). Loading checks all of i
 says plainly what is wrong with a file that does not fit.
 """
 
+import hashlib
 import json
 import os
 import struct
@@ -70,6 +71,17 @@ def resolve_weights(path: str | os.PathLike) -> Path:
     if str(path) in CONFIGS and not Path(path).exists():
         return default_weights(str(path))
     return Path(path)
+
+
+def weights_sha256(path: str | os.PathLike) -> str:
+    """The SHA-256 of a weights file's bytes (or a shipped one's, by name): what an output records of
+    the weights it was made with, and ``--resume`` compares (another file at the same path differs)."""
+    path = resolve_weights(path)
+    try:
+        with open(path, "rb") as handle:
+            return hashlib.file_digest(handle, "sha256").hexdigest()
+    except OSError as error:
+        raise InputError(f"cannot read weights file {path}: {error.strerror or error}") from None
 
 
 def read_metadata(path: str | os.PathLike) -> dict[str, str]:

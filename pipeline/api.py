@@ -15,14 +15,19 @@ Where the work runs, for the jobs on Dask (``simulate``, ``reconstruct``, ``eval
 
 ``ingest`` reads one capture as one stream in bounded memory: it runs in the calling process, with or
 without a client. Bad input raises :class:`stages.errors.InputError` (a ``ValueError``) before any output
-exists, with the same one-line message the command prints.
+exists, with the same one-line message the command prints. A wrong type (``out=None``, ``every="5"``,
+``flip="no"``, ``client="..."``) raises :class:`stages.errors.InputTypeError`, a ``TypeError`` (and an
+``InputError``) naming the argument; a closed client, an ``InputError``. Paths may be ``str`` or
+``os.PathLike``.
 """
 
 import dataclasses
+import os
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
-from stages.errors import InputError
+from stages.errors import InputError, InputTypeError
+from stages.numbers import check_flag, check_text
 
 
 @dataclass(frozen=True)
@@ -43,11 +48,45 @@ class Written:
 
 
 def _options(kind, job: str, given: dict):
-    """``kind(**given)``, with an unknown option named in one line with the ones there are."""
+    """``kind(**given)``, checked (its ``check()``: the command's own checks), with an unknown option named in
+    one line with the ones there are; a path given as ``os.PathLike`` (``weights=Path(...)``) as a string."""
     names = [f.name for f in dataclasses.fields(kind)]
     if unknown := [name for name in given if name not in names]:
         raise TypeError(f"{job}() got an unknown option {unknown[0]!r}: expected some of {', '.join(names)}")
-    return kind(**given)
+    options = kind(**{name: os.fspath(value) if isinstance(value, os.PathLike) else value
+                      for name, value in given.items()})
+    options.check()
+    return options
+
+
+def _path(job: str, name: str, value) -> str:
+    """A path or URL argument as a string: ``None`` (which would write to ``./None``), a number or bytes are
+    refused by name."""
+    text = os.fspath(value) if isinstance(value, os.PathLike) else value
+    if not isinstance(text, str):
+        raise InputTypeError(f"{job}(): {name} must be a path or URL (str or os.PathLike), got {value!r}")
+    if not text.strip():
+        raise InputError(f"{job}(): {name} is empty: give a path or URL")
+    return text
+
+
+def _checked(job: str, *, client=None, workers=None, scheduler=None, progress=False) -> None:
+    """The arguments every job takes, checked before anything is read or written: ``client`` a running
+    :class:`distributed.Client` (or None), ``workers`` as ``--workers``, ``scheduler`` an address (or None),
+    ``progress`` True or False."""
+    from pipeline.cluster import check_workers
+
+    if client is not None:
+        from distributed import Client
+
+        if not isinstance(client, Client):
+            raise InputTypeError(f"{job}(): client must be a distributed.Client (or None), got {client!r}")
+        if client.status != "running":
+            raise InputError(f"{job}(): client is {client.status}, not running: pass a connected Client, "
+                             "or leave client out")
+    check_workers(workers)
+    check_text("scheduler", scheduler, optional=True)
+    check_flag("progress", progress)
 
 
 def _spike_counts(url: str) -> dict:
@@ -75,6 +114,8 @@ def ingest(src: str, store: str, *, client=None, progress: bool = False, **optio
     """
     from pipeline.ingest import IngestOptions, ingest as run
 
+    src, store = _path("ingest", "src", src), _path("ingest", "store", store)
+    _checked("ingest", client=client, progress=progress)
     del client  # one sequential stream: nothing to spread over a cluster
     attrs = run(src, store, _options(IngestOptions, "ingest", options), progress=progress)
     return Written(str(store), dict(attrs), _spike_counts(store))
@@ -91,6 +132,8 @@ def simulate(src: str, store: str, *, client=None, workers: int | None = None, s
     """
     from pipeline.simulate import SimulateOptions, simulate as run
 
+    src, store = _path("simulate", "src", src), _path("simulate", "store", store)
+    _checked("simulate", client=client, workers=workers, scheduler=scheduler, progress=progress)
     checked = _options(SimulateOptions, "simulate", options)
     attrs = run(src, store, checked, workers=workers, progress=progress,
                 scheduler=_address_of(client) if client is not None else scheduler)
@@ -108,6 +151,8 @@ def reconstruct(store: str, out: str, *, client=None, workers: int | None = None
     from pipeline.reconstruct import ReconstructOptions, reconstruct as run
     from pipeline.video_store import open_video_store
 
+    store, out = _path("reconstruct", "store", store), _path("reconstruct", "out", out)
+    _checked("reconstruct", client=client, workers=workers, scheduler=scheduler, progress=progress)
     counts = run(store, out, _options(ReconstructOptions, "reconstruct", options), workers=workers,
                  scheduler=scheduler, client=client, progress=progress)
     return Written(str(out), dict(open_video_store(out).attrs), dict(counts))
@@ -121,7 +166,13 @@ def evaluate(store: str, methods: str | Iterable[str] = ("tfp", "tfi"), out: str
     ``out``; ``rows`` holds the summary, one dict per method."""
     from pipeline.evaluate import evaluate as run
 
-    names = [m.strip() for m in (methods.split(",") if isinstance(methods, str) else methods) if m.strip()]
+    store, out = _path("evaluate", "store", store), _path("evaluate", "out", out)
+    weights = None if weights is None else _path("evaluate", "weights", weights)
+    _checked("evaluate", client=client, workers=workers, scheduler=scheduler, progress=progress)
+    listed = methods.split(",") if isinstance(methods, str) else list(methods) if isinstance(methods, Iterable) else None
+    if listed is None or not all(isinstance(m, str) for m in listed):
+        raise InputTypeError(f"evaluate(): methods must be a string (\"tfp,tfi\") or a list of strings, got {methods!r}")
+    names = [m.strip() for m in listed if m.strip()]
     rows = run(store, names, out, weights=weights, workers=workers, scheduler=scheduler, client=client,
                progress=progress)
     return Written(str(out), {}, {"methods": len(rows)}, tuple(rows))

@@ -4,6 +4,7 @@ Every failure is one line on standard error and a non-zero exit; set ``CSCSR_DEB
 the full traceback.
 """
 
+import contextlib
 import functools
 import json
 import logging
@@ -18,7 +19,54 @@ from rich.table import Table
 from stages.cfa import PATTERNS
 from stages.methods import METHODS, WINDOW
 
-app = typer.Typer(no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False,
+# Click's usage error (Typer >= 0.17 vendors Click; older Typers use Click itself): found the same way in both
+USAGE_ERROR = next(kind for kind in typer.BadParameter.__mro__ if kind.__name__ == "UsageError")
+
+
+@contextlib.contextmanager
+def usage_in_one_line(group: typer.Context | None = None):
+    """A usage error (an unknown option or command, a value of the wrong type, a missing or extra argument)
+    answered as every other bad input: ``error: <one line>`` on standard error and exit status 1, rather than
+    Click's usage block with status 2. ``cscsr`` alone still prints the help."""
+    try:
+        yield
+    except USAGE_ERROR as error:
+        if type(error).__name__ == "NoArgsIsHelpError":
+            raise
+        err.print(f"error: {usage_message(error, group)}", markup=False, highlight=False, soft_wrap=True)
+        raise typer.Exit(1) from None
+
+
+def usage_message(error, group: typer.Context | None = None) -> str:
+    """``cscsr reconstruct: invalid value for '--every': ..., got 'abc' (see cscsr reconstruct --help)``; the
+    command is the error's own, else the one ``group`` was invoking (Click leaves some errors without one)."""
+    from stages.errors import describe
+
+    message = describe(error.format_message()).rstrip(".")
+    with contextlib.suppress(Exception):  # Typer's conversion keeps the value in pydantic's error, its cause
+        message += f", got {error.__cause__.errors()[0]['input']!r}"
+    context = getattr(error, "ctx", None)
+    if (context is None or context is group) and group is not None and group.invoked_subcommand:
+        where = f"{group.command_path} {group.invoked_subcommand}"
+    else:
+        where = context.command_path if context is not None else "cscsr"
+    return f"{where}: {message[:1].lower()}{message[1:]} (see {where} --help)"
+
+
+class OneLineUsageErrors(typer.core.TyperGroup):
+    """The ``cscsr`` group: usage errors in parsing its own options and every command's are one line
+    (:func:`usage_in_one_line`)."""
+
+    def make_context(self, *args, **kwargs):
+        with usage_in_one_line():
+            return super().make_context(*args, **kwargs)
+
+    def invoke(self, ctx):
+        with usage_in_one_line(ctx):  # resolving the command, and parsing its arguments and options
+            return super().invoke(ctx)
+
+
+app = typer.Typer(cls=OneLineUsageErrors, no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False,
                   help="Reconstruction pipeline for colour spike cameras: ingest, inspect, export, reconstruct.")
 err = Console(stderr=True)
 stdout = Console()
@@ -106,6 +154,12 @@ def command_line(context: typer.Context) -> str:
     return " ".join(words)
 
 
+def debugging() -> bool:
+    """``CSCSR_DEBUG=1`` (or ``true``, ``yes``) shows the traceback of a failure; unset, empty, ``0``, ``false``,
+    ``no`` and anything else do not."""
+    return os.environ.get("CSCSR_DEBUG", "").strip().lower() in ("1", "true", "yes")
+
+
 def one_line_errors(command):
     """Turn any exception into ``error: <one line>`` and exit status 1."""
 
@@ -119,7 +173,7 @@ def one_line_errors(command):
             err.print("error: interrupted", markup=False)
             raise typer.Exit(130) from None
         except Exception as error:
-            if os.environ.get("CSCSR_DEBUG"):
+            if debugging():
                 raise
             from pipeline.storage import unreachable
             from stages.errors import describe
@@ -289,12 +343,14 @@ def evaluate(store: Annotated[str, typer.Argument(help="Simulated spike store (w
              methods: Annotated[str, typer.Option(help=f"Comma-separated methods of {', '.join(METHODS)}.")] = "tfp,tfi",
              out_dir: Annotated[str, typer.Option("--out", help="Folder for reconstructions, CSVs and the picture.")] = "evaluation",
              weights: Annotated[Optional[str], typer.Option(help="Network weights for cscsr.")] = None,
-             workers: Workers = None, scheduler: Scheduler = None):
+             workers: Workers = None, scheduler: Scheduler = None,
+             overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace the --out folder if it is an "
+                                                     "evaluation.")] = False):
     """PSNR / SSIM of methods against a store's ground truth: a table, CSVs and a side-by-side picture."""
     from pipeline.evaluate import evaluate as run
 
     rows = run(store, [m.strip() for m in methods.split(",") if m.strip()], out_dir, weights=weights,
-               workers=workers, scheduler=scheduler)
+               workers=workers, scheduler=scheduler, overwrite=overwrite)
     table = Table(title=f"{store}: against ground truth ({rows[0]['frames']} frames)")
     for column in ("method", "PSNR (dB)", "SSIM", "s / image"):
         table.add_column(column, justify="left" if column == "method" else "right")
@@ -378,7 +434,9 @@ def export_weights(folder: Annotated[str, typer.Argument(help="A cscsr train fol
                    portable: Annotated[bool, typer.Option(
                        "--portable", help="Write DEST as a folder holding the whole checkpoint in parts of at most "
                                           "16 MiB (bf16 Adam moments; fp16 weights with --half), which train "
-                                          "--resume continues on another machine (close, not bit-exact).")] = False):
+                                          "--resume continues on another machine (close, not bit-exact).")] = False,
+                   overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace DEST if it is a weights file "
+                                                           "(--portable: the parts in DEST).")] = False):
     """The latest checkpoint of a training run as a weights file for --weights (or, --portable, as a
     checkpoint small enough to carry to another machine)."""
     from cscsr.train import export_portable, export_weights as run
@@ -386,10 +444,10 @@ def export_weights(folder: Annotated[str, typer.Argument(help="A cscsr train fol
 
     check_apart(dest, os.path.join(folder, "checkpoint.safetensors"))  # the file it reads (DEST may sit beside it)
     if portable:
-        step, parts = export_portable(folder, dest, weights="float16" if half else "float32")
+        step, parts = export_portable(folder, dest, weights="float16" if half else "float32", overwrite=overwrite)
         stdout.print(f"{dest}: the checkpoint after {step} steps in {len(parts)} parts")
         return
-    step = run(folder, dest, storage="float16" if half else "float32")
+    step = run(folder, dest, storage="float16" if half else "float32", overwrite=overwrite)
     stdout.print(f"{dest}: weights after {step} steps")
 
 
@@ -433,7 +491,8 @@ def watch(context: typer.Context,
           weights: Annotated[Optional[str], typer.Option(help="Network weights for cscsr.")] = None,
           every: Annotated[int, typer.Option(help="One output frame every K spike frames.")] = WINDOW,
           tile: Annotated[int, typer.Option(help="Tile side in LR pixels.")] = 256,
-          settle: Annotated[float, typer.Option(help="Seconds a recording must be unchanged before it is taken.")] = 10.0,
+          settle: Annotated[float, typer.Option(help="Seconds a recording must be unchanged before it is taken: "
+                                                  "more than the longest pause of what writes into INBOX.")] = 10.0,
           max_attempts: Annotated[int, typer.Option(help="Tries before a failing recording is quarantined.")] = 3,
           backoff: Annotated[float, typer.Option(help="Seconds before the first retry (doubles each time).")] = 60.0,
           height: Annotated[Optional[int], typer.Option(help="Default frame height of raw captures.")] = None,

@@ -11,9 +11,12 @@ shows task names and file paths, and can run profiling). ``CSCSR_DASHBOARD=HOST:
 ``0.0.0.0:8787``) serves the dashboard elsewhere, for a user who asks for it.
 """
 
+import asyncio
 import contextlib
+import errno
 import logging
 import os
+import threading
 from collections.abc import Iterator
 
 import dask
@@ -65,11 +68,57 @@ def scheduler_address(scheduler: str | None) -> str | None:
     return scheduler or os.environ.get("DASK_SCHEDULER_ADDRESS") or dask.config.get("scheduler-address", None)
 
 
+def check_scheduler(scheduler: str | None) -> None:
+    """Refuse, in one line naming the address and within :data:`CONNECT_TIMEOUT` (plus a second), a named
+    scheduler (``--scheduler``, ``DASK_SCHEDULER_ADDRESS``, Dask's ``scheduler-address``) that cannot be
+    reached or does not answer as a Dask scheduler; nothing when no scheduler is named (a local cluster).
+
+    Distributed retries a refused connection until its timeout, but then waits without limit for the
+    handshake: a port that accepts connections and never answers (a stopped process, a firewall, a
+    forwarded port with nothing behind it) hangs ``Client()`` for ever. This opens one connection with
+    the whole handshake under a deadline, in a thread of its own (the caller may be inside an event
+    loop), and closes it. Commands call it before they create any output; :func:`dask_client` too."""
+    address = scheduler_address(scheduler)
+    if not address:
+        return
+    seconds = float(dask.utils.parse_timedelta(CONNECT_TIMEOUT, "s"))
+    outcome: dict[str, BaseException] = {}
+
+    def handshake() -> None:
+        from distributed.comm import connect
+        from distributed.security import Security
+
+        async def opened() -> None:
+            comm = await connect(address, timeout=seconds, **Security().get_connection_args("client"))
+            await comm.close()
+
+        try:
+            asyncio.run(asyncio.wait_for(opened(), seconds + 1))  # connect() itself gives up on a refusal
+        except BaseException as error:  # noqa: BLE001 - handed to the caller's thread
+            outcome["error"] = error
+
+    thread = threading.Thread(target=handshake, name="cscsr-scheduler-check", daemon=True)
+    thread.start()
+    thread.join(seconds + 5)
+    error = outcome.get("error")
+    if thread.is_alive() or isinstance(error, (TimeoutError, asyncio.TimeoutError)):
+        raise InputError(f"cannot reach Dask scheduler {address}: no answer within {seconds:g} s (something "
+                         "accepts connections there but does not answer as a Dask scheduler)")
+    if isinstance(error, OSError):
+        raise InputError(f"cannot reach Dask scheduler {address}: {describe(error)}")
+    if isinstance(error, (ValueError, TypeError)) and "address" in str(error).lower():  # no such scheme, no port
+        raise InputError(f"cannot use Dask scheduler address {address!r}: {describe(error)}")
+    if error is not None:  # an answer, but not Dask's protocol (a web server, say): undecodable frames
+        raise InputError(f"cannot reach Dask scheduler {address}: what answers there does not speak Dask's "
+                         f"protocol ({type(error).__name__})")
+
+
 @contextlib.contextmanager
 def dask_client(*, workers: int | None = None, scheduler: str | None = None) -> Iterator[Client]:
     """A connected client; a local cluster of ``workers`` processes unless a scheduler is named."""
     address = scheduler_address(scheduler)
     if address:
+        check_scheduler(address)  # a port that accepts and never answers would hang Client() for ever
         try:
             client = Client(address, timeout=CONNECT_TIMEOUT)
         except (OSError, TimeoutError) as error:
@@ -95,15 +144,18 @@ def _dask_log_level() -> int:
 
 class QuietExpectedErrors(logging.Filter):
     """Drops a worker's ``Compute Failed`` record (a traceback per task) for a task that raised our own
-    :class:`InputError` (a lost or damaged chunk, bad data): the job names every such failure in its one
-    summary line, and a traceback per task would bury it. Any other exception is still logged in full.
+    :class:`InputError` (a lost or damaged chunk, bad data), or ran out of space for its output (``OSError``
+    ENOSPC, or EDQUOT: a full quota; every task after the disk fills fails alike): the job names every
+    such failure in its one summary line, and a traceback per task would bury it. Any other exception is
+    still logged in full.
 
     Also drops ``Failed to communicate with scheduler during heartbeat`` (with its traceback), which a
     worker of a local cluster can log when the cluster shuts down at the end of a job or segment while a
     heartbeat is in flight (seen on a busy machine): the job is over by then, and a scheduler lost
     mid-job fails the job through the client with its own one-line error."""
 
-    EXPECTED = (f"{InputError.__name__}(",)  # how the worker writes the exception: its repr
+    EXPECTED = (f"{InputError.__name__}(",  # how the worker writes the exception: its repr
+                f"OSError({errno.ENOSPC}, ", f"OSError({errno.EDQUOT}, ")  # no space left, a full quota
     SHUTDOWN_NOISE = ("Failed to communicate with scheduler during heartbeat",)
 
     def filter(self, record: logging.LogRecord) -> bool:

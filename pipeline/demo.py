@@ -53,7 +53,7 @@ def simulated_job(out_dir: str, console: Console, workers: int) -> list[dict]:
     console.print(f"simulating {recording} from {scene} ...")
     simulate(scene, recording, SimulateOptions(scale=4, cfa="rggb", frames=205, motion="random", speed=0.3,
                                                reset="zero", truth_every=41, seed=0, overwrite=True), workers=workers)
-    rows = evaluate(recording, METHODS, os.path.join(out_dir, "evaluation"), workers=workers)
+    rows = evaluate(recording, METHODS, os.path.join(out_dir, "evaluation"), workers=workers, overwrite=True)
     export(os.path.join(out_dir, "evaluation", "cscsr.zarr"), os.path.join(out_dir, "video_cscsr.mp4"), overwrite=True)
     console.print(_table(f"reconstruction x4 of {recording} against ground truth ({rows[0]['frames']} frames)",
                          ["method", "PSNR (dB)", "SSIM", "s / image"],

@@ -13,9 +13,10 @@ import time
 
 import numpy as np
 
-from pipeline.cluster import check_workers, dask_client
+from pipeline.cluster import check_scheduler, check_workers, dask_client
 from pipeline.ground_truth import read_truth
 from pipeline.images import write_image
+from pipeline.outputs import EVALUATION, mark_folder, new_output
 from pipeline.reconstruct import ReconstructOptions, checked_method, reconstruct
 from pipeline.spike_store import open_spike_store
 from pipeline.storage import check_apart, resolve
@@ -50,22 +51,35 @@ def checked_evaluation(store_url: str, methods: list[str], weights: str | None) 
     every = int(store.attrs.get("truth_every", WINDOW))
     if list(truth_frames) != output_centres(store.n_frames, WINDOW, every)[: len(truth_frames)] or not len(truth_frames):
         raise InputError(f"{store_url}: truth frames {list(truth_frames)[:4]}... are not the 41-frame window centres 20, 20+{every}, ...")
-    options = {method: ReconstructOptions(method=method, every=every, weights=weights if method in NETWORKS else None,
-                                          overwrite=True) for method in methods}
+    options = {method: ReconstructOptions(method=method, every=every, weights=weights if method in NETWORKS else None)
+               for method in methods}  # into OUT, claimed new by evaluate: never over an existing store
     for method in methods:
         checked_method(store, options[method])
     return store, truth_frames, options
 
 
 def evaluate(store_url: str, methods: list[str], out_dir: str, *, weights: str | None = None,
-             workers: int | None = None, scheduler: str | None = None, client=None, progress: bool = True) -> list[dict]:
-    """Reconstruct with every method at the truth frames; return one summary row per method."""
+             workers: int | None = None, scheduler: str | None = None, client=None, progress: bool = True,
+             overwrite: bool = False) -> list[dict]:
+    """Reconstruct with every method at the truth frames; return one summary row per method.
+
+    ``out_dir`` is a new output: an existing one is refused unless ``overwrite`` (and it is an evaluation),
+    and a failed evaluation leaves none."""
     check_apart(out_dir, store_url, weights)
     check_workers(workers)
     store, truth_frames, options = checked_evaluation(store_url, methods, weights)
+    if client is None:
+        check_scheduler(scheduler)  # a named scheduler answers (within seconds) before OUT exists
+    with new_output(out_dir, overwrite=overwrite, kind=EVALUATION):
+        mark_folder(out_dir, EVALUATION)
+        return _evaluate(store_url, store, truth_frames, options, methods, out_dir, workers=workers,
+                         scheduler=scheduler, client=client, progress=progress)
+
+
+def _evaluate(store_url: str, store, truth_frames, options: dict, methods: list[str], out_dir: str, *,
+              workers: int | None, scheduler: str | None, client, progress: bool) -> list[dict]:
     truth, _ = read_truth(store)
     fs, root = resolve(out_dir)
-    fs.makedirs(root, exist_ok=True)
 
     rows, per_frame, middle = [], [], len(truth_frames) // 2
     pictures = [labelled(truth[middle], f"truth (frame {truth_frames[middle]})")]

@@ -13,9 +13,9 @@ import tempfile
 from pipeline.lease import claimed
 from pipeline.progress import progress_bar
 from pipeline.spike_store import open_spike_store
-from pipeline.outputs import claim_output, new_output
+from pipeline.outputs import FRAMES as FRAME_FOLDER, new_output
 from pipeline.storage import check_apart, open_group, resolve
-from pipeline.video_store import FRAMES, VIDEO, open_video_store
+from pipeline.video_store import FRAMES, VIDEO, lost_frames, open_video_store
 from stages.dat import DatLayout, packed_to_dat
 from stages.errors import InputError
 
@@ -46,6 +46,9 @@ def _complete_video(store_url: str):
     group = open_video_store(store_url)
     if group.attrs.get("state") != "complete":
         raise InputError(f"video store {store_url} is incomplete: finish it with cscsr reconstruct --resume")
+    if lost := lost_frames(group):  # read back, they would be black frames in a video that looks whole
+        raise InputError(f"video store {store_url} is damaged: {lost} missing (lost data); nothing exported: "
+                         f"make it again with cscsr reconstruct --overwrite")
     return group
 
 
@@ -56,18 +59,17 @@ def export_mp4(store_url: str, dest: str, *, overwrite: bool = False, progress: 
     check_apart(dest, store_url)
     group = _complete_video(store_url)
     video = group[VIDEO]
-    claim_output(dest, overwrite=overwrite)
     fs, path = resolve(dest)
-    with tempfile.TemporaryDirectory() as scratch:  # ffmpeg writes files, not streams
-        local = os.path.join(scratch, "video.mp4")
+    # the old video (only an MP4: .mp4 is the kind written here) is kept until the new one is in place
+    with new_output(dest, overwrite=overwrite, kind=".mp4"), tempfile.TemporaryDirectory() as scratch:
+        local = os.path.join(scratch, "video.mp4")  # ffmpeg writes files, not streams
         with iio2.get_writer(local, format="FFMPEG", mode="I", fps=VIDEO_FPS, codec="libx264", quality=8,
                              macro_block_size=16, ffmpeg_log_level="error") as writer, \
                 progress_bar(f"export {dest}", video.shape[0], enabled=progress) as advance:
             for index in range(video.shape[0]):
                 writer.append_data(video[index])
                 advance(1)
-        with new_output(dest, overwrite=True):
-            fs.put_file(local, path)
+        fs.put_file(local, path)
 
 
 def export_pngs(store_url: str, dest: str, *, overwrite: bool = False, progress: bool = True) -> None:
@@ -77,9 +79,11 @@ def export_pngs(store_url: str, dest: str, *, overwrite: bool = False, progress:
     check_apart(dest, store_url)
     group = _complete_video(store_url)
     video, frames = group[VIDEO], group[FRAMES][:]
-    with new_output(dest, overwrite=overwrite), progress_bar(f"export {dest}", video.shape[0], enabled=progress) as advance:
+    # replaces only a folder of our frames (frame_<centre>.png and nothing else), kept until the new one is written
+    with new_output(dest, overwrite=overwrite, kind=FRAME_FOLDER), \
+            progress_bar(f"export {dest}", video.shape[0], enabled=progress) as advance:
         for index, centre in enumerate(frames):
-            write_image(f"{str(dest).rstrip('/')}/frame_{centre:08d}.png", video[index])
+            write_image(f"{str(dest).rstrip('/')}/frame_{centre:08d}.png", video[index], overwrite=False)
             advance(1)
 
 
@@ -91,10 +95,9 @@ def export_dat(store_url: str, dest: str, *, overwrite: bool = False, progress: 
     layout = DatLayout(meta.height, meta.width, head_columns=meta.head_columns, flip=meta.flipped, head_at=meta.head_at)
     chunk = store.spikes.chunks[0]
     frames_per_read = chunk * max(1, FRAMES_PER_READ_BYTES // (chunk * layout.frame_bytes))
-    claim_output(dest, overwrite=overwrite)
-    partial = f"{dest}.partial"
+    partial = f"{dest}.partial"  # a .dat cannot say it is complete: written aside, renamed when it is
     fs, path = resolve(partial)
-    with new_output(partial, overwrite=True):
+    with new_output(dest, overwrite=overwrite, kind=".dat"), new_output(partial, overwrite=True, kind=".dat"):
         with fs.open(path, "wb") as out, progress_bar(f"export {dest}", store.n_frames, enabled=progress) as advance:
             for start in range(0, store.n_frames, frames_per_read):
                 packed = store.read(start, min(start + frames_per_read, store.n_frames))

@@ -42,7 +42,7 @@ def read_image(url: str) -> np.ndarray:
 def write_image(url: str, image: np.ndarray, *, overwrite: bool = True) -> None:
     fs, path = resolve(url)
     encoded = iio.imwrite("<bytes>", image, extension=image_suffix(url))
-    with new_output(url, overwrite=overwrite):
+    with new_output(url, overwrite=overwrite, kind=image_suffix(url)):  # only an image replaces an image
         fs.makedirs(fs._parent(path), exist_ok=True)
         with fs.open(path, "wb") as handle:
             handle.write(encoded)

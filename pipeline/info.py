@@ -4,7 +4,7 @@ import contextlib
 
 from pipeline.spike_store import open_spike_store
 from pipeline.storage import missing_chunks, open_group, size_of
-from pipeline.video_store import COMMITTED, FRAMES, VIDEO, is_video_store
+from pipeline.video_store import COMMITTED, FRAMES, VIDEO, is_video_store, lost_frames
 from stages.errors import InputError
 
 SHOWN = 4  # missing frame ranges named in full
@@ -22,6 +22,9 @@ def summarize_spikes(url: str) -> dict:
     store = open_spike_store(url, allow_incomplete=True)
     meta = store.meta
     pixels = store.n_frames * meta.height * meta.width
+    if not pixels:  # no writer of ours makes one (ingest and simulate refuse an empty recording)
+        raise InputError(f"{url} is a spike store of {store.n_frames} frames of {meta.height}x{meta.width} pixels: "
+                         f"it holds no spikes to describe (make it again from its capture)")
     stored = size_of(f"{str(url).rstrip('/')}/spikes")
     spikes = store.spike_count
     lost = missing_frames(store.spikes)
@@ -47,6 +50,7 @@ def summarize_spikes(url: str) -> dict:
         "size_on_disk_bytes": stored,
         "bits_per_pixel": 8 * stored / pixels,
         "source": meta.source,
+        "identity": store.attrs.get("identity"),  # what outputs made from it record (None: a store from before)
         "format_version": store.attrs.get("format_version"),
     }
 
@@ -64,7 +68,8 @@ def missing_frames(spikes) -> str | None:
 
 
 def summarize_video(url: str, group) -> dict:
-    """Frames, size, frame rate, method and state of an HR video store."""
+    """Frames, size, frame rate, method and state of an HR video store; a store whose written tiles are not
+    all there is never called complete, and the frames they belong to are named."""
     attrs = dict(group.attrs)
     video, frames = group[VIDEO], group[FRAMES][:]
     n, height, width = video.shape[:3]
@@ -73,10 +78,14 @@ def summarize_video(url: str, group) -> dict:
         fps = fps or float(open_group(attrs["source"]).attrs["fps"]) / int(attrs["every"])
     committed = group[COMMITTED] if COMMITTED in group else None  # one chunk per task, written when it commits
     done = None if committed is None else committed.size - len(missing_chunks(committed))
+    lost = lost_frames(group)  # written (committed, or the store complete) and gone: they would read as black
+    state = attrs.get("state")
+    if lost:  # an unfinished store says so too: --resume never redoes a tile recorded committed
+        state = f"damaged: {lost} missing (lost data)" + ("" if state == "complete" else f"; state {state}")
     return {
         "kind": "video store",
         "store": str(url),
-        "state": attrs.get("state"),
+        "state": state,
         "frames": n,
         "height": height,
         "width": width,
@@ -90,7 +99,9 @@ def summarize_video(url: str, group) -> dict:
         "every": attrs.get("every"),
         "gain": attrs.get("gain"),
         "tiles_committed": None if committed is None else f"{done} of {committed.size}",
+        "missing_chunks": lost,
         "chunks": list(video.chunks),
         "size_on_disk_bytes": size_of(f"{str(url).rstrip('/')}/{VIDEO}"),
         "source": attrs.get("source"),
+        "source_identity": attrs.get("source_identity"),  # the spike store's it was made from (--resume checks it)
     }

@@ -31,7 +31,7 @@ import uuid
 
 from fsspec.implementations.local import LocalFileSystem
 
-from pipeline.storage import resolve
+from pipeline.storage import check_place, resolve
 from stages.errors import InputError
 
 FILENAME = "lease.json"
@@ -138,6 +138,7 @@ def claimed(url: str):
     """Own the output at ``url`` while the block runs: of jobs that claim one output at once, exactly
     one gets in, the others are refused with one line (see the module docstring). Take it before
     touching the output (removing an old one included)."""
+    check_place(url)  # under a regular file, or in a folder we may not write: one line, not a failed claim
     fs, path = claim_path(url)
     record = {"run": uuid.uuid4().hex, "host": socket.gethostname(), "pid": os.getpid(), "since": time.time()}
     if isinstance(fs, LocalFileSystem):

@@ -5,9 +5,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.spike_store import open_spike_store
-from stages.colour import check_scale
+from stages.colour import check_gain, check_scale
 from stages.errors import InputError
-from stages.numbers import FLOAT32_MAX, check_number
 from stages.methods import WINDOW
 from stages.tfp import tfp_image
 
@@ -23,7 +22,7 @@ class Preview:
 def preview(url: str, *, centre: int | None = None, window: int = WINDOW, gain: float | None = None, scale: int = 1) -> Preview:
     """TFP image of frames ``[centre - window//2, centre + window//2]``; gain: given, store's, or auto."""
     if gain is not None:  # inf passes "> 0" and would write a picture of NaN
-        check_number("--gain", gain, above=0, at_most=FLOAT32_MAX)
+        check_gain("--gain", gain)
     check_scale("--scale", scale)
     store = open_spike_store(url)
     n = store.n_frames

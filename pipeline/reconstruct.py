@@ -28,31 +28,39 @@ from typing import NamedTuple
 
 import numpy as np
 
-from pipeline.cluster import GPU, check_workers, dashboard_link, dask_client, gpu_workers, scheduler_address
+from pipeline.cluster import GPU, check_scheduler, check_workers, dashboard_link, dask_client, gpu_workers, scheduler_address
 from pipeline.hold import hold_point
 from pipeline.lease import check_free, claimed, held
 from pipeline.progress import progress_bar
-from pipeline.reconstruct_plan import Plan, ReconstructOptions, task_groups, tile_blocks
+from pipeline.reconstruct_plan import MADE_FROM, Plan, ReconstructOptions, made_from, task_groups, tile_blocks
 from pipeline.executor import failure, in_segments, submitted
 from pipeline.spike_store import SpikeStore, open_spike_store, read_frames
-from pipeline.outputs import claim_output
+from pipeline.outputs import STORE, new_output
 from pipeline.storage import check_apart, exists, recorded, remove_partial_writes
 from pipeline.video_store import VIDEO, TileWriter, committed_mask, create_video_store, open_video_store
 from stages.colour import auto_gain
-from stages.errors import InputError, describe
+from stages.errors import InputError
 from stages.methods import NETWORKS, Reconstructor, Window, classic, output_centres
 from stages.tfp import tfp_rate
 from stages.tiles import Tile, tile_grid
 
 @functools.lru_cache(maxsize=4)
-def reconstructor(method: str, weights: str | None, precision: str | None = "fp32", backend: str | None = "torch"):
+def reconstructor(method: str, weights: str | None, precision: str | None = "fp32", backend: str | None = "torch",
+                  weights_sha256: str | None = None):
     """Built once per worker process (this cache lives in the worker) and reused by its tasks:
-    for the network, it is loaded from its weights once, onto the worker's GPU if any."""
+    for the network, it is loaded from its weights once, onto the worker's GPU if any. With
+    ``weights_sha256`` (a job's tasks), the file must still be the one the job was planned with: a
+    long-lived worker never runs a job on a model it cached from an older file at the same path."""
     if method in NETWORKS:
         from cscsr.reconstructor import load_reconstructor
+        from cscsr.weights_io import weights_sha256 as sha256_of
 
-        return load_reconstructor(weights, self_ensemble=method == "cscsr-ensemble", precision=precision or "fp32",
-                                  backend=backend or "torch")
+        loaded = load_reconstructor(weights, self_ensemble=method == "cscsr-ensemble", precision=precision or "fp32",
+                                    backend=backend or "torch")
+        if weights_sha256 is not None and (found := sha256_of(loaded.weights)) != weights_sha256:
+            raise InputError(f"weights file {weights} changed since the job started (sha256 {weights_sha256[:12]}… -> "
+                             f"{found[:12]}…): run the job again")
+        return loaded
     return classic(method)
 
 
@@ -71,7 +79,7 @@ def _reconstruct_tiles(plan: Plan, frames: tuple[tuple[int, int], ...],
     hold_point()  # inert unless a fault test asks (pipeline.hold)
     half = plan.window // 2
     spikes, writer = _opened(plan.spikes, plan.out, plan.run)
-    method = reconstructor(plan.method, plan.weights, plan.precision, plan.backend)
+    method = reconstructor(plan.method, plan.weights, plan.precision, plan.backend, plan.weights_sha256)
     windows = []
     for _, _, tile in tiles:
         region = (slice(tile.ry0, tile.ry1), slice(tile.rx0 // 8, -(-tile.rx1 // 8)))
@@ -132,13 +140,17 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
         raise InputError(f"cannot resume: {out} does not exist")
     centres = output_centres(store.n_frames, options.window, options.every)
     grid = tile_grid(meta.height, meta.width, options.tile, method.halo)
+    if client is None:
+        check_scheduler(scheduler)  # a named scheduler answers (within seconds) before OUT is claimed or replaced
 
     with contextlib.ExitStack() as stack:
         stack.enter_context(claimed(out))  # one job per output, taken atomically before OUT is touched
         if options.resume:
             check_free(out)  # and no live lease (a job on a machine that shares no claim file with us)
-        else:
-            claim_output(out, overwrite=options.overwrite, flag="--resume or --overwrite")
+        # only one of our stores is replaced, and kept aside until the new one is complete (pipeline.outputs); a
+        # failed job's new store stays for --resume
+        stack.enter_context(new_output(out, overwrite=options.overwrite, kind=STORE, flag="--resume or --overwrite",
+                                       resume=options.resume, keep_partial=True))
         if client is None and scheduler_address(scheduler):  # a long-lived cluster: connect once, before any output
             client = stack.enter_context(dask_client(scheduler=scheduler))
         gain = options.gain or meta.gain
@@ -147,7 +159,8 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
             gain = client.submit(_auto_gain, *args).result() if client else _auto_gain(*args)
         # the spike store as workers find it, whatever their working directory (and as the output records it)
         plan = Plan(recorded(store_url), out, options.method, method.weights, options.window, options.every, float(gain),
-                    scale, meta.cfa, meta.reset, options.tile, uuid.uuid4().hex, precision, options.gpu_batch, backend)
+                    scale, meta.cfa, meta.reset, options.tile, uuid.uuid4().hex, precision, options.gpu_batch, backend,
+                    **made_from(store, method.weights))  # what --resume checks beside the paths
         batch = method.batch
         on_gpus = backend == "torch" and client is not None and gpu_workers(client) > 0  # our local cluster has none
         done = _prepare_output(plan, options.resume, centres, grid, (meta.height * scale, meta.width * scale),
@@ -179,8 +192,15 @@ class JobIncomplete(RuntimeError):
         frames = sorted(failed)
         shown = ", ".join(map(str, frames[:20])) + (", ..." if len(frames) > 20 else "")
         first = failed[frames[0]]
-        super().__init__(f"{len(frames)} of {n_frames} output frames failed (frames {shown}; frame {frames[0]}: "
-                         f"{first}); the other frames are committed in {out}: fix the cause and run again with --resume")
+        causes = {why.split("): ", 1)[-1] if why.startswith("tile (") else why for why in failed.values()}
+        if len(causes) == 1 and len(frames) > 1:  # one cause (a full disk): named once, not per tile
+            first = f"each: {causes.pop()}"
+        else:
+            first = f"frame {frames[0]}: {first}"
+        rest = (f"the other frames are committed in {out}" if len(frames) < n_frames
+                else f"what was written is kept in {out}")
+        super().__init__(f"{len(frames)} of {n_frames} output frames failed (frames {shown}; {first}); {rest}: "
+                         f"fix the cause and run again with --resume")
         self.failed = failed
 
 
@@ -236,16 +256,24 @@ def _prepare_output(plan: Plan, resume: bool, centres: list[int], grid: list[lis
     tile_hr = ((first.y1 - first.y0) * plan.scale, (first.x1 - first.x0) * plan.scale)
     if resume:
         group = open_video_store(plan.out, writable=True)
+        expected = plan.attrs()
+        if other := plan.other_data(dict(group.attrs)):  # the same paths, another recording or other weights
+            raise InputError(f"cannot resume {plan.out}: {other}")
         network = plan.method in NETWORKS  # stores from before --precision and --backend:
         before = {"precision": "fp32" if network else None, "backend": "torch" if network else None}
-        found = {k: group.attrs.get(k, before.get(k)) for k in plan.attrs()}
+        # stores from before the record of what they were made from: resumed on the paths alone, as they were
+        # then, and the record added now (a later resume checks it)
+        adopted = {k: expected[k] for k in MADE_FROM if k not in group.attrs}
+        before.update(adopted)
+        found = {k: group.attrs.get(k, before.get(k)) for k in expected}
         if isinstance(found["source"], str):  # stores from before sources were absolute: as seen from here
             found["source"] = recorded(found["source"])
-        expected = plan.attrs()
         changed = [k for k in expected if found[k] != expected[k]]
         if changed or group[VIDEO].shape[0] != len(centres):
             what = ", ".join(f"{k} {found[k]!r} -> {expected[k]!r}" for k in changed) or "frame count"
             raise InputError(f"cannot resume {plan.out}: it was made with other parameters ({what})")
+        if adopted:
+            group.attrs.update(adopted)
         return committed_mask(group)
     create_video_store(plan.out, centres=centres, hr_size=hr_size, tile_hr=tile_hr, tiles=tiles,
                        attrs=plan.attrs(), fps=fps)

@@ -12,7 +12,8 @@ from cscsr.config import BACKENDS, PRECISIONS
 from pipeline.storage import recorded
 from stages.errors import InputError
 from stages.methods import METHODS, NETWORKS, WINDOW
-from stages.numbers import FLOAT32_MAX, check_number
+from stages.colour import check_gain
+from stages.numbers import check_flag, check_number, check_text
 from stages.tiles import Tile
 
 SEGMENT_TASKS = 10_000  # minutes of work on any real frame size; a fresh process and cluster cost ~5 s
@@ -39,14 +40,22 @@ class ReconstructOptions:
 
     def check(self) -> None:
         """Every check that needs no recording (see :func:`check_options` for the rest)."""
+        # types first (only the Python API can get them wrong): "5" < 1 would fail deep inside, "no" is true
+        for name in ("method", "precision", "backend"):
+            check_text(f"--{name}", getattr(self, name))
+        check_text("--weights", self.weights, optional=True)
+        for name in ("every", "window", "tile", "segment_tasks", "gpu_batch"):
+            check_number(f"--{name.replace('_', '-')}", getattr(self, name), integer=True)
+        for name in ("resume", "overwrite"):
+            check_flag(f"--{name}", getattr(self, name))
         if self.method not in METHODS:
             raise InputError(f"unknown method {self.method!r}: expected one of {', '.join(METHODS)}")
         if self.window <= 0 or self.window % 2 == 0:
             raise InputError(f"--window must be a positive odd number of frames, got {self.window}")
         if self.every <= 0:
             raise InputError(f"--every must be >= 1, got {self.every}")
-        if self.gain is not None:  # inf would pass "> 0" and expose every pixel to NaN or full white
-            check_number("--gain", self.gain, above=0, at_most=FLOAT32_MAX)
+        if self.gain is not None:  # inf would pass "> 0" and expose every pixel to NaN, 1e30 to full white
+            check_gain("--gain", self.gain)
         if self.scale is not None:  # 0 must not mean "the default"
             check_number("--scale", self.scale, at_least=1, integer=True)
         if self.tile <= 0 or self.tile % 8:
@@ -95,13 +104,63 @@ class Plan:
     precision: str | None = None  # the network's (None for classic methods)
     gpu_batch: int = GPU_BATCH  # most windows per network pass, where a reconstructor joins tiles (GPU)
     backend: str | None = None  # what runs the network (None for classic methods)
+    # what the output is made from (made_from): the same paths may hold another recording or other weights later
+    source_identity: str | None = None  # the spike store's identity (pipeline.spike_store.store_identity)
+    source_shape: tuple[int, int, int] | None = None  # its (frames, height, width)
+    weights_sha256: str | None = None  # the weights file's SHA-256 (None for classic methods)
 
     def attrs(self) -> dict:
         """What the output store records (and ``--resume`` checks)."""
         return {"method": self.method, "weights": self.weights, "precision": self.precision, "backend": self.backend,
                 "window": self.window,
                 "every": self.every, "gain": self.gain, "scale": self.scale, "source": recorded(self.spikes), "cfa": self.cfa,
-                "reset": self.reset, "tile_lr": self.tile}
+                "reset": self.reset, "tile_lr": self.tile, "source_identity": self.source_identity,
+                "source_shape": None if self.source_shape is None else list(self.source_shape),
+                "weights_sha256": self.weights_sha256}
+
+    def other_data(self, found: dict) -> str | None:
+        """Why an output whose attributes are ``found`` was made from other data than this plan reads (another
+        recording, or other weights, at the same path); None if the same. An output from before this record
+        (the attribute absent) is not refused here: ``_prepare_output`` adopts the plan's record into it."""
+        was, now = found.get("source_identity"), self.source_identity
+        shape = found.get("source_shape")
+        if (was is not None and was != now) or (shape is not None and list(shape) != list(self.source_shape or ())):
+            return (f"its input {self.spikes} is not the recording it was made from (identity {_short(was)}, "
+                    f"{_frames(shape)} -> identity {_short(now)}, {_frames(self.source_shape)}): "
+                    f"give that recording, or start again with --overwrite")
+        was = found.get("weights_sha256")  # weights from another path: a changed parameter, said as such
+        if was is not None and was != self.weights_sha256 and found.get("weights") == self.weights:
+            return (f"its weights {self.weights} are not the ones it was made with (sha256 {_short(was)} -> "
+                    f"{_short(self.weights_sha256)}): give those weights, or start again with --overwrite")
+        return None
+
+
+MADE_FROM = ("source_identity", "source_shape", "weights_sha256")  # Plan.attrs() that name data, not parameters
+
+
+def made_from(store, weights: str | None) -> dict:
+    """The ``Plan`` fields that say what an output is made from: the identity and shape of ``store`` (an open
+    ``SpikeStore``; a hash of its metadata if it predates identities) and the SHA-256 of the
+    weights file the network was loaded from (``method.weights``; None for classic methods)."""
+    from pipeline.spike_store import store_identity
+
+    digest = None
+    if weights:
+        from cscsr.weights_io import weights_sha256
+
+        digest = weights_sha256(weights)
+    return {"source_identity": store_identity(store), "source_shape": store.shape, "weights_sha256": digest}
+
+
+def _short(digest: str | None) -> str:
+    if digest is None:
+        return "none"
+    kind, _, value = digest.rpartition("-")
+    return f"{kind}-{value[:12]}" if kind else value[:12]
+
+
+def _frames(shape) -> str:
+    return "unknown shape" if not shape else f"{shape[0]} frames of {shape[2]}x{shape[1]}"
 
 
 def tile_blocks(grid: list[list[Tile]], per_task: int) -> list[tuple[tuple[int, int], ...]]:

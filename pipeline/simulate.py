@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from distributed import Client
 
-from pipeline.cluster import check_workers, dask_client
+from pipeline.cluster import check_scheduler, check_workers, dask_client
 from pipeline.executor import submitted
 from pipeline.frame_sources import FrameSource, open_frame_source
 from pipeline.hold import hold_point
@@ -28,20 +28,26 @@ from pipeline.progress import progress_bar
 from pipeline.simulate_plan import SpikeChunk, Step, TruthFrame, simulation_steps
 from pipeline.ground_truth import declare_truth, write_flow, write_truth
 from pipeline.spike_store import SPIKES, SpikeMeta, SpikeStoreWriter, chunk_frames_for, write_region
-from pipeline.outputs import new_output
+from pipeline.outputs import STORE, new_output
 from pipeline.storage import check_apart, recorded
 from stages import sensor
 from stages.cfa import check_cfa
+from stages.colour import check_gain
 from stages.errors import InputError
 from stages.intensities import to_unit_rgb
 from stages.interpolate import INTERPOLATIONS, PairMotion, estimate_motion
-from stages.numbers import check_number
+from stages.numbers import check_flag, check_number, check_text
 from stages.latent import bracket, between, source_position, still_mosaics, truth_image, upscale_motion, video_mosaics
 from stages.camera_path import CameraPath, render
 from stages.methods import WINDOW, output_centres
 
 TRUTH_SCALES = (1, 2, 4)  # the HR truth the simulator can draw beside the LR spikes
 MOTIONS = ("static", "random")
+# The longest simulation: 10^9 spike frames are 13.9 hours at 20,000 fps, beyond any recording a reconstruction
+# is tested on; 10^12 would run for years (it ended in a bare MemoryError, listing its truth frames).
+MAX_FRAMES = 10**9
+MAX_FRAMES_WHY = "13.9 hours at 20,000 fps"
+MAX_TRUTH_FRAMES = 2**25  # their indices: a Python list of ~1.2 GB and one int64 chunk of 256 MiB
 
 
 @dataclass(frozen=True)
@@ -63,6 +69,20 @@ class SimulateOptions:
     chunk_frames: int | None = None
     overwrite: bool = False
 
+    def check(self) -> None:
+        """The type of every option (only the Python API can get them wrong: ``scale=4.0``, ``frames="82"``,
+        ``overwrite="no"``), before :func:`check_options` checks their values against the source."""
+        for name in ("cfa", "noise", "reset", "interp"):
+            check_text(f"--{name}", getattr(self, name))
+        check_text("--motion", self.motion, optional=True)
+        for name in ("scale", "frames", "seed", "truth_every"):
+            check_number(f"--{name.replace('_', '-')}", getattr(self, name), integer=True)
+        if self.chunk_frames is not None:
+            check_number("--chunk-frames", self.chunk_frames, integer=True)
+        for name in ("brightness", "threshold", "speed", "deform", "fps"):
+            check_number(f"--{name}", getattr(self, name))
+        check_flag("--overwrite", self.overwrite)
+
     def sensor_model(self) -> sensor.SensorModel:
         return sensor.SensorModel(self.brightness, self.threshold, self.reset, self.noise, self.seed)
 
@@ -81,22 +101,30 @@ class Scene:
 
 def check_options(options: SimulateOptions, source: FrameSource) -> tuple[int, int]:
     """Validate everything before any output exists; return the LR (height, width)."""
+    options.check()  # types first
     options.sensor_model()  # alpha, theta, reset, noise
     cfa = check_cfa(options.cfa)
     if options.interp not in INTERPOLATIONS:
         raise InputError(f"unknown interpolation {options.interp!r}: expected one of {', '.join(INTERPOLATIONS)}")
     if options.scale not in TRUTH_SCALES:
         raise InputError(f"scale must be one of {', '.join(map(str, TRUTH_SCALES))}, got {options.scale}")
+    check_number("--frames", options.frames, integer=True)
     if options.frames < WINDOW:
         raise InputError(f"--frames {options.frames} is too few: a reconstruction window needs {WINDOW}")
+    check_number("--frames", options.frames, at_most=MAX_FRAMES, why=MAX_FRAMES_WHY)
+    check_number("--truth-every", options.truth_every, at_least=1, integer=True)
+    truth_frames = len(range(WINDOW // 2, options.frames - WINDOW // 2, options.truth_every))
+    if truth_frames > MAX_TRUTH_FRAMES:  # output_centres is one list, truth_frames one chunk: both in memory
+        raise InputError(f"--frames {options.frames} with --truth-every {options.truth_every} gives {truth_frames:,} "
+                         f"truth frames, more than {MAX_TRUTH_FRAMES:,} (their frame indices are held in memory "
+                         f"and written as one chunk): raise --truth-every")
+    check_gain("the recorded gain θ/α (--threshold / --brightness)", options.threshold / options.brightness)
     if options.motion is not None and options.motion not in MOTIONS:
         raise InputError(f"unknown motion {options.motion!r}: expected one of {', '.join(MOTIONS)}")
     if source.n_frames < 2 and options.motion is None:
         raise InputError(f"{source.url} has {source.n_frames} frame: give --motion static|random to move a still image")
     if options.motion is not None and source.n_frames != 1:
         raise InputError("--motion applies to a single image; a video or folder brings its own motion")
-    if options.truth_every < 1:
-        raise InputError(f"--truth-every must be >= 1, got {options.truth_every}")
     check_number("--speed", options.speed, at_least=0)
     check_number("--deform", options.deform, at_least=0)
     if options.chunk_frames is not None:  # 0 must not mean "the default"
@@ -257,8 +285,9 @@ def simulate(src: str, dest: str, options: SimulateOptions = SimulateOptions(), 
                             "noise": options.noise, "interp": options.interp, "motion": options.motion or "video",
                             "truth_every": options.truth_every, "simulated": True})
     chunk = options.chunk_frames or chunk_frames_for(meta, options.frames)
+    check_scheduler(scheduler)  # a named scheduler answers (within seconds) before DEST is claimed or replaced
 
-    with claimed(dest), new_output(dest, overwrite=options.overwrite), \
+    with claimed(dest), new_output(dest, overwrite=options.overwrite, kind=STORE), \
             dask_client(workers=workers, scheduler=scheduler) as client:
         writer = SpikeStoreWriter(dest, meta, options.frames, chunk_frames=chunk)
         hr = (options.scale * height, options.scale * width)

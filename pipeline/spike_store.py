@@ -9,8 +9,16 @@ written first with ``state = "writing"``; regions are filled next (each a whole 
 chunks, so parallel writers never share a chunk); ``state`` becomes ``"complete"`` last.
 Readers refuse a store that is not complete, so an interrupted ingest never passes for
 a finished one.
+
+Every store gets an ``identity`` when it is finished: a SHA-256 of what it records and of the bits
+of its first and last frames (:func:`recording_identity`), so the same capture ingested again (or the
+same simulation run again) gives the same bytes and identity, a copy keeps it, and another recording
+at the same path has another. An output records the identity and shape of the store it was made from,
+and ``--resume`` refuses a store that is not that one (:func:`store_identity`).
 """
 
+import hashlib
+import json
 import os
 from dataclasses import asdict, dataclass, field
 
@@ -80,14 +88,16 @@ class SpikeMeta:
         if attrs.get("head_columns") and "head_at" not in attrs:  # written when header columns led each row
             attrs = {**attrs, "head_at": "start"}
         known = {f for f in cls.__dataclass_fields__ if f != "extra"}
-        extra = {k: v for k, v in attrs.items() if k not in known | {"format_version", "cscsr_version", "state", "spike_count"}}
+        extra = {k: v for k, v in attrs.items()
+                 if k not in known | {"format_version", "cscsr_version", "state", "spike_count", "identity"}}
         return cls(**{k: attrs[k] for k in known if k in attrs}, extra=extra)
 
 
 # What each attribute must be: a store written by hand or damaged is refused by name, never misread
 # (a string "no" for flipped would otherwise read as true and export frames upside down).
 _ATTRIBUTE_TYPES = {"height": int, "width": int, "head_columns": int, "spike_count": int, "scale": int,
-                    "fps": float, "gain": float, "threshold": float, "flipped": bool, "cfa": str, "reset": str, "head_at": str}
+                    "fps": float, "gain": float, "threshold": float, "flipped": bool, "cfa": str, "reset": str,
+                    "head_at": str, "identity": str}
 
 
 # The range of each number a store records: finite, and one that its readers can use (a negative
@@ -160,6 +170,46 @@ class SpikeStore:
         """Packed frames ``[start, stop)``; an error naming the frames if a chunk is missing or damaged."""
         return read_frames(self.spikes, self.url, start, stop)
 
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """(frames, height, width) of the recording, in pixels."""
+        return self.n_frames, self.meta.height, self.meta.width
+
+
+IDENTITY_FRAMES = 64  # frames read at each end of a recording for its identity: milliseconds of work
+
+
+def recording_identity(attrs: dict, spikes: zarr.Array) -> str:
+    """A finished recording's identity: the SHA-256 of every attribute its writer recorded but ``state``,
+    ``identity`` and ``source`` (where it came from is not what it is): its settings, spike count, ...; its
+    shape; and the bits of its first and last :data:`IDENTITY_FRAMES` frames. Independent of chunking and
+    of the workers that wrote it."""
+    described = json.dumps({"attrs": {k: v for k, v in attrs.items() if k not in ("state", "identity", "source")},
+                            "shape": list(spikes.shape)}, sort_keys=True, default=str)
+    digest = hashlib.sha256(described.encode())
+    n_frames = spikes.shape[0]
+    for start, stop in ((0, min(IDENTITY_FRAMES, n_frames)), (max(0, n_frames - IDENTITY_FRAMES), n_frames)):
+        digest.update(np.ascontiguousarray(spikes[start:stop]).tobytes())
+    return digest.hexdigest()
+
+
+def store_identity(store: SpikeStore) -> str:
+    """What names this recording and no other: the ``identity`` written when the store was finished
+    (:func:`recording_identity`).
+
+    Stores from before identities have none; theirs is ``metadata-`` and a SHA-256 of what their
+    writer recorded once it finished: every attribute but ``state`` (the source, its spike count,
+    the sensor's settings, ...) and the array's shape and chunking. No chunk is read: a chunk lost
+    and put back, or a damaged one, does not change it (the tasks that read such a chunk say so).
+    Another recording differs there unless it has the same source, settings and spike count.
+    """
+    if store.attrs.get("identity"):
+        return store.attrs["identity"]
+    attrs = {k: v for k, v in store.attrs.items() if k != "state"}
+    described = json.dumps({"attrs": attrs, "shape": store.spikes.shape, "chunks": store.spikes.chunks},
+                           sort_keys=True, default=str)
+    return "metadata-" + hashlib.sha256(described.encode()).hexdigest()
+
 
 def read_frames(spikes: zarr.Array, url: str, start: int, stop: int, region: tuple = ()) -> np.ndarray:
     """Frames ``[start, stop)`` of a spike array (rows and packed columns ``region``), refusing to
@@ -210,7 +260,8 @@ class SpikeStoreWriter:
         """Write the group and array metadata at ``url``, which the caller has claimed."""
         self.url = url
         self.chunk_frames = chunk_frames or chunk_frames_for(meta, n_frames)
-        self.group = zarr.open_group(zarr_store(url, read_only=False), mode="w", attributes={**meta.attrs(), "state": "writing"})
+        self.group = zarr.open_group(zarr_store(url, read_only=False), mode="w",
+                                     attributes={**meta.attrs(), "state": "writing"})
         self.spikes = self.group.create_array(
             SPIKES,
             shape=(n_frames, meta.height, packed_width(meta.width)),
@@ -243,6 +294,7 @@ class SpikeStoreWriter:
     def finish(self, **attrs) -> None:
         """Record final attributes, consolidate the metadata, and mark the store complete (the last write)."""
         self.group.attrs.update(attrs)
+        self.group.attrs["identity"] = recording_identity(dict(self.group.attrs), self.spikes)
         remove_partial_writes(self.url)  # a worker killed mid-write leaves its temporary file
         consolidate(self.url)
         # reopened: the group held here knows nothing of the consolidated copy, and would drop it on writing

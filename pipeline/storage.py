@@ -2,10 +2,12 @@
 
 Any location is a URL: a plain path, ``file://``, ``memory://`` (shared within one process),
 ``s3://`` (s3fs; endpoint and credentials from the usual AWS variables or fsspec's
-``FSSPEC_S3_*`` settings). Local paths map to Zarr's ``LocalStore`` (which creates
+``FSSPEC_S3_*`` settings; timeouts and retries bounded by :data:`S3_TIMEOUTS`, and an endpoint
+that never answers refused in one line). Local paths map to Zarr's ``LocalStore`` (which creates
 directories as needed), everything else to ``FsspecStore``.
 """
 
+import atexit
 import itertools
 import os
 import posixpath
@@ -18,14 +20,68 @@ from fsspec.implementations.local import LocalFileSystem
 from stages.errors import InputError, describe
 
 
+# S3's timeouts and retries (botocore ``Config`` keys), for every S3 filesystem this project opens. botocore's
+# own (60 s to connect, 60 s to read, 5 attempts), under s3fs's 5 tries of its own, kept a command silent for
+# 411 s on an endpoint that accepts connections and never answers. A key the user sets wins, in fsspec's
+# configuration (FSSPEC_S3_CONFIG_KWARGS='{"read_timeout": 60}', or a file in ~/.config/fsspec/).
+S3_TIMEOUTS = {"connect_timeout": 5, "read_timeout": 10, "retries": {"mode": "standard", "total_max_attempts": 3}}
+S3_PROTOCOLS = ("s3", "s3a")
+_ANSWERED: set = set()  # the S3 filesystems (fsspec tokens) whose endpoint has answered in this process
+
+
+def storage_options(url: str) -> dict:
+    """The fsspec options this project adds for ``url``: S3's timeouts (:data:`S3_TIMEOUTS`) under the
+    user's own ``config_kwargs``; nothing for other filesystems."""
+    if fsspec.core.split_protocol(str(url))[0] not in S3_PROTOCOLS:
+        return {}
+    theirs = fsspec.config.conf.get("s3", {}).get("config_kwargs")
+    return {"config_kwargs": {**S3_TIMEOUTS, **(theirs if isinstance(theirs, dict) else {})}}
+
+
 def resolve(url: str) -> tuple[fsspec.AbstractFileSystem, str]:
-    """(filesystem, path inside it) for a URL or plain path."""
+    """(filesystem, path inside it) for a URL or plain path; an S3 endpoint that does not answer is refused
+    in one line (:func:`check_answers`)."""
     try:
-        return fsspec.core.url_to_fs(str(url))
+        fs, path = fsspec.core.url_to_fs(str(url), **storage_options(url))
     except (ValueError, ImportError) as error:
         raise InputError(f"cannot use URL {url!r}: {error}") from None
     except OSError as error:  # a filesystem that connects on creation (ftp://): no such host, refused, ...
         raise InputError(f"cannot reach {url}: {describe(error)}") from None
+    check_answers(fs, url, path)
+    return fs, path
+
+
+def check_answers(fs: fsspec.AbstractFileSystem, url: str, path: str) -> None:
+    """Refuse an S3 endpoint that accepts connections and never answers, or cannot be reached at all, in one
+    line naming ``url``, within its connect and read timeouts: once per filesystem and process, one request
+    (HEAD of the bucket) under a deadline. Any answer counts (no such bucket, access denied): the operation
+    that follows says what is wrong. Without it, retries of retries of read timeouts stay silent for minutes."""
+    protocols = fs.protocol if isinstance(fs.protocol, (tuple, list)) else (fs.protocol,)
+    token = getattr(fs, "_fs_token", None)
+    if not set(protocols) & set(S3_PROTOCOLS) or token in _ANSWERED or not hasattr(fs, "_call_s3"):
+        return
+    bucket = fs.split_path(path)[0]
+    if not bucket:
+        return
+    config = {**S3_TIMEOUTS, **(getattr(fs, "config_kwargs", None) or {})}
+    try:
+        seconds = float(config["connect_timeout"]) + float(config["read_timeout"])
+    except (TypeError, ValueError):
+        seconds = float(S3_TIMEOUTS["connect_timeout"] + S3_TIMEOUTS["read_timeout"])
+    try:
+        fsspec.asyn.sync(fs.loop, fs._call_s3, "head_bucket", Bucket=bucket, timeout=seconds)
+    except NotImplementedError:  # called on fsspec's own event loop: no waiting there
+        return
+    except (fsspec.exceptions.FSTimeoutError, TimeoutError):
+        endpoint = getattr(getattr(getattr(fs, "_s3", None), "meta", None), "endpoint_url", None)
+        raise InputError(f"cannot reach {url}: no answer from {endpoint or 'the S3 endpoint'} within {seconds:g} s "
+                         "(something accepts connections there but does not answer; check the endpoint: "
+                         "AWS_ENDPOINT_URL or FSSPEC_S3_ENDPOINT_URL)") from None
+    except Exception as error:  # noqa: BLE001 - an answer (an HTTP status), or a failure to reach it, named below
+        answered = any(getattr(e, "response", None) is not None for e in (error, error.__cause__))
+        if not answered and (line := unreachable(error, [str(url)])) is not None:
+            raise InputError(line) from None
+    _ANSWERED.add(token)
 
 
 def unreachable(error: BaseException, urls) -> str | None:
@@ -40,11 +96,18 @@ def unreachable(error: BaseException, urls) -> str | None:
         cause = ("no S3 credentials found (set AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY, AWS_PROFILE, or "
                  "fsspec's FSSPEC_S3_KEY and FSSPEC_S3_SECRET)")
     elif isinstance(error, OSError) and not isinstance(error, (FileNotFoundError, FileExistsError, IsADirectoryError,
-                                                                NotADirectoryError)):
+                                                                NotADirectoryError)) or _botocore_connection(error):
         cause = f"{name}: {describe(error)}"  # a host not found, a connection refused or timed out
     else:
         return None
     return f"cannot reach {' or '.join(remote)}: {cause}"
+
+
+def _botocore_connection(error: BaseException) -> bool:
+    """botocore's failures to connect (``EndpointConnectionError``, ``ConnectTimeoutError``, ...), which are
+    not ``OSError`` under aiobotocore."""
+    return any(kind.__name__ == "ConnectionError" and kind.__module__.startswith("botocore")
+               for kind in type(error).__mro__)
 
 
 def is_local(url: str) -> bool:
@@ -68,7 +131,7 @@ def zarr_store(url: str, *, read_only: bool) -> zarr.abc.store.Store:
     fs, path = resolve(url)
     if isinstance(fs, LocalFileSystem):
         return zarr.storage.LocalStore(path, read_only=read_only)
-    return zarr.storage.FsspecStore.from_url(str(url), read_only=read_only)
+    return zarr.storage.FsspecStore.from_url(str(url), read_only=read_only, storage_options=storage_options(url) or None)
 
 
 def remove_partial_writes(url: str) -> list[str]:
@@ -167,11 +230,41 @@ def _same_local_file(a: str, b: str) -> bool:
         return False
 
 
+UNWRITABLE = "is not writable (no permission, or a read-only file system)"
+
+
+def check_place(output: str) -> None:
+    """Refuse, in one line naming the path, a local output that cannot be written where it is asked for: one
+    under a regular file (``file.txt/out.zarr``: "is a file, not a folder"), or in a folder this process may
+    not write (the nearest folder that exists, or the output itself when it is an existing folder that
+    the command writes into). Object stores are not checked (no folders; their permissions show on write)."""
+    fs, path = resolve(output)
+    if not isinstance(fs, LocalFileSystem):
+        return
+    shown = str(output) if "://" not in str(output) else path  # the user's own spelling where it is a path
+    here, name = os.path.normpath(path), os.path.normpath(shown)
+    if os.path.isfile(here) and os.access(here, os.W_OK):  # e.g. a log file appended to
+        return
+    if os.path.isdir(here):
+        if not os.access(here, os.W_OK | os.X_OK):
+            raise InputError(f"cannot write {output}: the folder {name} {UNWRITABLE}")
+        return
+    while True:
+        here, name = os.path.dirname(here), os.path.dirname(name)
+        if os.path.exists(here) or here == os.path.dirname(here):
+            break
+    if not os.path.isdir(here):
+        raise InputError(f"cannot write {output}: {name or here} is a file, not a folder")
+    if not os.access(here, os.W_OK | os.X_OK):
+        raise InputError(f"cannot write {output}: the folder {name or here} {UNWRITABLE}")
+
+
 def check_apart(output: str, *inputs: str | None) -> None:
     """Refuse an output that is, is inside, or contains one of a command's inputs (``None``: no such
     input), whatever the spelling (a symbolic link, ``file://``, ``..``, a trailing slash): writing or
     ``--overwrite`` there would destroy the input. Called by every command that writes, before it
-    creates or deletes anything."""
+    creates or deletes anything; a local output must also have a place to go (:func:`check_place`)."""
+    check_place(output)
     kind, out_path = _location(output)
     for source in inputs:
         if source is None or str(source) == "":
@@ -190,3 +283,44 @@ def check_apart(output: str, *inputs: str | None) -> None:
         real = f" (both are {in_path})" if relation == "is the same as" and str(output) != str(source) else ""
         raise InputError(f"output {output} {relation} input {source}{real}: writing there would destroy or "
                          f"corrupt the input; choose another output")
+
+
+PENDING_IO_SECONDS = 2.0  # at exit, how long the requests still in flight get to end once cancelled
+
+
+def cancel_pending_io() -> None:
+    """Cancel the requests still in flight on zarr's and fsspec's event loops, each in its own task, and
+    give them :data:`PENDING_IO_SECONDS` to end. Registered to run at exit, before zarr stops its loop.
+
+    When one request of a batch fails (zarr reads a group's four metadata objects at once), the others
+    go on retrying on the loop's thread; stopped with the interpreter, each is closed outside the task
+    and context it ran in, and aiobotocore's clean-up there raises ``ValueError: <Token ...> was created
+    in a different Context``, which Python prints as "Exception ignored in: <coroutine ...>" with a
+    traceback, tens of lines after the command's one-line error. Cancelled in their own tasks instead,
+    they end cleanly and print nothing."""
+    import asyncio
+    import contextlib
+
+    loops = []
+    with contextlib.suppress(Exception):
+        from zarr.core import sync as zarr_sync
+
+        loops.append(zarr_sync.loop[0])
+    with contextlib.suppress(Exception):
+        loops.append(fsspec.asyn.loop[0])
+
+    async def cancel_all() -> None:
+        tasks = [task for task in asyncio.all_tasks() if task is not asyncio.current_task()]
+        for task in tasks:
+            task.cancel()
+        if tasks:
+            await asyncio.wait(tasks, timeout=PENDING_IO_SECONDS)
+
+    for loop in loops:
+        if loop is None or loop.is_closed() or not loop.is_running():
+            continue
+        with contextlib.suppress(Exception):
+            asyncio.run_coroutine_threadsafe(cancel_all(), loop).result(PENDING_IO_SECONDS + 1)
+
+
+atexit.register(cancel_pending_io)  # after zarr's own (imported above): so it runs first

@@ -20,7 +20,8 @@ from pipeline.cluster import check_workers, dask_client
 from pipeline.evaluate import check_methods, checked_evaluation, evaluate
 from pipeline.images import write_image
 from pipeline.simulate import SimulateOptions, simulate
-from pipeline.outputs import claim_output
+from pipeline.lease import claimed
+from pipeline.outputs import EVALUATION, TESTSET, mark_folder, new_output
 from pipeline.storage import check_apart, resolve
 from stages.errors import InputError
 from stages.montage import labelled, side_by_side
@@ -65,23 +66,26 @@ def make_testset(out: str, *, workers: int | None = None, overwrite: bool = Fals
     chosen = [item for item in items() if only is None or item.name in only]
     if not chosen:
         raise InputError(f"no test-set items named {', '.join(only)}")
-    claim_output(out, overwrite=overwrite, flag="--overwrite")
     fs, root = resolve(out)
-    fs.makedirs(f"{root}/sources", exist_ok=True)
-    stores = []
-    for item in chosen:
-        source = f"{out.rstrip('/')}/sources/{item.picture}.png"
-        if not fs.exists(f"{root}/sources/{item.picture}.png"):
-            write_image(source, test_picture(item.picture))
-        store = f"{out.rstrip('/')}/{item.name}.zarr"
-        simulate(source, store, SimulateOptions(scale=SCALE, cfa="rggb", brightness=item.alpha, frames=FRAMES,
-                                                motion="random", seed=item.seed, reset="zero", noise="none",
-                                                truth_every=TRUTH_EVERY, speed=SPEED), workers=workers, progress=progress)
-        stores.append(store)
-    with fs.open(f"{root}/manifest.json", "w") as f:
-        json.dump({"items": [item.__dict__ | {"store": f"{item.name}.zarr"} for item in chosen],
-                   "hr_side": HR_SIDE, "scale": SCALE, "frames": FRAMES, "truth_every": TRUTH_EVERY, "speed": SPEED,
-                   "cfa": "rggb", "reset": "zero", "noise": "none"}, f, indent=1)
+    # replaces only a test set (the old one kept until the new one is made), removed if making it fails
+    with claimed(out), new_output(out, overwrite=overwrite, kind=TESTSET, flag="--overwrite"):
+        mark_folder(out, TESTSET)
+        fs.makedirs(f"{root}/sources", exist_ok=True)
+        stores = []
+        for item in chosen:
+            source = f"{out.rstrip('/')}/sources/{item.picture}.png"
+            if not fs.exists(f"{root}/sources/{item.picture}.png"):
+                write_image(source, test_picture(item.picture))
+            store = f"{out.rstrip('/')}/{item.name}.zarr"
+            simulate(source, store, SimulateOptions(scale=SCALE, cfa="rggb", brightness=item.alpha, frames=FRAMES,
+                                                    motion="random", seed=item.seed, reset="zero", noise="none",
+                                                    truth_every=TRUTH_EVERY, speed=SPEED), workers=workers,
+                     progress=progress)
+            stores.append(store)
+        with fs.open(f"{root}/manifest.json", "w") as f:
+            json.dump({"items": [item.__dict__ | {"store": f"{item.name}.zarr"} for item in chosen],
+                       "hr_side": HR_SIDE, "scale": SCALE, "frames": FRAMES, "truth_every": TRUTH_EVERY, "speed": SPEED,
+                       "cfa": "rggb", "reset": "zero", "noise": "none"}, f, indent=1)
     return stores
 
 
@@ -98,21 +102,22 @@ def evaluate_testset(testset: str, methods: list[str], out: str, *, weights: str
         chosen = [Item(i["picture"], i["alpha"], i["seed"]) for i in json.load(f)["items"]]
     for item in chosen:  # every store and method checked before OUT is replaced
         checked_evaluation(f"{testset.rstrip('/')}/{item.name}.zarr", methods, weights)
-    claim_output(out, overwrite=True, flag="")
     out_fs, out_root = resolve(out)
-    out_fs.makedirs(out_root, exist_ok=True)
-    per_item = []
-    with dask_client(workers=workers, scheduler=scheduler) as client:
-        for item in chosen:
-            rows = evaluate(f"{testset.rstrip('/')}/{item.name}.zarr", methods, f"{out.rstrip('/')}/{item.name}",
-                            weights=weights, client=client, progress=progress)
-            per_item += [row | {"picture": item.picture, "alpha": item.alpha} for row in rows]
-    summary = average_per_alpha(per_item, ("psnr", "ssim", "seconds_per_image"))
-    with out_fs.open(f"{out_root}/summary.csv", "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(summary[0]))
-        writer.writeheader()
-        writer.writerows(summary)
-    write_image(f"{out.rstrip('/')}/crops.png", _crops(testset, out, methods, chosen))
+    # replaces only an earlier evaluation (kept until this one is written), never a folder of the user's
+    with claimed(out), new_output(out, overwrite=True, kind=EVALUATION, flag=""):
+        mark_folder(out, EVALUATION)
+        per_item = []
+        with dask_client(workers=workers, scheduler=scheduler) as client:
+            for item in chosen:
+                rows = evaluate(f"{testset.rstrip('/')}/{item.name}.zarr", methods, f"{out.rstrip('/')}/{item.name}",
+                                weights=weights, client=client, progress=progress)
+                per_item += [row | {"picture": item.picture, "alpha": item.alpha} for row in rows]
+        summary = average_per_alpha(per_item, ("psnr", "ssim", "seconds_per_image"))
+        with out_fs.open(f"{out_root}/summary.csv", "w", newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=list(summary[0]))
+            writer.writeheader()
+            writer.writerows(summary)
+        write_image(f"{out.rstrip('/')}/crops.png", _crops(testset, out, methods, chosen))
     return summary
 
 

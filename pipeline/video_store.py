@@ -17,7 +17,7 @@ import zarr
 import cscsr
 from zarr.codecs import ZstdCodec
 
-from pipeline.storage import consolidate, open_group, zarr_store
+from pipeline.storage import consolidate, missing_chunks, open_group, zarr_store
 from stages.errors import InputError
 
 VIDEO, FRAMES, COMMITTED = "video", "frames", "committed"
@@ -84,6 +84,45 @@ def describe_video_store(url: str, group: zarr.Group) -> str:
 def committed_mask(group: zarr.Group) -> np.ndarray:
     """(T_out, tiles_y, tiles_x) bool: which tasks have committed their tile."""
     return group[COMMITTED][:].astype(bool)
+
+
+SHOWN = 4  # ranges of lost frames named in full
+
+
+def lost_chunks(group: zarr.Group) -> list[tuple[int, ...]]:
+    """The chunks of ``video`` that were written and are not in the store now: lost data (read back, they
+    would be black). Every tile is written as a chunk, empty or not, and recorded in ``committed`` after it,
+    so a missing chunk is lost when its tile is recorded committed, or anywhere in a complete store; one
+    listing of the array's keys, no chunk read."""
+    missing = missing_chunks(group[VIDEO])
+    if not missing or group.attrs.get("state") == "complete":
+        return missing
+    if COMMITTED not in group:
+        return []
+    done = committed_mask(group)
+    return [(j, y, x, *rest) for j, y, x, *rest in missing
+            if j < done.shape[0] and y < done.shape[1] and x < done.shape[2] and done[j, y, x]]
+
+
+def lost_frames(group: zarr.Group) -> str | None:
+    """``N of M chunks of video (output frames a..b (spike frames c..d), ...)`` for the lost chunks of a video
+    store (:func:`lost_chunks`), or None if none is lost."""
+    lost = lost_chunks(group)
+    if not lost:
+        return None
+    video, centres = group[VIDEO], group[FRAMES][:]
+    indices = sorted({coords[0] for coords in lost})
+    runs = []  # consecutive output frames as one range
+    for index in indices:
+        if runs and index == runs[-1][1] + 1:
+            runs[-1][1] = index
+        else:
+            runs.append([index, index])
+    named = [f"{a} (spike frame {centres[a]})" if a == b else f"{a}..{b} (spike frames {centres[a]}..{centres[b]})"
+             for a, b in runs[:SHOWN]]
+    shown = ", ".join(named) + (f", and {len(runs) - SHOWN} more" if len(runs) > SHOWN else "")
+    total = int(np.prod([-(-size // chunk) for size, chunk in zip(video.shape, video.chunks)]))
+    return f"{len(lost)} of {total} chunks of video (output frame{'s' if len(indices) > 1 else ''} {shown})"
 
 
 class TileWriter:

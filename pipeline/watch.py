@@ -4,7 +4,9 @@ Each pass lists INBOX (any fsspec URL): spike stores (``NAME.zarr``) and raw cap
 (``NAME.dat``, ``NAME.npz``, ``NAME.npy``) with an optional sidecar ``NAME.json`` (height,
 width, cfa, flip, fps, reset, head_columns, key, name; the watcher's defaults fill the
 rest). A recording is taken once it has not changed for ``settle`` seconds (a file still
-being copied is left for a later pass). For each: ingest a raw capture into
+being copied is left for a later pass; ``settle`` must exceed the writer's longest pause), and
+one changed within the last second only if a second look a second later finds the same
+modification time, files and bytes (:func:`steady`). For each: ingest a raw capture into
 ``OUTBOX/spikes/NAME.zarr``, reconstruct into ``OUTBOX/NAME.zarr``, export
 ``OUTBOX/NAME.mp4``; the ledger (:mod:`pipeline.ledger`) records every step's outcome. No two
 recordings share an output path (:func:`spike_store_of`), and OUTBOX may not be, be inside, or
@@ -42,13 +44,13 @@ from pipeline.cluster import dask_client
 from pipeline.export import export_mp4
 from pipeline.ingest import IngestOptions, capture_fields, ingest
 from pipeline.ledger import Ledger
-from pipeline.reconstruct import ReconstructOptions, reconstruct
+from pipeline.reconstruct import ReconstructOptions, reconstruct, reconstructor
 from pipeline.spike_store import open_spike_store
 from pipeline.storage import check_apart, exists, is_local, resolve
 from pipeline.video_store import open_video_store
 from stages.cfa import check_cfa
 from stages.errors import InputError, describe
-from stages.methods import WINDOW
+from stages.methods import NETWORKS, WINDOW
 from stages.numbers import check_number
 from stages.sensor import check_reset
 
@@ -78,6 +80,8 @@ class WatchOptions:
     def check(self) -> None:
         """Refused before the watcher creates OUTBOX, rather than once per recording."""
         ReconstructOptions(method=self.method, every=self.every, tile=self.tile, weights=self.weights).check()
+        if self.method in NETWORKS:  # a missing or damaged weights file stops the watcher, not each recording
+            reconstructor(self.method, self.weights)  # loaded and checked (and kept for the jobs of this process)
         check_number("--settle", self.settle, at_least=0)
         check_number("--max-attempts", self.max_attempts, at_least=1, integer=True)
         check_number("--backoff", self.backoff, at_least=0)
@@ -97,13 +101,12 @@ class Candidate:
     sidecar: dict
     modified: float
     problem: str | None = None
+    look: tuple = ()  # (modification time, files, bytes) of the recording when listed: a second look compares
 
 
 def discover(inbox: str) -> list[Candidate]:
     """The recordings in INBOX (one level), with a reason for each one that cannot be taken."""
-    fs, root = resolve(inbox)
-    if not fs.isdir(root):
-        raise InputError(f"inbox {inbox} is not a folder")
+    fs, root = check_inbox(inbox)
     base_url = str(inbox).rstrip("/")
     local = isinstance(fs, LocalFileSystem)  # only local folders have symbolic links
     found = []
@@ -119,7 +122,8 @@ def discover(inbox: str) -> list[Candidate]:
             found.append(Candidate(stem, url, suffix, {}, 0.0, f"{escape} leads outside the inbox: refused "
                                                                f"(a link out of INBOX is never followed)"))
             continue
-        modified = _modified(fs, entry)
+        look = _look(fs, entry)
+        modified = look[0]
         if suffix not in KINDS:
             found.append(Candidate(stem, url, suffix, {}, modified,
                                    f"unknown kind of file {base!r}: expected NAME.zarr, .dat, .npz or .npy"))
@@ -130,8 +134,17 @@ def discover(inbox: str) -> list[Candidate]:
         name = sidecar.get("name", stem)
         if problem is None and (not SAFE_NAME.match(name) or ".." in name):
             problem = f"unsafe name {name!r}: letters, digits, '.', '_' and '-' only, no '..'"
-        found.append(Candidate(name, url, suffix, sidecar, modified, problem))
+        found.append(Candidate(name, url, suffix, sidecar, modified, problem, look))
     return found
+
+
+def check_inbox(inbox: str):
+    """(filesystem, path) of INBOX; refused in one line unless it is a folder (before OUTBOX is made)."""
+    fs, root = resolve(inbox)
+    if not fs.isdir(root):
+        what = "is a file, not a folder" if fs.exists(root) else "does not exist"
+        raise InputError(f"inbox {inbox} {what}: give the folder where recordings land")
+    return fs, root
 
 
 def _leaves(root: str, path: str) -> str | None:
@@ -157,13 +170,41 @@ def _leaves(root: str, path: str) -> str | None:
 
 def _modified(fs, entry: dict) -> float:
     """Latest modification time of a file, or of any file under a directory (a Zarr store)."""
+    return _look(fs, entry)[0]
+
+
+def _look(fs, entry: dict) -> tuple[float, int, int]:
+    """(latest modification time, files, bytes) of a file, or of every file under a directory (a Zarr store)."""
     def stamp(info):
         value = info.get("mtime") or info.get("LastModified") or info.get("created") or 0
         return value.timestamp() if hasattr(value, "timestamp") else float(value)
 
     if entry.get("type") == "directory":
-        return max([stamp(info) for info in fs.find(entry["name"], detail=True).values()] + [stamp(entry)])
-    return stamp(entry)
+        files = fs.find(entry["name"], detail=True).values()
+        return (max([stamp(info) for info in files] + [stamp(entry)]), len(files),
+                sum(int(info.get("size") or 0) for info in files))
+    return stamp(entry), 1, int(entry.get("size") or 0)
+
+
+SECOND_LOOK = 1.0  # seconds: a recording changed more recently than this is looked at again before it is taken
+
+
+def steady(candidate: Candidate) -> bool:
+    """Whether a recording has stopped changing. One unchanged for a second or more is taken as it is (the
+    ``--settle`` check before this has already waited as long as the user asked); one changed within the
+    last second (``--settle`` under 1) is looked at again a second after that change, and taken only if its
+    modification time, files and bytes are the same as when it was listed. A writer that pauses longer
+    than ``--settle`` (and than a second) between writes is not seen: ``--settle`` must exceed its pauses."""
+    quiet = time.time() - candidate.modified
+    if quiet >= SECOND_LOOK or not candidate.look:
+        return True
+    time.sleep(min(SECOND_LOOK, SECOND_LOOK - quiet))  # a clock ahead of ours (a remote store's) waits a second
+    fs, path = resolve(candidate.url)
+    fs.invalidate_cache(path)  # an object store's listing cache would show the first look again
+    try:
+        return _look(fs, fs.info(path)) == candidate.look
+    except FileNotFoundError:  # moved away (renamed into place elsewhere) between the two looks
+        return False
 
 
 def _sidecar(fs, path: str) -> tuple[dict, str | None]:
@@ -232,16 +273,17 @@ def process(candidate: Candidate, key: str, params: dict, outbox: str, ledger: L
              ", taking up an earlier one" if taken_up else "")
     started = time.perf_counter()
     try:
-        spikes = candidate.url
+        spikes, ingested = candidate.url, False
         if candidate.kind in RAW:
             spikes = spike_store_of(out, candidate.name)
             if not (taken_up and _complete_spikes(spikes)):
+                ingested = True  # a new spike store, with a new identity: a video of an earlier one is redone
                 attrs = ingest(candidate.url, spikes, IngestOptions(**params["capture"], overwrite=True), progress=False)
                 log.info("%s: ingested %s -> %s (%d spikes)", candidate.name, candidate.url, spikes,
                          attrs["spike_count"])
             else:
                 log.info("%s: ingested already (%s)", candidate.name, spikes)
-        resume = taken_up and exists(video)
+        resume = taken_up and not ingested and exists(video)  # --resume would refuse another store's video
         if not (resume and open_video_store(video).attrs.get("state") == "complete"):
             counts = reconstruct(spikes, video, ReconstructOptions(method=options.method, every=options.every,
                                                                    tile=options.tile, weights=options.weights,
@@ -312,6 +354,13 @@ def watch_once(inbox: str, outbox: str, options: WatchOptions, client) -> dict:
         bytes_hash = fingerprint(candidate)
         key = key_of(bytes_hash, params)
         row = ledger.get(key)
+        handled = row is not None and (row.state in ("done", "quarantined") or (
+            row.state == "failed" and (row.final or (row.next_try or 0) > now)))
+        if not handled and not steady(candidate):  # the bytes just fingerprinted may be half a recording
+            log.debug("%s: skipped for now: changed between two looks a second apart, still being written",
+                      candidate.name)
+            counts["waiting"] += 1
+            continue
         if row is None:
             owner = ledger.owner_of(candidate.name)
             ledger.queue(key, candidate.name, candidate.url, bytes_hash, params)
@@ -354,6 +403,8 @@ def watch(inbox: str, outbox: str, options: WatchOptions, *, once: bool, interva
     if not is_local(outbox):
         raise InputError(f"OUTBOX must be a local folder (the ledger is SQLite), got {outbox}")
     check_apart(outbox, inbox, options.weights)  # else the watcher would take its own outputs as recordings
+    options.check()
+    check_inbox(inbox)  # a missing INBOX is refused before OUTBOX is made
     if os.path.exists(outbox) and not os.path.isdir(outbox):
         raise InputError(f"OUTBOX {outbox} is a file, not a folder: give a folder for the outputs and the ledger")
     os.makedirs(outbox, exist_ok=True)

@@ -17,6 +17,16 @@ from stages.numbers import FLOAT32_MAX, check_number
 CLASSIC_SCALES = (1, 2, 3, 4, 8)  # what the classic methods and previews upsample by
 _MID_GREY = 0.45
 _CLIP_QUANTILE = 0.99
+# The largest gain a user may give: a firing rate is spikes per frame, so at gain G a pixel that fires once in
+# G frames is already full white. At 10^6 that is one spike in 50 s at 20,000 fps, dimmer than any window a
+# picture is made from; a larger gain only turns every pixel that fired at all white (1e30: white frames).
+MAX_GAIN = 1e6
+MAX_GAIN_WHY = "at that gain one spike in a million frames is already full white"
+
+
+def check_gain(name: str, gain) -> None:
+    """Refuse a gain that is not a finite number in (0, MAX_GAIN] (``name``: the flag or what it comes from)."""
+    check_number(name, gain, above=0, at_most=MAX_GAIN, why=MAX_GAIN_WHY)
 
 
 def auto_gain(rate: np.ndarray) -> float:
