@@ -160,19 +160,23 @@ def reconstruct(store: str, out: str, *, client=None, workers: int | None = None
 
 def evaluate(store: str, methods: str | Iterable[str] = ("tfp", "tfi"), out: str = "evaluation", *,
              weights: str | None = None, client=None, workers: int | None = None, scheduler: str | None = None,
-             progress: bool = False) -> Written:
+             progress: bool = False, overwrite: bool = False) -> Written:
     """PSNR / SSIM of ``methods`` (a list, or ``"tfp,tfi"``) against a simulated store's truth, as ``cscsr
     evaluate``: the reconstructions, ``metrics.csv``, ``summary.csv`` and ``comparison.png`` in the folder
-    ``out``; ``rows`` holds the summary, one dict per method."""
+    ``out`` (an existing one is refused unless ``overwrite``, and replaced only if it is an evaluation);
+    ``rows`` holds the summary, one dict per method."""
     from pipeline.evaluate import evaluate as run
 
     store, out = _path("evaluate", "store", store), _path("evaluate", "out", out)
     weights = None if weights is None else _path("evaluate", "weights", weights)
     _checked("evaluate", client=client, workers=workers, scheduler=scheduler, progress=progress)
-    listed = methods.split(",") if isinstance(methods, str) else list(methods) if isinstance(methods, Iterable) else None
+    check_flag("--overwrite", overwrite)
+    listed = (methods.split(",") if isinstance(methods, str) else
+              list(methods) if isinstance(methods, Iterable) else None)
     if listed is None or not all(isinstance(m, str) for m in listed):
-        raise InputTypeError(f"evaluate(): methods must be a string (\"tfp,tfi\") or a list of strings, got {methods!r}")
+        raise InputTypeError(f"evaluate(): methods must be a string (\"tfp,tfi\") or a list of strings, "
+                             f"got {methods!r}")
     names = [m.strip() for m in listed if m.strip()]
     rows = run(store, names, out, weights=weights, workers=workers, scheduler=scheduler, client=client,
-               progress=progress)
+               progress=progress, overwrite=overwrite)
     return Written(str(out), {}, {"methods": len(rows)}, tuple(rows))

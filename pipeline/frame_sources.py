@@ -59,7 +59,11 @@ def _local_copy(url: str) -> str:
         return resolve(url)[1]
     import fsspec
 
-    return fsspec.open_local(f"simplecache::{url}")
+    from pipeline.storage import storage_options
+
+    options = storage_options(url)  # S3's bounded timeouts, as everywhere else
+    chained = {fsspec.core.split_protocol(url)[0]: options} if options else {}
+    return fsspec.open_local(f"simplecache::{url}", **chained)
 
 
 def _video_frame(url: str, index: int) -> np.ndarray:

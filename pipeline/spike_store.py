@@ -31,9 +31,10 @@ from pipeline.storage import consolidate, open_group, remove_partial_writes, zar
 from pipeline.video_store import describe_video_store, is_video_store
 from stages.bits import packed_width
 from stages.cfa import check_cfa
+from stages.colour import MAX_GAIN
 from stages.dat import check_head_side
 from stages.errors import InputError, describe
-from stages.numbers import FLOAT32_MAX, check_number
+from stages.numbers import check_number
 from stages.sensor import check_reset
 
 FORMAT_VERSION = 1
@@ -102,7 +103,7 @@ _ATTRIBUTE_TYPES = {"height": int, "width": int, "head_columns": int, "spike_cou
 
 # The range of each number a store records: finite, and one that its readers can use (a negative
 # gain or a scale of 0 would otherwise fail inside every task, an infinite fps print as invalid JSON).
-_ATTRIBUTE_RANGES = {"fps": {"above": 0}, "gain": {"above": 0, "at_most": FLOAT32_MAX}, "threshold": {"above": 0},
+_ATTRIBUTE_RANGES = {"fps": {"above": 0}, "gain": {"above": 0, "at_most": MAX_GAIN}, "threshold": {"above": 0},
                      "spike_count": {"at_least": 0}, "scale": {"at_least": 1},
                      "truth_every": {"at_least": 1, "integer": True}, "brightness": {"above": 0}}
 

@@ -131,7 +131,8 @@ def zarr_store(url: str, *, read_only: bool) -> zarr.abc.store.Store:
     fs, path = resolve(url)
     if isinstance(fs, LocalFileSystem):
         return zarr.storage.LocalStore(path, read_only=read_only)
-    return zarr.storage.FsspecStore.from_url(str(url), read_only=read_only, storage_options=storage_options(url) or None)
+    return zarr.storage.FsspecStore.from_url(str(url), read_only=read_only,
+                                             storage_options=storage_options(url) or None)
 
 
 def remove_partial_writes(url: str) -> list[str]:

@@ -404,9 +404,9 @@ def watch(inbox: str, outbox: str, options: WatchOptions, *, once: bool, interva
         raise InputError(f"OUTBOX must be a local folder (the ledger is SQLite), got {outbox}")
     check_apart(outbox, inbox, options.weights)  # else the watcher would take its own outputs as recordings
     options.check()
-    check_inbox(inbox)  # a missing INBOX is refused before OUTBOX is made
     if os.path.exists(outbox) and not os.path.isdir(outbox):
         raise InputError(f"OUTBOX {outbox} is a file, not a folder: give a folder for the outputs and the ledger")
+    check_inbox(inbox)  # a missing INBOX is refused before OUTBOX is made
     os.makedirs(outbox, exist_ok=True)
     Ledger(outbox)  # someone else's file named like the ledger is refused before the lock file or a cluster
     with outbox_lock(outbox), dask_client(workers=workers, scheduler=scheduler) as client:
