@@ -200,11 +200,12 @@ def steady(candidate: Candidate) -> bool:
         return True
     time.sleep(min(SECOND_LOOK, SECOND_LOOK - quiet))  # a clock ahead of ours (a remote store's) waits a second
     fs, path = resolve(candidate.url)
-    fs.invalidate_cache(path)  # an object store's listing cache would show the first look again
-    try:
-        return _look(fs, fs.info(path)) == candidate.look
-    except FileNotFoundError:  # moved away (renamed into place elsewhere) between the two looks
-        return False
+    parent, base = str(path).rstrip("/").rsplit("/", 1)
+    fs.invalidate_cache()  # an object store's listing cache would show the first look again
+    for entry in fs.ls(parent, detail=True):  # as the first look saw it (a link's own time, not its target's)
+        if entry["name"].rstrip("/").rsplit("/", 1)[-1] == base:
+            return _look(fs, entry) == candidate.look
+    return False  # moved away between the two looks
 
 
 def _sidecar(fs, path: str) -> tuple[dict, str | None]:
