@@ -143,10 +143,11 @@ def train_command(out: Path, run: Path, minutes: float, pictures: list[str], ini
         options["steps"] = steps
     print(f"{'resuming' if resume else 'starting'} {run} on {device} for at most {minutes} min", flush=True)
     train_slice(options, run, resume=resume)
+    # each slice replaces the previous slice's exports in OUT (its own)
     step = export_weights(run, out / f"cscsr-{options['config']}.safetensors", storage="float16",
-                          command="benchmarks/gpu_lease.py train (fp16 export)")
+                          command="benchmarks/gpu_lease.py train (fp16 export)", overwrite=True)
     shutil.copy(run / "log.jsonl", out / "log.jsonl")
-    _, parts = export_portable(run, out, weights=portable_weights)
+    _, parts = export_portable(run, out, weights=portable_weights, overwrite=True)
     print(f"exported step {step} to {out}: weights, log and a portable checkpoint in {len(parts)} parts "
           f"({sum(p.stat().st_size for p in parts) / 2**20:.1f} MiB)", flush=True)
 

@@ -36,8 +36,9 @@ def repeated(testset: Path, methods: list[str], weights: str, repeats: int) -> t
     """(the rows of the first repeat, method -> seconds per image of every repeat); quality must not vary."""
     first, seconds = None, {}
     for repeat in range(repeats):
-        with tempfile.TemporaryDirectory() as out:
-            rows = evaluate_testset(str(testset), methods, out, weights=weights, workers=1, progress=False)
+        with tempfile.TemporaryDirectory() as scratch:  # a new folder in it: an existing --out is refused
+            rows = evaluate_testset(str(testset), methods, f"{scratch}/evaluation", weights=weights, workers=1,
+                                    progress=False)
         if first is not None and _scores(rows) != _scores(first):
             raise SystemExit(f"repeat {repeat + 1} scored differently from the first: the evaluation is not deterministic")
         first = first or rows

@@ -16,7 +16,7 @@ import torch
 
 from cscsr.config import BACKENDS, PRECISIONS
 from cscsr.integration import NETWORK_SCALES
-from cscsr.weights_io import default_weights, load_model, resolve_weights
+from cscsr.weights_io import load_model, weights_file, weights_sha256
 from stages.bits import unpack_rows
 from stages.cfa import flip_horizontally, flip_vertically, transpose
 from stages.colour import expose
@@ -38,6 +38,7 @@ class NetworkReconstructor:
     precision: str = "fp32"  # or "bf16": torch.autocast on the device
     join_tiles: bool | None = None  # tiles of one shape in one pass (many_tiles); None: on a GPU only
     backend: str = "torch"  # or "onnx": ONNX Runtime on the CPU
+    weights_sha256: str | None = None  # of the file the model was loaded from: what an output records
 
     def __post_init__(self):
         from cscsr.onnx_runtime import OnnxNetwork
@@ -151,7 +152,8 @@ def load_reconstructor(weights: str | None, device: str | None = None, *, self_e
     from cscsr.network import use_channels_last
 
     check_backend(backend, precision)
-    path = resolve_weights(weights) if weights else default_weights("lite")
+    path = weights_file(weights)
+    digest = weights_sha256(path)  # before loading: a file replaced during the load reads as changed
     if backend == "onnx":
         device = "cpu"
     device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
@@ -159,7 +161,7 @@ def load_reconstructor(weights: str | None, device: str | None = None, *, self_e
     if channels_last:
         use_channels_last(model)
     return NetworkReconstructor(model, device, str(path), self_ensemble=self_ensemble, precision=precision,
-                                backend=backend)
+                                backend=backend, weights_sha256=digest)
 
 
 def check_backend(backend: str, precision: str = "fp32") -> None:

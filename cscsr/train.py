@@ -16,6 +16,7 @@ import json
 import math
 import os
 import time
+import uuid
 import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -28,7 +29,7 @@ from cscsr.network import CSCSR, use_channels_last
 from cscsr.training_data import (DEAD_LEAVES_SHARE, TRAIN_PICTURES, Clip, batch_arrays, check_not_test_pictures,
                                  picture_files, random_clip, random_plan, reoriented)
 from cscsr.weights_io import save_weights
-from stages.errors import InputError
+from stages.errors import InputError, exists_error, not_ours_error
 from stages.numbers import check_number
 from stages.prefetch import made_ahead
 
@@ -547,7 +548,9 @@ def export_weights(folder: str | os.PathLike, dest: str | os.PathLike, command: 
     model.load_state_dict(model_weights(tensors))
     options = TrainOptions(**json.loads(metadata["options"]))
     step = int(metadata["step"])
-    partial = dest.with_name(dest.name + ".partial")  # beside it: the old file stays until the new one is whole
+    # beside it, under a name of this run's own: the old file stays until the new one is whole, and no file of
+    # the user's (an x.safetensors.partial) is ever written over or removed
+    partial = dest.with_name(f".{dest.name}.{uuid.uuid4().hex[:12]}.partial")
     try:
         save_weights(model, partial, storage=storage,
                      **_about(step, options, command or "cscsr train (exported from a checkpoint)"))
@@ -561,29 +564,29 @@ def _claim_weights_file(dest: Path, overwrite: bool) -> None:
     """Refuse an existing ``dest`` unless it is a weights file (what export-weights writes) and ``overwrite``."""
     if not (dest.exists() or dest.is_symlink()):
         return
-    if not _is_weights_file(dest):
-        raise InputError(f"output {dest} already exists and is not a weights file (a .safetensors file with a CSCSR "
-                         f"configuration): cscsr replaces only its own outputs, even with --overwrite; choose "
-                         f"another output, or move it away yourself")
+    if (found := _not_weights_file(dest)) is not None:
+        raise not_ours_error(dest, "a weights file", found)
     if not overwrite:
-        raise InputError(f"output {dest} already exists (pass --overwrite to replace it)")
+        raise exists_error(dest)
 
 
-def _is_weights_file(path: Path) -> bool:
-    """A file holding nothing, or a safetensors file with a network configuration and no optimiser state (a
-    weights file, not a training checkpoint)."""
+def _not_weights_file(path: Path) -> str | None:
+    """What is at ``path`` if it is not a weights file (a safetensors file with a network configuration and no
+    optimiser state, not a training checkpoint) nor a file holding nothing; else None."""
     from safetensors import safe_open
 
     if not path.is_file():
-        return False
+        return "a folder" if path.is_dir() else "not a regular file"
     if path.stat().st_size == 0:
-        return True  # nothing to lose
+        return None  # nothing to lose
     try:
         with safe_open(str(path), "pt") as handle:
             metadata = handle.metadata() or {}
     except Exception:  # not safetensors at all: safetensors raises its own error types
-        return False
-    return "config" in metadata and "param_groups" not in metadata
+        return "a file that is not safetensors"
+    if "param_groups" in metadata:
+        return "a training checkpoint"
+    return None if "config" in metadata else "a safetensors file without a CSCSR configuration"
 
 
 def export_portable(folder: str | os.PathLike, dest: str | os.PathLike, weights: str = "float32",

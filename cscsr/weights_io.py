@@ -73,10 +73,25 @@ def resolve_weights(path: str | os.PathLike) -> Path:
     return Path(path)
 
 
+def weights_file(weights: str | os.PathLike | None) -> Path:
+    """A network's weights file: ``weights`` (a file, or a shipped one's name), else the shipped ``lite``."""
+    return resolve_weights(weights) if weights else default_weights("lite")
+
+
+def existing_weights_file(path: str | os.PathLike) -> Path:
+    """``resolve_weights(path)``, refused in one line if it is a folder or no file."""
+    path = resolve_weights(path)
+    if path.is_dir():
+        raise InputError(f"weights {path} is a folder, not a weights file: give the .safetensors file itself")
+    if not path.is_file():
+        raise InputError(f"weights file {path} not found")
+    return path
+
+
 def weights_sha256(path: str | os.PathLike) -> str:
     """The SHA-256 of a weights file's bytes (or a shipped one's, by name): what an output records of
     the weights it was made with, and ``--resume`` compares (another file at the same path differs)."""
-    path = resolve_weights(path)
+    path = existing_weights_file(path)
     try:
         with open(path, "rb") as handle:
             return hashlib.file_digest(handle, "sha256").hexdigest()
@@ -86,11 +101,7 @@ def weights_sha256(path: str | os.PathLike) -> str:
 
 def read_metadata(path: str | os.PathLike) -> dict[str, str]:
     """The metadata of a safetensors file (or a shipped one by name), read from its header alone."""
-    path = resolve_weights(path)
-    if path.is_dir():
-        raise InputError(f"weights {path} is a folder, not a weights file: give the .safetensors file itself")
-    if not path.is_file():
-        raise InputError(f"weights file {path} not found")
+    path = existing_weights_file(path)
     with open(path, "rb") as f:
         head = f.read(8)
         if len(head) < 8:

@@ -467,12 +467,14 @@ def evaluate_testset(testset: Annotated[str, typer.Argument(help="A folder made 
                      methods: Annotated[str, typer.Option(help="Comma-separated methods.")] = "tfp,tfi",
                      weights: Annotated[Optional[str], typer.Option(help="Network weights for cscsr.")] = None,
                      out: Annotated[str, typer.Option(help="Folder for results.")] = "evaluation-testset",
-                     workers: Workers = None, scheduler: Scheduler = None):
+                     workers: Workers = None, scheduler: Scheduler = None,
+                     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace the --out folder if it is an "
+                                                             "evaluation.")] = False):
     """PSNR / SSIM per method and alpha on the test set: table, summary.csv, crops.png."""
     from pipeline.testset import evaluate_testset as run
 
     rows = run(testset, [m.strip() for m in methods.split(",") if m.strip()], out, weights=weights, workers=workers,
-               scheduler=scheduler)
+               scheduler=scheduler, overwrite=overwrite)
     table = Table(title=f"{testset}: x4, mean over pictures and truth frames")
     for column in ("method", "alpha", "PSNR dB", "SSIM", "s / image"):
         table.add_column(column)

@@ -48,7 +48,8 @@ def submitted(client, tasks: Iterable[T], submit: Callable[[T], Future], *,
     A task whose worker dies is rerun by Dask itself (its inputs travel in the task, never as scattered
     data, which a lost worker takes with it). ``idempotent`` tasks (whole chunks written, the same bytes
     each time) are also submitted again when the cluster drops them (a future cancelled under the job,
-    e.g. by a scheduler restart), up to :data:`ATTEMPTS` times in all."""
+    e.g. by a scheduler restart), up to :data:`ATTEMPTS` submissions in all. A task that finished but
+    whose result was lost with its worker before it was read here is waited for again (Dask reruns it)."""
     task_of, attempt_of = {}, {}  # future key -> task, -> how many times it was submitted
 
     def start(task: T, attempt: int) -> Future:
@@ -57,7 +58,10 @@ def submitted(client, tasks: Iterable[T], submit: Callable[[T], Future], *,
         return future
 
     def again(future: Future) -> Future | None:
-        if not idempotent or future.status != "cancelled" or attempt_of[future.key] >= ATTEMPTS:
+        if future.status in ("lost", "pending"):  # finished, but its result died with a worker: Dask is
+            return future  # computing it again (it waited here, unread); wait for that
+        if (not idempotent or future.status != "cancelled" or attempt_of[future.key] >= ATTEMPTS
+                or client.status != "running"):
             return None
         return start(task_of.pop(future.key), attempt_of.pop(future.key) + 1)
 

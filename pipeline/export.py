@@ -13,7 +13,7 @@ import tempfile
 from pipeline.lease import claimed
 from pipeline.progress import progress_bar
 from pipeline.spike_store import open_spike_store
-from pipeline.outputs import FRAMES as FRAME_FOLDER, new_output
+from pipeline.outputs import FRAME_FOLDER, new_output
 from pipeline.storage import check_apart, open_group, resolve
 from pipeline.video_store import FRAMES, VIDEO, lost_frames, open_video_store
 from stages.dat import DatLayout, packed_to_dat

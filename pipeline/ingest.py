@@ -7,7 +7,7 @@ from stages.prefetch import prefetched
 from pipeline.progress import progress_bar
 from pipeline.spike_store import SpikeMeta, SpikeStoreWriter, chunk_frames_for
 from pipeline.lease import claimed
-from pipeline.outputs import STORE, new_output
+from pipeline.outputs import SPIKE_STORE, new_output
 from pipeline.storage import check_apart, recorded
 from stages.bits import count_spikes, packed_width
 from stages.cfa import check_cfa, flip_vertically
@@ -72,7 +72,7 @@ def ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *, pro
     )
     chunk = chunk_frames_for(meta, capture.n_frames)
     frames_per_block = chunk * max(1, BLOCK_BYTES // (chunk * capture.height * packed_width(capture.width)))
-    with claimed(dest), new_output(dest, overwrite=options.overwrite, kind=STORE):
+    with claimed(dest), new_output(dest, overwrite=options.overwrite, kind=SPIKE_STORE):
         writer = SpikeStoreWriter(dest, meta, capture.n_frames, chunk_frames=chunk)
         spikes = 0
         with progress_bar(f"ingest {src}", capture.n_frames, enabled=progress) as advance:

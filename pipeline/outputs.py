@@ -2,17 +2,20 @@
 replace it, never one that another live job is writing (``pipeline.lease``), and an output whose
 writing fails is removed, so no half-written output stays to look complete.
 
-Only what cscsr wrote is ever replaced (:func:`not_ours`): a Zarr store that it marked as its own,
-a folder holding its marker file (or only its exported frames), a file of the kind the command
-writes whose bytes are of that kind (an MP4, a PNG, ...). A user's folder or file is refused in
-one line, ``--overwrite`` or not.
+Only what cscsr wrote is ever replaced (:func:`not_ours`): a Zarr store of the kind the command
+writes that it marked as its own (``cscsr_version``): a spike store for ``ingest`` and ``simulate``,
+a video store for ``reconstruct``, never one for the other (a spike store is a recording, perhaps
+the only copy); a folder holding its marker file (or only its exported frames); a file of the kind
+the command writes whose bytes are of that kind (an MP4, a PNG, ...). A user's folder or file is
+refused in one line, ``--overwrite`` or not.
 
 A replaced output is not deleted before its successor exists: on a local filesystem the old one is
 renamed to a hidden sibling ``.NAME.old-<id>`` (one atomic rename) and deleted only once the new one
-is complete; if the job fails, the new one is removed and the old one renamed back. A job killed
-outright (SIGKILL, power loss) leaves the old one under that name (the next complete output at
-NAME removes it). Object stores (``s3://``, ``memory://``) have no rename: there the old output is
-removed first (a documented limit, ``docs/reliability.md``)."""
+is complete; if the job fails, the new one is removed and the old one renamed back (a warning names
+it if that fails). A job killed outright (SIGKILL, power loss) leaves the old one under that name
+(the next job that completes an output at NAME removes it). Object stores (``s3://``,
+``memory://``) have no rename: there the old output is removed first (a documented limit,
+``docs/reliability.md``)."""
 
 import contextlib
 import json
@@ -24,9 +27,12 @@ import uuid
 from collections.abc import Iterator
 
 import cscsr
+from pipeline.images import IMAGE_MAGIC
 from pipeline.lease import check_free
-from pipeline.storage import exists, is_local, remove, resolve
-from stages.errors import InputError
+from pipeline.spike_store import SPIKES
+from pipeline.storage import exists, is_local, open_group, remove, resolve
+from pipeline.video_store import is_video_store
+from stages.errors import InputError, exists_error, not_ours_error
 
 log = logging.getLogger("cscsr.outputs")
 
@@ -34,24 +40,17 @@ MARKER = ".cscsr-output"  # inside a folder output of ours: {"kind": ..., "cscsr
 ASIDE = ".{name}.old-"  # the old output while its successor is written (local filesystems)
 
 # Kinds of output (what a command writes); a file kind is its suffix.
-STORE, TESTSET, EVALUATION, FRAMES = "store", "testset", "evaluation", "frames"
-_WHAT = {STORE: "a Zarr store written by cscsr", TESTSET: "a test set made by cscsr make-testset",
+SPIKE_STORE, VIDEO_STORE = "spike store", "video store"
+TESTSET, EVALUATION, FRAME_FOLDER = "testset", "evaluation", "frames"  # as written in MARKER
+_WHAT = {SPIKE_STORE: "a spike store written by cscsr ingest or simulate",
+         VIDEO_STORE: "a video store written by cscsr reconstruct", TESTSET: "a test set made by cscsr make-testset",
          EVALUATION: "an evaluation written by cscsr evaluate or evaluate-testset",
-         FRAMES: "a folder of frames exported by cscsr (frame_<centre>.png)", ".dat": "a .dat file",
+         FRAME_FOLDER: "a folder of frames exported by cscsr (frame_<centre>.png)", ".dat": "a .dat file",
          ".mp4": "an MP4 video"}
-_MAGIC = {".png": lambda b: b.startswith(b"\x89PNG\r\n\x1a\n"), ".jpg": lambda b: b.startswith(b"\xff\xd8\xff"),
-          ".jpeg": lambda b: b.startswith(b"\xff\xd8\xff"), ".bmp": lambda b: b.startswith(b"BM"),
-          ".tif": lambda b: b[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"),
-          ".tiff": lambda b: b[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"),
-          ".webp": lambda b: b[:4] == b"RIFF" and b[8:12] == b"WEBP", ".mp4": lambda b: b[4:8] == b"ftyp",
+_STORES = {SPIKE_STORE: "a spike store (a recording)", VIDEO_STORE: "a video store"}  # what one is found to be
+_MAGIC = {**IMAGE_MAGIC, ".mp4": lambda b: b[4:8] == b"ftyp",
           ".dat": lambda b: True}  # raw bits: any bytes are a capture
 _FRAME = re.compile(r"frame_\d+\.png")
-
-
-def kind_of(url: str) -> str:
-    """The kind of output a URL names when the command does not say: a file kind by its suffix, else a store."""
-    suffix = os.path.splitext(str(url).rstrip("/"))[1].lower()
-    return suffix if suffix in _MAGIC else STORE
 
 
 def _names(fs, path: str) -> list[str]:
@@ -90,19 +89,12 @@ def not_ours(url: str, kind: str) -> str | None:
             return None if _MAGIC.get(kind, lambda b: False)(head) else f"a file that is not {kind[1:].upper()}"
         if not is_dir:
             return "a regular file"
-        if kind == STORE:
-            root = _json(fs, f"{path}/zarr.json")
-            if not isinstance(root, dict):
-                return _holding(names)
-            attrs = root.get("attributes")
-            if root.get("node_type") == "group" and isinstance(attrs, dict) and \
-                    ("cscsr_version" in attrs or "format_version" in attrs):
-                return None
-            return "a Zarr store that cscsr did not write"
+        if kind in _STORES:
+            return _not_our_store(url, fs, path, names, kind)
         marker = _json(fs, f"{path}/{MARKER}") if MARKER in names else None
         if isinstance(marker, dict) and marker.get("kind") == kind:
             return None
-        if kind == FRAMES and all(_FRAME.fullmatch(name) for name in names):
+        if kind == FRAME_FOLDER and all(_FRAME.fullmatch(name) for name in names):
             return None
         if kind == TESTSET and isinstance(manifest := _json(fs, f"{path}/manifest.json"), dict) \
                 and "items" in manifest and "hr_side" in manifest:
@@ -115,12 +107,35 @@ def not_ours(url: str, kind: str) -> str | None:
         return f"it cannot be read: {error.strerror or error}"
 
 
+def _not_our_store(url: str, fs, path: str, names: list[str], kind: str) -> str | None:
+    """Why the folder at ``url`` is not a Zarr store of ``kind`` that cscsr wrote (one of :data:`_STORES`'s
+    words where it is cscsr's store of the other kind), or None. Every spike and video store cscsr has
+    written carries ``cscsr_version`` in its group's attributes (spike stores from the first, video
+    stores since ``format_version`` 1, which came with it)."""
+    root = _json(fs, f"{path}/zarr.json")
+    if not isinstance(root, dict):
+        return _holding(names)
+    attrs = root.get("attributes")
+    if root.get("node_type") != "group" or not isinstance(attrs, dict) or "cscsr_version" not in attrs:
+        return "a Zarr store that cscsr did not write"
+    try:
+        group = open_group(url)
+        found = VIDEO_STORE if is_video_store(group) else SPIKE_STORE if SPIKES in group else None
+    except Exception:  # a damaged store: zarr raises its own error types
+        return "a Zarr store of cscsr's that cannot be read"
+    if found == kind:
+        return None
+    return _STORES[found] if found else "a Zarr store of cscsr's that is neither a spike store nor a video store"
+
+
 def check_ours(url: str, kind: str) -> None:
     """Refuse to replace ``url`` unless it is an output of ``kind`` that cscsr wrote (see :func:`not_ours`)."""
-    if (why := not_ours(url, kind)) is not None:
-        what = _WHAT.get(kind) or f"a {kind[1:].upper()} image"
-        raise InputError(f"output {url} already exists and is not {what} ({why}): cscsr replaces only its own "
-                         f"outputs, even with --overwrite; choose another output, or move it away yourself")
+    if (why := not_ours(url, kind)) is None:
+        return
+    if kind in _STORES and why in _STORES.values():  # ours, but a store of the other kind
+        raise InputError(f"output {url} is {why}, not a {kind}: --overwrite replaces only "
+                         f"{_WHAT[kind]}; choose another output")
+    raise not_ours_error(url, _WHAT.get(kind) or f"a {kind[1:].upper()} image", why)
 
 
 def mark_folder(url: str, kind: str) -> None:
@@ -131,23 +146,15 @@ def mark_folder(url: str, kind: str) -> None:
     fs.pipe_file(f"{path}/{MARKER}", json.dumps({"kind": kind, "cscsr_version": cscsr.__version__}).encode())
 
 
-def _check_existing(url: str, *, overwrite: bool, kind: str | None, flag: str) -> bool:
+def _check_existing(url: str, *, overwrite: bool, kind: str, flag: str) -> bool:
     """For an output about to be written: True if one exists and may be replaced; refuses otherwise."""
     if not exists(url):
         return False
     check_free(url)
-    check_ours(url, kind or kind_of(url))
+    check_ours(url, kind)
     if not overwrite:
-        raise InputError(f"output {url} already exists (pass {flag} to replace it)")
+        raise exists_error(url, flag)
     return True
-
-
-def claim_output(url: str, *, overwrite: bool, flag: str = "--overwrite", kind: str | None = None) -> None:
-    """Refuse an existing output unless ``overwrite`` and it is ours (of ``kind``; by default, as its name
-    says); with it, remove the old output at once (never one that another live job is writing: see
-    :mod:`pipeline.lease`). Prefer :func:`new_output`, which keeps the old one until the new one exists."""
-    if _check_existing(url, overwrite=overwrite, kind=kind, flag=flag):
-        remove(url)
 
 
 def _asides(url: str) -> tuple[str, list[str]]:
@@ -182,27 +189,18 @@ def _set_aside(url: str) -> str:
 
 
 @contextlib.contextmanager
-def removed_on_failure(url: str) -> Iterator[None]:
-    """Delete ``url`` if the block raises (or is interrupted): no half-written output stays."""
-    try:
-        yield
-    except BaseException:
-        with contextlib.suppress(Exception):
-            remove(url)
-        raise
-
-
-@contextlib.contextmanager
-def new_output(url: str, *, overwrite: bool, kind: str | None = None, flag: str = "--overwrite",
+def new_output(url: str, *, overwrite: bool, kind: str, flag: str = "--overwrite",
                resume: bool = False, keep_partial: bool = False) -> Iterator[None]:
-    """Claim ``url`` for a new output of ``kind`` (default: as its name says) while the block writes it.
+    """Claim ``url`` for a new output of ``kind`` (:data:`SPIKE_STORE`, ..., or a file's suffix) while the block
+    writes it.
 
     An existing output is refused unless ``overwrite`` and it is ours. The old output is kept until
     the block has succeeded (see the module docstring); if the block fails, the new output is removed
     and the old one put back. ``keep_partial``: a new output that the block created is kept on
     failure, for ``--resume`` (``reconstruct``); the old one then stays set aside, named in a warning,
     until the output is complete. ``resume``: the output exists and is finished by the block (nothing
-    is claimed); once it is complete, old outputs set aside by an earlier run are removed."""
+    is claimed). Once the output is complete, every old output set aside at ``url`` (this run's, and any
+    that a killed or failed run left) is removed."""
     local = is_local(url)
     aside = None
     if not resume and _check_existing(url, overwrite=overwrite, kind=kind, flag=flag):
@@ -220,13 +218,21 @@ def new_output(url: str, *, overwrite: bool, kind: str | None = None, flag: str 
                 log.warning("the old %s is kept as %s until the new one is complete (rename it back to keep it)",
                             url, aside)
             raise
-        with contextlib.suppress(Exception):
+        unremoved = ""
+        try:
             remove(url)
+        except Exception as error:
+            unremoved = f"the new, unfinished {url} could not be removed ({getattr(error, 'strerror', None) or error})"
         if aside is not None:
-            with contextlib.suppress(OSError):
+            try:
                 os.rename(aside, os.path.abspath(resolve(url)[1]).rstrip("/"))
+            except OSError as error:
+                log.warning("the old %s could not be put back (%s%s): it is kept as %s (rename it back to keep it)",
+                            url, error.strerror or error, f"; {unremoved}" if unremoved else "", aside)
+        elif unremoved:
+            log.warning("%s: remove it before using it", unremoved)
         raise
-    if local and (aside is not None or resume):
+    if local:
         folder, names = _asides(url)
         for name in names:  # this one's, and any that a killed run left
             with contextlib.suppress(OSError):

@@ -35,7 +35,7 @@ from pipeline.progress import progress_bar
 from pipeline.reconstruct_plan import MADE_FROM, Plan, ReconstructOptions, made_from, task_groups, tile_blocks
 from pipeline.executor import failure, in_segments, submitted
 from pipeline.spike_store import SpikeStore, open_spike_store, read_frames
-from pipeline.outputs import STORE, new_output
+from pipeline.outputs import VIDEO_STORE, new_output
 from pipeline.storage import check_apart, exists, recorded, remove_partial_writes
 from pipeline.video_store import VIDEO, TileWriter, committed_mask, create_video_store, open_video_store
 from stages.colour import auto_gain
@@ -44,22 +44,31 @@ from stages.methods import NETWORKS, Reconstructor, Window, classic, output_cent
 from stages.tfp import tfp_rate
 from stages.tiles import Tile, tile_grid
 
-@functools.lru_cache(maxsize=4)
 def reconstructor(method: str, weights: str | None, precision: str | None = "fp32", backend: str | None = "torch",
-                  weights_sha256: str | None = None):
-    """Built once per worker process (this cache lives in the worker) and reused by its tasks:
-    for the network, it is loaded from its weights once, onto the worker's GPU if any. With
-    ``weights_sha256`` (a job's tasks), the file must still be the one the job was planned with: a
-    long-lived worker never runs a job on a model it cached from an older file at the same path."""
+                  weights_sha256: str | None = None) -> Reconstructor:
+    """The method, built once per process and file contents (the cache lives in each worker) and reused
+    by its tasks: for the network, loaded from its weights once, onto the worker's GPU if any. Keyed by
+    the weights' SHA-256 (a job's tasks pass the one the job was planned with; else the file is hashed
+    now), so a long-lived worker or watcher never runs a model cached from an older file at that path."""
+    if method not in NETWORKS:
+        return _built(method, None, None, None, None)
+    from cscsr.weights_io import weights_file
+    from cscsr.weights_io import weights_sha256 as sha256_of
+
+    return _built(method, weights, precision, backend, weights_sha256 or sha256_of(weights_file(weights)))
+
+
+@functools.lru_cache(maxsize=4)
+def _built(method: str, weights: str | None, precision: str | None, backend: str | None,
+           weights_sha256: str | None) -> Reconstructor:
     if method in NETWORKS:
         from cscsr.reconstructor import load_reconstructor
-        from cscsr.weights_io import weights_sha256 as sha256_of
 
         loaded = load_reconstructor(weights, self_ensemble=method == "cscsr-ensemble", precision=precision or "fp32",
                                     backend=backend or "torch")
-        if weights_sha256 is not None and (found := sha256_of(loaded.weights)) != weights_sha256:
-            raise InputError(f"weights file {weights} changed since the job started (sha256 {weights_sha256[:12]}… -> "
-                             f"{found[:12]}…): run the job again")
+        if loaded.weights_sha256 != weights_sha256:
+            raise InputError(f"weights file {loaded.weights} changed since the job started (sha256 "
+                             f"{weights_sha256[:12]}… -> {loaded.weights_sha256[:12]}…): run the job again")
         return loaded
     return classic(method)
 
@@ -149,8 +158,8 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
             check_free(out)  # and no live lease (a job on a machine that shares no claim file with us)
         # only one of our stores is replaced, and kept aside until the new one is complete (pipeline.outputs); a
         # failed job's new store stays for --resume
-        stack.enter_context(new_output(out, overwrite=options.overwrite, kind=STORE, flag="--resume or --overwrite",
-                                       resume=options.resume, keep_partial=True))
+        stack.enter_context(new_output(out, overwrite=options.overwrite, kind=VIDEO_STORE,
+                                       flag="--resume or --overwrite", resume=options.resume, keep_partial=True))
         if client is None and scheduler_address(scheduler):  # a long-lived cluster: connect once, before any output
             client = stack.enter_context(dask_client(scheduler=scheduler))
         gain = options.gain or meta.gain
@@ -160,7 +169,7 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
         # the spike store as workers find it, whatever their working directory (and as the output records it)
         plan = Plan(recorded(store_url), out, options.method, method.weights, options.window, options.every, float(gain),
                     scale, meta.cfa, meta.reset, options.tile, uuid.uuid4().hex, precision, options.gpu_batch, backend,
-                    **made_from(store, method.weights))  # what --resume checks beside the paths
+                    **made_from(store, method.weights_sha256))  # what --resume checks beside the paths
         batch = method.batch
         on_gpus = backend == "torch" and client is not None and gpu_workers(client) > 0  # our local cluster has none
         done = _prepare_output(plan, options.resume, centres, grid, (meta.height * scale, meta.width * scale),

@@ -138,18 +138,13 @@ class Plan:
 MADE_FROM = ("source_identity", "source_shape", "weights_sha256")  # Plan.attrs() that name data, not parameters
 
 
-def made_from(store, weights: str | None) -> dict:
+def made_from(store, weights_sha256: str | None) -> dict:
     """The ``Plan`` fields that say what an output is made from: the identity and shape of ``store`` (an open
     ``SpikeStore``; a hash of its metadata if it predates identities) and the SHA-256 of the
-    weights file the network was loaded from (``method.weights``; None for classic methods)."""
+    weights file the network was loaded from (``method.weights_sha256``; None for classic methods)."""
     from pipeline.spike_store import store_identity
 
-    digest = None
-    if weights:
-        from cscsr.weights_io import weights_sha256
-
-        digest = weights_sha256(weights)
-    return {"source_identity": store_identity(store), "source_shape": store.shape, "weights_sha256": digest}
+    return {"source_identity": store_identity(store), "source_shape": store.shape, "weights_sha256": weights_sha256}
 
 
 def _short(digest: str | None) -> str:

@@ -28,7 +28,7 @@ from pipeline.progress import progress_bar
 from pipeline.simulate_plan import SpikeChunk, Step, TruthFrame, simulation_steps
 from pipeline.ground_truth import declare_truth, write_flow, write_truth
 from pipeline.spike_store import SPIKES, SpikeMeta, SpikeStoreWriter, chunk_frames_for, write_region
-from pipeline.outputs import STORE, new_output
+from pipeline.outputs import SPIKE_STORE, new_output
 from pipeline.storage import check_apart, recorded
 from stages import sensor
 from stages.cfa import check_cfa
@@ -287,7 +287,7 @@ def simulate(src: str, dest: str, options: SimulateOptions = SimulateOptions(), 
     chunk = options.chunk_frames or chunk_frames_for(meta, options.frames)
     check_scheduler(scheduler)  # a named scheduler answers (within seconds) before DEST is claimed or replaced
 
-    with claimed(dest), new_output(dest, overwrite=options.overwrite, kind=STORE), \
+    with claimed(dest), new_output(dest, overwrite=options.overwrite, kind=SPIKE_STORE), \
             dask_client(workers=workers, scheduler=scheduler) as client:
         writer = SpikeStoreWriter(dest, meta, options.frames, chunk_frames=chunk)
         hr = (options.scale * height, options.scale * width)

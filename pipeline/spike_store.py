@@ -178,14 +178,15 @@ class SpikeStore:
 
 
 IDENTITY_FRAMES = 64  # frames read at each end of a recording for its identity: milliseconds of work
+NOT_IDENTITY = ("state", "identity", "source", "cscsr_version", "format_version")  # where and by what, not what
 
 
 def recording_identity(attrs: dict, spikes: zarr.Array) -> str:
-    """A finished recording's identity: the SHA-256 of every attribute its writer recorded but ``state``,
-    ``identity`` and ``source`` (where it came from is not what it is): its settings, spike count, ...; its
-    shape; and the bits of its first and last :data:`IDENTITY_FRAMES` frames. Independent of chunking and
-    of the workers that wrote it."""
-    described = json.dumps({"attrs": {k: v for k, v in attrs.items() if k not in ("state", "identity", "source")},
+    """A finished recording's identity: the SHA-256 of every attribute its writer recorded but those that
+    say where and by what it was written (:data:`NOT_IDENTITY`): its settings, spike count, ...; its shape;
+    and the bits of its first and last :data:`IDENTITY_FRAMES` frames. Independent of chunking, of the
+    workers that wrote it and of the release of cscsr."""
+    described = json.dumps({"attrs": {k: v for k, v in attrs.items() if k not in NOT_IDENTITY},
                             "shape": list(spikes.shape)}, sort_keys=True, default=str)
     digest = hashlib.sha256(described.encode())
     n_frames = spikes.shape[0]

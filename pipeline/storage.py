@@ -41,14 +41,19 @@ def storage_options(url: str) -> dict:
 def resolve(url: str) -> tuple[fsspec.AbstractFileSystem, str]:
     """(filesystem, path inside it) for a URL or plain path; an S3 endpoint that does not answer is refused
     in one line (:func:`check_answers`)."""
+    fs, path = _filesystem(url)
+    check_answers(fs, url, path)
+    return fs, path
+
+
+def _filesystem(url: str) -> tuple[fsspec.AbstractFileSystem, str]:
+    """:func:`resolve` without a request: for what only compares or parses locations."""
     try:
-        fs, path = fsspec.core.url_to_fs(str(url), **storage_options(url))
+        return fsspec.core.url_to_fs(str(url), **storage_options(url))
     except (ValueError, ImportError) as error:
         raise InputError(f"cannot use URL {url!r}: {error}") from None
     except OSError as error:  # a filesystem that connects on creation (ftp://): no such host, refused, ...
         raise InputError(f"cannot reach {url}: {describe(error)}") from None
-    check_answers(fs, url, path)
-    return fs, path
 
 
 def check_answers(fs: fsspec.AbstractFileSystem, url: str, path: str) -> None:
@@ -212,7 +217,7 @@ def size_of(url: str) -> int:
 def _location(url: str) -> tuple[str, str]:
     """Where a URL points, the same for every spelling: (kind of filesystem, absolute normalised path).
     Local paths (plain, ``file://``, ``local://``) are resolved: symbolic links, ``..``, a trailing slash."""
-    fs, path = resolve(url)
+    fs, path = _filesystem(url)
     if isinstance(fs, LocalFileSystem):
         return "file", os.path.realpath(path)
     protocol = fs.protocol[0] if isinstance(fs.protocol, (tuple, list)) else fs.protocol
@@ -239,7 +244,7 @@ def check_place(output: str) -> None:
     under a regular file (``file.txt/out.zarr``: "is a file, not a folder"), or in a folder this process may
     not write (the nearest folder that exists, or the output itself when it is an existing folder that
     the command writes into). Object stores are not checked (no folders; their permissions show on write)."""
-    fs, path = resolve(output)
+    fs, path = _filesystem(output)
     if not isinstance(fs, LocalFileSystem):
         return
     shown = str(output) if "://" not in str(output) else path  # the user's own spelling where it is a path

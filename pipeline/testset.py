@@ -25,6 +25,7 @@ from pipeline.outputs import EVALUATION, TESTSET, mark_folder, new_output
 from pipeline.storage import check_apart, resolve
 from stages.errors import InputError
 from stages.montage import labelled, side_by_side
+from stages.numbers import check_flag
 
 ALPHAS = (0.6, 0.8, 1.0)
 HR_SIDE, SCALE, FRAMES, TRUTH_EVERY, SPEED = 256, 4, 123, 41, 0.5
@@ -90,8 +91,12 @@ def make_testset(out: str, *, workers: int | None = None, overwrite: bool = Fals
 
 
 def evaluate_testset(testset: str, methods: list[str], out: str, *, weights: str | None = None,
-                     workers: int | None = None, scheduler: str | None = None, progress: bool = True) -> list[dict]:
-    """Every method on every test store; rows averaged per (method, alpha), plus an 'all' row per method."""
+                     workers: int | None = None, scheduler: str | None = None, progress: bool = True,
+                     overwrite: bool = False) -> list[dict]:
+    """Every method on every test store; rows averaged per (method, alpha), plus an 'all' row per method.
+
+    ``out`` is a new output: an existing one is refused unless ``overwrite`` (and it is an evaluation)."""
+    check_flag("--overwrite", overwrite)
     check_apart(out, testset, weights)
     check_methods(methods, weights)
     check_workers(workers)
@@ -103,8 +108,8 @@ def evaluate_testset(testset: str, methods: list[str], out: str, *, weights: str
     for item in chosen:  # every store and method checked before OUT is replaced
         checked_evaluation(f"{testset.rstrip('/')}/{item.name}.zarr", methods, weights)
     out_fs, out_root = resolve(out)
-    # replaces only an earlier evaluation (kept until this one is written), never a folder of the user's
-    with claimed(out), new_output(out, overwrite=True, kind=EVALUATION, flag=""):
+    # replaces only an earlier evaluation, with --overwrite (kept until this one is written), never a user's folder
+    with claimed(out), new_output(out, overwrite=overwrite, kind=EVALUATION):
         mark_folder(out, EVALUATION)
         per_item = []
         with dask_client(workers=workers, scheduler=scheduler) as client:

@@ -13,3 +13,15 @@ class InputTypeError(InputError, TypeError):
 def describe(error: BaseException) -> str:
     """An exception as one line of text (its message with whitespace folded, else its type's name)."""
     return " ".join(str(error).split()) or type(error).__name__
+
+
+def not_ours_error(output, what: str, found: str) -> InputError:
+    """The refusal of an output that exists and is not one that cscsr wrote, ``--overwrite`` or not: ``what``
+    the command would replace (``a weights file``), ``found`` what is there (``a folder holding thesis.tex``)."""
+    return InputError(f"output {output} already exists and is not {what} ({found}): cscsr replaces only its own "
+                      f"outputs, even with --overwrite; choose another output, or move it away yourself")
+
+
+def exists_error(output, flag: str = "--overwrite") -> InputError:
+    """The refusal of an existing output of ours that the user did not ask to replace."""
+    return InputError(f"output {output} already exists (pass {flag} to replace it)")

@@ -43,6 +43,7 @@ class Reconstructor(Protocol):
     halo: int  # LR pixels of context needed on every side (even: keeps the Bayer phase)
     batch: int  # windows of one tile worth reconstructing together
     weights: str | None  # the weights file a network was loaded from (recorded in its output); None: classic
+    weights_sha256: str | None  # that file's SHA-256 (recorded too, and checked by --resume); None: classic
 
     def __call__(self, window: Window) -> np.ndarray:
         """-> (s*h, s*w, 3) uint8 RGB."""
@@ -71,6 +72,7 @@ class RateReconstructor:
     halo: int = 8
     batch: int = 1
     weights: None = None
+    weights_sha256: None = None
 
     def __call__(self, window: Window) -> np.ndarray:
         rate = self.estimate(window.packed, window.width, window.reset)

@@ -233,3 +233,40 @@ def test_simulate_survives_its_only_worker(tmp_path):
     a, b = chunk_files(str(out)), chunk_files(str(clean))
     assert a.keys() == b.keys()
     assert all(a[name] == b[name] for name in a if name != "zarr.json")  # the root's attrs name the source path
+
+
+def _slow_off(worker: str, x: int) -> int:
+    """x + 1, slowly on any worker but ``worker``: a rerun elsewhere takes long enough to be seen pending."""
+    from distributed import get_worker
+
+    if get_worker().address != worker:
+        time.sleep(1.0)
+    return x + 1
+
+
+def test_a_finished_task_whose_result_died_with_its_worker_is_waited_for():
+    """Tasks that finished on a worker which then died, before the job read them, come back ``lost`` while
+    Dask reruns them: the job waits for the rerun instead of calling them failed."""
+    from distributed import LocalCluster, wait
+
+    from pipeline.executor import failure, submitted
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as local, \
+            Client(local) as client:
+        doomed = sorted(client.scheduler_info()["workers"])[0]
+        futures = []
+
+        def submit(task):
+            futures.append(client.submit(_slow_off, doomed, task, pure=False, workers=[doomed],
+                                         allow_other_workers=True))
+            return futures[-1]
+
+        results = submitted(client, range(4), submit)
+        first_task, first = next(results)  # all four submitted (the window holds 12)
+        outcomes = {first_task: failure(first)}  # read as the job reads it, when it is yielded
+        wait(futures)  # all finished on the doomed worker; three not read yet
+        os.kill(client.run(os.getpid, workers=[doomed])[doomed], signal.SIGKILL)
+        wait_for(lambda: any(f.status != "finished" for f in futures), "the client never heard of the loss", 60)
+        outcomes |= {task: failure(future) for task, future in results}
+        assert outcomes == {0: None, 1: None, 2: None, 3: None}
+        assert [f.result() for f in futures] == [1, 2, 3, 4]

@@ -3,10 +3,15 @@
 Every command that writes (ingest, simulate, reconstruct, make-testset, export to .mp4, to a folder of
 PNGs and to .dat) is pointed with ``--overwrite`` at a folder of the user's holding a file, and at an
 unrelated regular file: each is refused in one line (``error: ...``, exit 1) and nothing under the
-test's folder changes. Our own previous outputs are still replaced; a run that fails late (a capture
-with a value of 2 in its last frame) leaves the old complete output as it was (pipeline/outputs.py)."""
+test's folder changes. A store of ours of the other kind is refused too: ``reconstruct`` never replaces
+a spike store (a recording), nor ``ingest``/``simulate`` a video store. Our own previous outputs are
+still replaced; a run that fails late (a capture with a value of 2 in its last frame) leaves the old
+complete output as it was, or a warning names where it is kept (pipeline/outputs.py)."""
 
+import errno
 import hashlib
+import json
+import logging
 import os
 
 import imageio.v3 as iio
@@ -79,7 +84,31 @@ def test_store_commands_refuse_what_is_not_ours(cli, world, user):
     (user / "z.zarr").mkdir()  # a Zarr store, but not one of ours
     (user / "z.zarr" / "zarr.json").write_text('{"zarr_format": 3, "node_type": "group", "attributes": {}}')
     refused(cli, user, "ingest", world / "c.npy", user / "z.zarr", "--overwrite", says="did not write")
-    refused(cli, user, "make-testset", world / "s.zarr", "--overwrite", says="not a test set")  # ours, other kind
+    refused(cli, world, "make-testset", world / "s.zarr", "--overwrite", says="not a test set")  # ours, other kind
+
+
+def test_a_store_of_the_other_kind_is_refused(cli, world, tmp_path):
+    """A spike store is a recording (perhaps the only copy: the raw capture may be gone): ``reconstruct
+    --overwrite`` never replaces one, nor ``ingest``/``simulate --overwrite`` a video store."""
+    import shutil
+
+    recording, video = tmp_path / "B.zarr", tmp_path / "V.zarr"
+    shutil.copytree(world / "s.zarr", recording)
+    shutil.copytree(world / "v.zarr", video)
+    for extra in (("--overwrite",), ()):
+        refused(cli, tmp_path, "reconstruct", world / "s.zarr", recording, *extra, "--every", 2, "--tile", 16,
+                "--workers", 1, says=f"output {recording} is a spike store (a recording), not a video store: "
+                                     "--overwrite replaces only a video store written by cscsr reconstruct")
+        refused(cli, tmp_path, "ingest", world / "c.npy", video, *extra,
+                says=f"output {video} is a video store, not a spike store: --overwrite replaces only a spike store")
+        refused(cli, tmp_path, "simulate", world / "scene.png", video, *extra, "--frames", 41, "--motion", "static",
+                "--workers", 1, says=f"output {video} is a video store, not a spike store")
+    # what marks a store as cscsr's is its cscsr_version attribute (every store cscsr wrote has one)
+    root = json.loads((recording / "zarr.json").read_text())
+    del root["attributes"]["cscsr_version"]
+    (recording / "zarr.json").write_text(json.dumps(root))
+    refused(cli, tmp_path, "ingest", world / "c.npy", recording, "--overwrite",
+            says="a Zarr store that cscsr did not write")
 
 
 def test_export_refuses_what_is_not_ours(cli, world, user):
@@ -222,3 +251,44 @@ def test_a_failed_reconstruct_overwrite_keeps_both(world, tmp_path, client):
     reconstruct(recording, video, ReconstructOptions(method="tfi", every=2, tile=16, gain=1.0, resume=True),
                 client=client, progress=False)
     assert zarr.open_group(video, mode="r").attrs["method"] == "tfi" and asides(tmp_path) == []
+
+
+def test_a_failed_restore_says_where_the_old_output_is(tmp_path, monkeypatch, caplog):
+    """If the new output cannot be removed and the old one cannot be renamed back, a warning names where the
+    old one is kept (it was silent)."""
+    import pipeline.outputs as outputs
+
+    out = tmp_path / "v.mp4"
+    out.write_bytes(b"\x00\x00\x00\x18ftypisom old video")
+    rename = os.rename
+
+    def failing_rename(source, target):
+        if ".old-" in os.path.basename(source):
+            raise OSError(errno.EACCES, "Permission denied")
+        return rename(source, target)
+
+    def failing_remove(url):
+        raise OSError(errno.EBUSY, "Device or resource busy")
+
+    monkeypatch.setattr(outputs.os, "rename", failing_rename)
+    monkeypatch.setattr(outputs, "remove", failing_remove)
+    with caplog.at_level(logging.WARNING, logger="cscsr.outputs"), pytest.raises(RuntimeError, match="late"):
+        with outputs.new_output(str(out), overwrite=True, kind=".mp4"):
+            out.write_bytes(b"half a video")
+            raise RuntimeError("failed late")
+    [aside] = asides(tmp_path)
+    assert (tmp_path / aside).read_bytes() == b"\x00\x00\x00\x18ftypisom old video"
+    assert f"the old {out} could not be put back (Permission denied; the new, unfinished {out} could not be " \
+           f"removed (Device or resource busy)): it is kept as {tmp_path / aside}" in caplog.text
+
+
+def test_any_complete_output_removes_what_a_killed_run_set_aside(tmp_path):
+    """A run killed during an --overwrite leaves the old output as .NAME.old-<id>; the next job that completes
+    an output at NAME removes it, --overwrite or not (docs/reliability.md, Known gaps)."""
+    from pipeline.outputs import new_output
+
+    (tmp_path / ".v.mp4.old-0123456789ab").write_bytes(b"\x00\x00\x00\x18ftypisom old video")
+    (tmp_path / ".v.mp4.other").write_text("not set aside by cscsr\n")
+    with new_output(str(tmp_path / "v.mp4"), overwrite=False, kind=".mp4"):
+        (tmp_path / "v.mp4").write_bytes(b"\x00\x00\x00\x18ftypisom new video")
+    assert sorted(os.listdir(tmp_path)) == [".v.mp4.other", "v.mp4"]

@@ -160,6 +160,7 @@ def test_a_ledger_is_opened_only_if_it_is_ours_and_status_never_writes(tmp_path,
     cases = [(foreign, "is an SQLite database but not a cscsr ledger (tables: photos)"),
              (garbage, "is not an SQLite database (file is not a database)"),
              (folder, "is a folder, not an SQLite database")]
+    (tmp_path / "inbox").mkdir()  # a watcher refuses a missing INBOX first
     for outbox, fragment in cases:
         before = snapshot(outbox)
         assert_refused(cli("status", outbox), f"{outbox / 'ledger.sqlite'}", fragment)

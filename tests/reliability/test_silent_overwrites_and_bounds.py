@@ -61,10 +61,13 @@ def test_export_weights_onto_an_existing_file_is_refused_unless_overwrite(cli, t
     # before: exit 0 and the step-3 weights silently replaced
     assert_refused(cli("export-weights", run, dest), f"output {dest} already exists (pass --overwrite to replace it)")
     assert dest.read_bytes() == earlier and read_metadata(dest)["steps"] == "3"
+    (tmp_path / "x.safetensors.partial").write_text("the user's own file")  # never written over nor removed
     result = cli("export-weights", run, dest, "--overwrite")
     assert result.exit_code == 0, result.stderr
     assert read_metadata(dest)["steps"] == "5"
-    assert sorted(os.listdir(tmp_path)) == ["run", "x.safetensors"]  # written aside, then swapped: no .partial left
+    # written aside under a name of its own, then swapped: nothing of it left, the user's file as it was
+    assert sorted(os.listdir(tmp_path)) == ["run", "x.safetensors", "x.safetensors.partial"]
+    assert (tmp_path / "x.safetensors.partial").read_text() == "the user's own file"
 
     thesis = tmp_path / "thesis.safetensors"  # not a weights file: never replaced, --overwrite or not
     thesis.write_text("\\documentclass{article} my thesis")
@@ -114,6 +117,46 @@ def test_evaluate_overwrite_never_replaces_a_folder_that_is_not_an_evaluation(cl
     assert_refused(cli("evaluate", store, "--methods", "tfp", "--out", out, "--workers", 1, "--overwrite"),
                    f"output {out} already exists and is not an evaluation")
     assert os.listdir(out) == ["thesis.tex"] and (out / "thesis.tex").read_text() == "my thesis"
+
+
+def test_evaluate_testset_onto_an_existing_out_is_refused_unless_overwrite(cli, tmp_path, store, monkeypatch):
+    """evaluate-testset replaced an earlier evaluation without being asked; it now has --overwrite like evaluate.
+    Only the claim is tested: no evaluation runs (the cluster is stubbed to stop the job once OUT is claimed)."""
+    import shutil
+
+    import pipeline.testset as testset
+    from pipeline.outputs import EVALUATION, mark_folder
+
+    tset = tmp_path / "set"  # a test set of one item: the 100-frame store
+    tset.mkdir()
+    shutil.copytree(store, tset / "coffee_a0.8.zarr")
+    (tset / "manifest.json").write_text(json.dumps({"items": [{"picture": "coffee", "alpha": 0.8, "seed": 1011,
+                                                               "store": "coffee_a0.8.zarr"}]}))
+    out = tmp_path / "ev"
+    mark_folder(str(out), EVALUATION)  # an earlier evaluation
+    (out / "summary.csv").write_text("method,alpha,psnr,ssim,seconds_per_image\nearlier,all,1.0,0.1,1.0\n")
+    before = fingerprint(out)
+    # before: exit 0, the earlier evaluation replaced
+    assert_refused(cli("evaluate-testset", tset, "--methods", "tfp", "--out", out, "--workers", 1),
+                   f"output {out} already exists (pass --overwrite to replace it)")
+    assert fingerprint(out) == before
+
+    user = tmp_path / "userdir"
+    user.mkdir()
+    (user / "thesis.tex").write_text("my thesis")
+    assert_refused(cli("evaluate-testset", tset, "--methods", "tfp", "--out", user, "--workers", 1, "--overwrite"),
+                   f"output {user} already exists and is not an evaluation")
+    assert os.listdir(user) == ["thesis.tex"] and (user / "thesis.tex").read_text() == "my thesis"
+
+    def stop(**kwargs):
+        raise RuntimeError("stopped once OUT is claimed")
+
+    monkeypatch.setattr(testset, "dask_client", stop)
+    with pytest.raises(RuntimeError, match="stopped once OUT is claimed"):  # --overwrite: past the claim
+        testset.evaluate_testset(str(tset), ["tfp"], str(out), workers=1, progress=False, overwrite=True)
+    assert fingerprint(out) == before and not [name for name in os.listdir(tmp_path) if ".old-" in name]
+    with pytest.raises(TypeError, match="--overwrite must be True or False"):
+        testset.evaluate_testset(str(tset), ["tfp"], str(out), overwrite="no")
 
 
 # --- a video store with a lost chunk: info says damaged, export refuses ------------------------------
