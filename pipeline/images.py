@@ -5,17 +5,11 @@ import os
 import imageio.v3 as iio
 import numpy as np
 
+from pipeline.outputs import IMAGE_MAGIC, new_output
 from pipeline.storage import resolve
 from stages.errors import InputError
 
-_TIFF = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")  # little/big endian, classic/BigTIFF
-# The images we read and write, by suffix: a test of a file's first 16 bytes saying it is one
-# (what ``--overwrite`` replaces: ``pipeline.outputs``).
-IMAGE_MAGIC = {".png": lambda b: b.startswith(b"\x89PNG\r\n\x1a\n"), ".jpg": lambda b: b.startswith(b"\xff\xd8\xff"),
-               ".jpeg": lambda b: b.startswith(b"\xff\xd8\xff"), ".tif": lambda b: b[:4] in _TIFF,
-               ".tiff": lambda b: b[:4] in _TIFF, ".bmp": lambda b: b.startswith(b"BM"),
-               ".webp": lambda b: b[:4] == b"RIFF" and b[8:12] == b"WEBP"}
-IMAGE_SUFFIXES = tuple(IMAGE_MAGIC)
+IMAGE_SUFFIXES = tuple(IMAGE_MAGIC)  # the images we read and write
 
 
 def image_suffix(url: str) -> str:
@@ -46,8 +40,6 @@ def read_image(url: str) -> np.ndarray:
 
 
 def write_image(url: str, image: np.ndarray, *, overwrite: bool = True) -> None:
-    from pipeline.outputs import new_output  # which imports this module's IMAGE_MAGIC
-
     fs, path = resolve(url)
     encoded = iio.imwrite("<bytes>", image, extension=image_suffix(url))
     with new_output(url, overwrite=overwrite, kind=image_suffix(url)):  # only an image replaces an image

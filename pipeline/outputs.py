@@ -27,7 +27,6 @@ import uuid
 from collections.abc import Iterator
 
 import cscsr
-from pipeline.images import IMAGE_MAGIC
 from pipeline.lease import check_free
 from pipeline.spike_store import SPIKES
 from pipeline.storage import exists, is_local, open_group, remove, resolve
@@ -48,6 +47,13 @@ _WHAT = {SPIKE_STORE: "a spike store written by cscsr ingest or simulate",
          FRAME_FOLDER: "a folder of frames exported by cscsr (frame_<centre>.png)", ".dat": "a .dat file",
          ".mp4": "an MP4 video"}
 _STORES = {SPIKE_STORE: "a spike store (a recording)", VIDEO_STORE: "a video store"}  # what one is found to be
+_TIFF = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")  # little/big endian, classic/BigTIFF
+# The images we read and write, by suffix: a test of a file's first 16 bytes saying it is one
+# (what ``--overwrite`` replaces; ``pipeline.images`` reads and writes these).
+IMAGE_MAGIC = {".png": lambda b: b.startswith(b"\x89PNG\r\n\x1a\n"), ".jpg": lambda b: b.startswith(b"\xff\xd8\xff"),
+               ".jpeg": lambda b: b.startswith(b"\xff\xd8\xff"), ".tif": lambda b: b[:4] in _TIFF,
+               ".tiff": lambda b: b[:4] in _TIFF, ".bmp": lambda b: b.startswith(b"BM"),
+               ".webp": lambda b: b[:4] == b"RIFF" and b[8:12] == b"WEBP"}
 _MAGIC = {**IMAGE_MAGIC, ".mp4": lambda b: b[4:8] == b"ftyp",
           ".dat": lambda b: True}  # raw bits: any bytes are a capture
 _FRAME = re.compile(r"frame_\d+\.png")
