@@ -163,10 +163,14 @@ def _check_existing(url: str, *, overwrite: bool, kind: str, flag: str) -> bool:
     return True
 
 
+def _local_path(url: str) -> str:
+    """The absolute path of the local output ``url``, without a trailing slash."""
+    return os.path.abspath(resolve(url)[1]).rstrip("/")
+
+
 def _asides(url: str) -> tuple[str, list[str]]:
     """(folder, names) of the old outputs set aside beside the local output ``url``."""
-    path = os.path.abspath(resolve(url)[1]).rstrip("/")
-    folder, name = os.path.split(path)
+    folder, name = os.path.split(_local_path(url))
     prefix = ASIDE.format(name=name)
     try:
         return folder, [entry for entry in os.listdir(folder or ".") if entry.startswith(prefix)]
@@ -183,7 +187,7 @@ def _delete(path: str) -> None:
 
 def _set_aside(url: str) -> str:
     """Rename the local output ``url`` to a hidden sibling; -> its new path."""
-    path = os.path.abspath(resolve(url)[1]).rstrip("/")
+    path = _local_path(url)
     folder, name = os.path.split(path)
     aside = os.path.join(folder, ASIDE.format(name=name) + uuid.uuid4().hex[:12])
     try:
@@ -231,7 +235,7 @@ def new_output(url: str, *, overwrite: bool, kind: str, flag: str = "--overwrite
             unremoved = f"the new, unfinished {url} could not be removed ({getattr(error, 'strerror', None) or error})"
         if aside is not None:
             try:
-                os.rename(aside, os.path.abspath(resolve(url)[1]).rstrip("/"))
+                os.rename(aside, _local_path(url))
             except OSError as error:
                 log.warning("the old %s could not be put back (%s%s): it is kept as %s (rename it back to keep it)",
                             url, error.strerror or error, f"; {unremoved}" if unremoved else "", aside)

@@ -274,17 +274,16 @@ def process(candidate: Candidate, key: str, params: dict, outbox: str, ledger: L
              ", taking up an earlier one" if taken_up else "")
     started = time.perf_counter()
     try:
-        spikes, ingested = candidate.url, False
+        spikes = candidate.url
         if candidate.kind in RAW:
             spikes = spike_store_of(out, candidate.name)
             if not (taken_up and _complete_spikes(spikes)):
-                ingested = True  # a new spike store, with a new identity: a video of an earlier one is redone
                 attrs = ingest(candidate.url, spikes, IngestOptions(**params["capture"], overwrite=True), progress=False)
                 log.info("%s: ingested %s -> %s (%d spikes)", candidate.name, candidate.url, spikes,
                          attrs["spike_count"])
             else:
                 log.info("%s: ingested already (%s)", candidate.name, spikes)
-        resume = taken_up and not ingested and exists(video)  # --resume would refuse another store's video
+        resume = taken_up and exists(video)  # the same capture ingested again has the same identity
         if not (resume and open_video_store(video).attrs.get("state") == "complete"):
             counts = reconstruct(spikes, video, ReconstructOptions(method=options.method, every=options.every,
                                                                    tile=options.tile, weights=options.weights,

@@ -9,7 +9,6 @@ still replaced; a run that fails late (a capture with a value of 2 in its last f
 complete output as it was, or a warning names where it is kept (pipeline/outputs.py)."""
 
 import errno
-import hashlib
 import json
 import logging
 import os
@@ -21,6 +20,7 @@ import zarr
 
 from pipeline.ingest import IngestOptions, ingest
 from pipeline.reconstruct import ReconstructOptions, reconstruct
+from tests.reliability.test_overlap import snapshot
 from tests.test_simulate import picture
 
 SIDE, FRAMES = 16, 64
@@ -40,17 +40,6 @@ def world(tmp_path_factory, client):
                 client=client, progress=False)
     iio.imwrite(root / "scene.png", picture("astronaut", 4 * SIDE))
     return root
-
-
-def snapshot(folder) -> dict:
-    """Every file and folder under ``folder``: its bytes' hash, or a marker."""
-    seen = {}
-    for root, dirs, files in os.walk(folder):
-        for name in dirs + files:
-            path = os.path.join(root, name)
-            key = os.path.relpath(path, folder)
-            seen[key] = "folder" if os.path.isdir(path) else hashlib.sha256(open(path, "rb").read()).hexdigest()
-    return seen
 
 
 def refused(cli, folder, *args, says: str = "cscsr replaces only its own outputs") -> None:

@@ -16,24 +16,20 @@ import torch
 import zarr
 
 from tests.reliability.test_numbers import assert_nothing_made, fingerprint
+from tests.reliability.test_answers import store  # noqa: F401 - the fixture: a store with ground truth
 from tests.test_bad_input import assert_refused
 
-FRAMES, HEIGHT, WIDTH = 100, 16, 16
+
+def user_folder(parent):
+    """A folder of the user's, holding their thesis."""
+    folder = parent / "userdir"
+    folder.mkdir()
+    (folder / "thesis.tex").write_text("my thesis")
+    return folder
 
 
-@pytest.fixture
-def store(cli, tmp_path):
-    """A complete 100-frame 16x16 RGGB spike store with ground truth at frames 20 and 61 (as simulate makes)."""
-    capture = tmp_path / "c.npy"
-    np.save(capture, (np.random.default_rng(0).random((FRAMES, HEIGHT, WIDTH)) < 0.2).astype(np.uint8))
-    path = tmp_path / "s.zarr"
-    result = cli("ingest", capture, path, "--cfa", "rggb")
-    assert result.exit_code == 0, result.stderr
-    group = zarr.open_group(str(path), mode="r+")
-    group.create_array("truth", data=np.zeros((2, 4 * HEIGHT, 4 * WIDTH, 3), np.uint8))
-    group.create_array("truth_frames", data=np.array([20, 61], np.int64))
-    os.remove(capture)
-    return path
+def assert_untouched(folder) -> None:
+    assert os.listdir(folder) == ["thesis.tex"] and (folder / "thesis.tex").read_text() == "my thesis"
 
 
 # --- export-weights: an existing DEST --------------------------------------------------------------
@@ -111,12 +107,10 @@ def test_evaluate_onto_an_existing_out_is_refused_unless_overwrite(cli, tmp_path
 
 
 def test_evaluate_overwrite_never_replaces_a_folder_that_is_not_an_evaluation(cli, tmp_path, store):
-    out = tmp_path / "userdir"
-    out.mkdir()
-    (out / "thesis.tex").write_text("my thesis")
+    out = user_folder(tmp_path)
     assert_refused(cli("evaluate", store, "--methods", "tfp", "--out", out, "--workers", 1, "--overwrite"),
                    f"output {out} already exists and is not an evaluation")
-    assert os.listdir(out) == ["thesis.tex"] and (out / "thesis.tex").read_text() == "my thesis"
+    assert_untouched(out)
 
 
 def test_evaluate_testset_onto_an_existing_out_is_refused_unless_overwrite(cli, tmp_path, store, monkeypatch):
@@ -141,12 +135,10 @@ def test_evaluate_testset_onto_an_existing_out_is_refused_unless_overwrite(cli, 
                    f"output {out} already exists (pass --overwrite to replace it)")
     assert fingerprint(out) == before
 
-    user = tmp_path / "userdir"
-    user.mkdir()
-    (user / "thesis.tex").write_text("my thesis")
+    user = user_folder(tmp_path)
     assert_refused(cli("evaluate-testset", tset, "--methods", "tfp", "--out", user, "--workers", 1, "--overwrite"),
                    f"output {user} already exists and is not an evaluation")
-    assert os.listdir(user) == ["thesis.tex"] and (user / "thesis.tex").read_text() == "my thesis"
+    assert_untouched(user)
 
     def stop(**kwargs):
         raise RuntimeError("stopped once OUT is claimed")
