@@ -6,10 +6,20 @@ one CPU thread per worker (so the bytes do not depend on the number of workers).
 the windows of several tiles of the same shape go through together (:meth:`many_tiles`).
 ``precision="bf16"`` runs the network under ``torch.autocast`` (bfloat16) on its device;
 ``backend="onnx"`` runs it on ONNX Runtime instead (CPU, fp32: :mod:`cscsr.onnx_runtime`).
+
+The data path (:meth:`NetworkReconstructor.many`): the packed spike bits go to the device (from
+pinned memory on a GPU), and unpacking, the network and exposure to uint8 all run there
+(:meth:`~NetworkReconstructor.device_images`, :mod:`cscsr.device_steps`); only the uint8 HR image
+comes back. One task at a time uses the device (a lock per loaded network): a GPU worker runs
+several tasks at once (``pipeline.cluster.GPU_TASKS_IN_FLIGHT``), so while one task's windows are
+on the device the others read their input and write their output. ``fast_gpu`` adds, on a GPU
+only, channels-last, cuDNN autotuning and ``torch.compile`` (:func:`load_reconstructor`).
 """
 
 import contextlib
-from dataclasses import dataclass
+import os
+import threading
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -17,9 +27,8 @@ import torch
 from cscsr.config import BACKENDS, PRECISIONS
 from cscsr.integration import NETWORK_SCALES
 from cscsr.weights_io import load_model, weights_file, weights_sha256
-from stages.bits import unpack_rows
+from cscsr.device_steps import expose_uint8, unpack_bits
 from stages.cfa import flip_horizontally, flip_vertically, transpose
-from stages.colour import expose
 from stages.errors import InputError
 from stages.methods import Window
 
@@ -39,11 +48,14 @@ class NetworkReconstructor:
     join_tiles: bool | None = None  # tiles of one shape in one pass (many_tiles); None: on a GPU only
     backend: str = "torch"  # or "onnx": ONNX Runtime on the CPU
     weights_sha256: str | None = None  # of the file the model was loaded from: what an output records
+    forward: object = None  # what runs the model: the model itself, or its torch.compile'd twin (fast_gpu)
+    _device_lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False, compare=False)
 
     def __post_init__(self):
         from cscsr.onnx_runtime import OnnxNetwork
 
         self._onnx = OnnxNetwork(self.model) if self.backend == "onnx" else None
+        self.forward = self.forward or self.model
 
     @property
     def name(self) -> str:
@@ -64,15 +76,37 @@ class NetworkReconstructor:
         return self.many([window])[0]
 
     def many(self, windows: list[Window]) -> list[np.ndarray]:
-        """Windows of one tile (same shape, CFA, reset, gain, scale) -> (s*h, s*w, 3) uint8 each."""
-        first = windows[0]
-        spikes = np.stack([unpack_rows(w.packed, w.width) for w in windows])  # (B, N, h, w) uint8
-        with one_thread_on_cpu(self.device), torch.inference_mode(), self._autocast():
-            x = torch.from_numpy(spikes).to(self.device, torch.float32)
+        """Windows of one tile (same shape, CFA, reset, gain, scale) -> (s*h, s*w, 3) uint8 each.
+
+        Only the packed bits go to the device and only uint8 comes back; the device is used by one
+        call at a time (other tasks of the worker read and write meanwhile)."""
+        packed = np.stack([w.packed for w in windows])  # (B, N, h, ceil(w/8)) uint8: one bit per spike
+        with self._device_lock, one_thread_on_cpu(self.device), torch.inference_mode():
+            images = self.device_images(self._to_device(packed), windows[0])  # (B, sH, sW, 3) uint8
+            return list(self._to_host(images))
+
+    def device_images(self, packed: torch.Tensor, window: Window) -> torch.Tensor:
+        """On the device: packed bits (B, N, h, ceil(w/8)) uint8 -> exposed images (B, sH, sW, 3) uint8
+        (unpack, the network, under each of the 8 orientations for the self-ensemble, exposure)."""
+        spikes = unpack_bits(packed, window.width).float()  # (B, N, h, w) 0/1
+        with self._autocast():
             views = range(8) if self.self_ensemble else (0,)
-            rate = sum(self._seen_under(k, x, first) for k in views) / len(views)  # (B, 3, sH, sW)
-            rate = rate.permute(0, 2, 3, 1).float().cpu().numpy()
-        return [expose(r, first.gain) for r in rate]
+            rate = sum(self._seen_under(k, spikes, window) for k in views) / len(views)  # (B, 3, sH, sW)
+        return expose_uint8(rate.permute(0, 2, 3, 1).float(), window.gain)
+
+    def _to_device(self, packed: np.ndarray) -> torch.Tensor:
+        host = torch.from_numpy(packed)
+        if self.device.type != "cuda":
+            return host
+        return host.pin_memory().to(self.device, non_blocking=True)  # page-locked: a DMA copy, no staging
+
+    def _to_host(self, images: torch.Tensor) -> np.ndarray:
+        if self.device.type != "cuda":
+            return images.numpy()
+        host = torch.empty(images.shape, dtype=images.dtype, pin_memory=True)  # torch caches pinned blocks
+        host.copy_(images, non_blocking=True)
+        torch.cuda.current_stream(self.device).synchronize()
+        return host.numpy()
 
     def many_tiles(self, tiles: list[list[Window]], most: int | None = None) -> list[list[np.ndarray]]:
         """The windows of several tiles (each tile's as :meth:`many` takes them) -> each tile's images.
@@ -118,7 +152,7 @@ class NetworkReconstructor:
         if self._onnx is not None:
             image = self._onnx(spikes.contiguous(), cfa, zero_reset, window.scale)
         else:
-            image = self.model(spikes.contiguous(), cfa, zero_reset, window.scale)["image"]
+            image = self.forward(spikes.contiguous(), cfa, zero_reset, window.scale)["image"]
         if orientation & 4:
             image = image.flip(-2)
         if orientation & 2:
@@ -143,12 +177,13 @@ def one_thread_on_cpu(device: torch.device):
 
 def load_reconstructor(weights: str | None, device: str | None = None, *, self_ensemble: bool = False,
                        precision: str = "fp32", channels_last: bool = False,
-                       backend: str = "torch") -> NetworkReconstructor:
+                       backend: str = "torch", fast_gpu: bool = False) -> NetworkReconstructor:
     """The network from ``weights`` (a file, or "lite" or "full" for the shipped ones; default lite, the
     faster on a CPU), on a GPU if there is one; with ``self_ensemble``, every window is reconstructed
     under the 8 flips and quarter turns and averaged; ``precision`` fp32, or bf16 (autocast);
     ``channels_last`` runs the convolutions on NHWC tensors (``cscsr.network.use_channels_last``);
-    ``backend`` "onnx" runs the network on ONNX Runtime (CPU, fp32)."""
+    ``backend`` "onnx" runs the network on ONNX Runtime (CPU, fp32); ``fast_gpu``, on a GPU only
+    (a CPU ignores it): channels-last, cuDNN autotuning and ``torch.compile`` (:func:`compiled`)."""
     from cscsr.network import use_channels_last
 
     check_backend(backend, precision)
@@ -158,10 +193,25 @@ def load_reconstructor(weights: str | None, device: str | None = None, *, self_e
         device = "cpu"
     device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
     model, _ = load_model(path, device)
-    if channels_last:
+    fast = fast_gpu and device.type == "cuda"
+    if channels_last or fast:
         use_channels_last(model)
     return NetworkReconstructor(model, device, str(path), self_ensemble=self_ensemble, precision=precision,
-                                backend=backend, weights_sha256=digest)
+                                backend=backend, weights_sha256=digest, forward=compiled(model) if fast else None)
+
+
+COMPILE_CACHE = "~/.cache/cscsr/torchinductor"  # torch.compile's kernels, kept between worker processes
+
+
+def compiled(model: torch.nn.Module):
+    """``model`` under ``torch.compile`` with cuDNN autotuning, for a GPU: the first pass of each input
+    shape compiles (and autotunes) it, later passes reuse it; the compiled kernels are cached on disk
+    (``TORCHINDUCTOR_CACHE_DIR``, default :data:`COMPILE_CACHE`), so a worker that starts again pays
+    the compile once per shape per machine. Outputs stay within the network's float tolerance, not bit
+    for bit: autotuning may pick other kernels in another process."""
+    os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", os.path.expanduser(COMPILE_CACHE))
+    torch.backends.cudnn.benchmark = True
+    return torch.compile(model, dynamic=False)
 
 
 def check_backend(backend: str, precision: str = "fp32") -> None:

@@ -6,12 +6,16 @@ the same Python, so that environment must be on the shared filesystem):
     pip install dask-jobqueue
     python deploy/slurm.py --jobs 16 -- cscsr reconstruct /shared/x.zarr /shared/out/x.zarr
     python deploy/slurm.py --jobs 4 --gpu --partition gpu -- cscsr reconstruct ...
+    python deploy/slurm.py --jobs 2 --gpu --gpus-per-job 4 --partition gpu -- cscsr reconstruct ...
     python deploy/slurm.py --jobs 16 --print-job-script     # what would be submitted
 
-The scheduler runs in this process; every job is one `dask worker` with the options of the
-compose `worker` service (1 process, 1 thread, 4 GiB; `--resources GPU=1` and one GPU with
---gpu). The command after `--` runs with DASK_SCHEDULER_ADDRESS set, so any cscsr command
-uses these workers; the jobs end with this script. PBS: the same with dask_jobqueue.PBSCluster
+The scheduler runs in this process; every CPU job is one `dask worker` with the options of the
+compose `worker` service (1 process, 1 thread, 4 GiB). A --gpu job asks for --gpus-per-job GPUs
+(default 1) and runs `cscsr worker` (`python -m pipeline.cli worker`, the compose `gpu-worker`
+command, as `dask cuda worker` would run): one worker per GPU of the job, pinned to it (SLURM's
+CUDA_VISIBLE_DEVICES), advertising GPU=1, with GPU_TASKS_IN_FLIGHT threads and 4 GiB each.
+The command after `--` runs with DASK_SCHEDULER_ADDRESS set, so any cscsr command uses these
+workers; the jobs end with this script. PBS: the same with dask_jobqueue.PBSCluster
 (`resource_spec` instead of `job_extra_directives`).
 """
 
@@ -24,23 +28,43 @@ import sys
 
 # The compose `worker` service: `dask worker ... --nworkers 1 --nthreads 1 --memory-limit 4GiB`.
 CORES = 1
-MEMORY = "4GiB"
-GPU_RESOURCES = ["--resources", "GPU=1"]
+MEMORY_GIB = 4
+MEMORY = f"{MEMORY_GIB}GiB"
+# The compose `gpu-worker` service: `cscsr worker ADDRESS --memory-limit 4GiB`, run as dask-jobqueue
+# runs a worker command (`python -m ...`), with the options it gives every worker command.
+GPU_WORKER_COMMAND = "pipeline.cli worker"
 
 
-def make_cluster(*, gpu: bool = False, partition: str | None = None, account: str | None = None,
-                 walltime: str = "04:00:00", interface: str | None = None, python: str | None = None,
-                 **kwargs):
-    """A dask_jobqueue.SLURMCluster whose jobs are cscsr workers (no job is submitted yet)."""
+def make_cluster(*, gpu: bool = False, gpus_per_job: int = 1, partition: str | None = None,
+                 account: str | None = None, walltime: str = "04:00:00", interface: str | None = None,
+                 python: str | None = None, **kwargs):
+    """A dask_jobqueue.SLURMCluster whose jobs are cscsr workers (no job is submitted yet).
+
+    With ``gpu``, a job of ``gpus_per_job`` GPUs runs that many pinned workers (``cscsr worker``), each
+    with GPU_TASKS_IN_FLIGHT cores and 4 GiB: dask-jobqueue counts them as the job's processes, named
+    NAME-0, NAME-1, ... as it expects."""
     from dask_jobqueue import SLURMCluster
 
+    if not gpu:
+        return SLURMCluster(
+            job_name="cscsr", cores=CORES, processes=1, memory=MEMORY, walltime=walltime,
+            queue=partition, account=account, interface=interface,
+            python=python or sys.executable,  # the jobs run this very environment
+            job_script_prologue=["export OMP_NUM_THREADS=1"],
+            **kwargs,
+        )
+    from pipeline.cluster import GPU_TASKS_IN_FLIGHT
+
+    if not isinstance(gpus_per_job, int) or gpus_per_job < 1:
+        raise ValueError(f"gpus_per_job must be an integer >= 1, got {gpus_per_job!r}")
     return SLURMCluster(
-        job_name="cscsr-gpu" if gpu else "cscsr",
-        cores=CORES, processes=1, memory=MEMORY, walltime=walltime,
+        job_name="cscsr-gpu", cores=GPU_TASKS_IN_FLIGHT * gpus_per_job, processes=gpus_per_job,
+        memory=f"{MEMORY_GIB * gpus_per_job}GiB", walltime=walltime,
         queue=partition, account=account, interface=interface,
-        python=python or sys.executable,  # the jobs run this very environment
-        worker_extra_args=list(GPU_RESOURCES) if gpu else [],
-        job_extra_directives=["--gres=gpu:1"] if gpu else [],
+        python=python or sys.executable,
+        worker_command=GPU_WORKER_COMMAND,
+        worker_extra_args=["--gpus", str(gpus_per_job)],  # SLURM's CUDA_VISIBLE_DEVICES must show them all
+        job_extra_directives=[f"--gres=gpu:{gpus_per_job}"],
         job_script_prologue=["export OMP_NUM_THREADS=1"],
         **kwargs,
     )
@@ -52,7 +76,9 @@ def main(argv: list[str] | None = None) -> int:
     own = argv[:argv.index("--")] if "--" in argv else argv
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--jobs", type=int, default=4, help="worker jobs to submit (default 4)")
-    parser.add_argument("--gpu", action="store_true", help="GPU workers: --gres=gpu:1, --resources GPU=1")
+    parser.add_argument("--gpu", action="store_true", help="GPU jobs: `cscsr worker`, one pinned GPU=1 worker "
+                        "per GPU of a job")
+    parser.add_argument("--gpus-per-job", type=int, default=1, help="GPUs of a --gpu job (default 1)")
     parser.add_argument("--partition")
     parser.add_argument("--account")
     parser.add_argument("--walltime", default="04:00:00")
@@ -61,8 +87,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(own)
     if not command and not args.print_job_script:
         parser.error("give the command to run after `--` (or --print-job-script)")
+    if args.gpus_per_job < 1:
+        parser.error(f"--gpus-per-job must be >= 1, got {args.gpus_per_job}")
 
-    with make_cluster(gpu=args.gpu, partition=args.partition, account=args.account,
+    with make_cluster(gpu=args.gpu, gpus_per_job=args.gpus_per_job, partition=args.partition, account=args.account,
                       walltime=args.walltime, interface=args.interface) as cluster:
         if args.print_job_script:
             print(cluster.job_script())

@@ -146,7 +146,7 @@ def reconstruct(store: str, out: str, *, client=None, workers: int | None = None
 
     ``options``: the fields of ``ReconstructOptions`` (``method`` ``"tfp"``/``"tfi"``/``"cscsr"``/
     ``"cscsr-ensemble"``, ``weights``, ``every``, ``window``, ``gain``, ``scale``, ``tile``, ``precision``,
-    ``backend``, ``gpu_batch``, ``segment_tasks``, ``resume``, ``overwrite``) as in ``cscsr reconstruct``.
+    ``backend``, ``gpu_batch``, ``fast_gpu``, ``segment_tasks``, ``resume``, ``overwrite``) as in ``cscsr reconstruct``.
     """
     from pipeline.reconstruct import ReconstructOptions, reconstruct as run
     from pipeline.video_store import open_video_store

@@ -312,8 +312,12 @@ def reconstruct(store: Annotated[str, typer.Argument(help="Spike store URL.")],
                 window: Annotated[int, typer.Option(help="Spike frames per output frame (odd).")] = WINDOW,
                 gain: Annotated[Optional[float], typer.Option(help="Rate-to-intensity gain (default: store's, else auto).")] = None,
                 scale: Annotated[Optional[int], typer.Option(help="Upsampling factor (default: store's, else 4).")] = None,
-                tile: Annotated[int, typer.Option(help="Tile side in LR pixels (multiple of 8).")] = 256,
-                weights: Annotated[Optional[str], typer.Option(help="Network weights (safetensors) for cscsr.")] = None,
+                tile: Annotated[Optional[int], typer.Option(help="Tile side in LR pixels (multiple of 8; default 256 "
+                                                                 "on CPU workers, on GPU workers the largest the GPU "
+                                                                 "holds: the whole frame where it fits).")] = None,
+                weights: Annotated[Optional[str], typer.Option(help="Network weights (safetensors) for cscsr "
+                                                                    "(default: full on GPU workers, lite on "
+                                                                    "CPUs).")] = None,
                 workers: Workers = None, scheduler: Scheduler = None,
                 resume: Annotated[bool, typer.Option("--resume", help="Finish an interrupted run into OUT.")] = False,
                 overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace OUT if it exists.")] = False,
@@ -322,9 +326,14 @@ def reconstruct(store: Annotated[str, typer.Argument(help="Spike store URL.")],
                 = 10_000,
                 precision: Annotated[str, typer.Option(help="The network's arithmetic: fp32, or bf16 (autocast on "
                                                             "the worker's GPU or CPU); cscsr methods only.")] = "fp32",
-                gpu_batch: Annotated[int, typer.Option(help="Windows per task and per network pass on workers that "
-                                                            "advertise a GPU resource (dask worker --resources "
-                                                            "GPU=1).")] = 16,
+                gpu_batch: Annotated[Optional[int], typer.Option(help="Windows per network pass on GPU workers "
+                                                                      "(default: as many as the GPU holds, at "
+                                                                      "most 16).")] = None,
+                fast_gpu: Annotated[bool, typer.Option("--fast-gpu", help="On GPU workers: channels-last, cuDNN "
+                                                                          "autotuning and torch.compile (compiled "
+                                                                          "once per shape, cached on disk); not "
+                                                                          "bit-reproducible across processes. A "
+                                                                          "CPU ignores it.")] = False,
                 backend: Annotated[str, typer.Option(help="What runs the network: torch, or onnx (ONNX Runtime on "
                                                           "the CPU: ~1.3x faster, ~18 s to export per tile shape "
                                                           "and worker; pip install 'cscsr[onnx]').")] = "torch"):
@@ -333,7 +342,7 @@ def reconstruct(store: Annotated[str, typer.Argument(help="Spike store URL.")],
 
     options = ReconstructOptions(method=method, every=every, window=window, gain=gain, scale=scale, tile=tile,
                                  weights=weights, resume=resume, overwrite=overwrite, segment_tasks=segment_tasks,
-                                 precision=precision, gpu_batch=gpu_batch, backend=backend)
+                                 precision=precision, gpu_batch=gpu_batch, backend=backend, fast_gpu=fast_gpu)
     counts = run(store, out, options, workers=workers, scheduler=scheduler)
     stdout.print(f"{out}: {counts['frames']} frames ({counts['tasks_run']} tasks run, {counts['tasks_skipped']} already committed)")
 
@@ -567,6 +576,35 @@ def demo(out_dir: Annotated[str, typer.Option("--out", help="Folder for the demo
     from pipeline.demo import run
 
     run(out_dir, console=stdout)
+
+
+@command()
+def worker(scheduler: Annotated[Optional[str], typer.Argument(
+               help="Dask scheduler address (default: DASK_SCHEDULER_ADDRESS, else Dask's scheduler-address "
+                    "setting).")] = None,
+           memory_limit: Annotated[str, typer.Option(help="Memory of each worker: 4GiB, a fraction of the machine's "
+                                                         "(0.5), auto (the machine's, shared), or 0 for no limit.")]
+           = "4GiB",
+           gpus: Annotated[Optional[int], typer.Option(help="GPUs to serve, one pinned worker each (default: every GPU "
+                                                            "torch sees here; 0: one CPU worker).")] = None,
+           name: Annotated[Optional[str], typer.Option(help="Worker name; NAME-0, NAME-1, ... for several.")] = None,
+           nthreads: Annotated[Optional[int], typer.Option(help="Threads of each worker (default: 4 on a GPU worker, "
+                                                                "1 on a CPU worker).")] = None,
+           death_timeout: Annotated[Optional[float], typer.Option(help="Seconds to wait for a scheduler before "
+                                                                       "closing (default: for ever).")] = None,
+           interface: Annotated[Optional[str], typer.Option(help="Network interface to listen on (e.g. ib0).")]
+           = None):
+    """This machine's Dask workers for a cluster, as `dask cuda worker` starts them: one per GPU, pinned to it
+    (CUDA_VISIBLE_DEVICES) and advertising GPU=1, with 4 threads; one 1-thread CPU worker without a GPU. Runs
+    until the scheduler closes, or SIGTERM or Ctrl-C."""
+    from pipeline.cluster import scheduler_address, serve_workers
+    from stages.errors import InputError
+
+    address = scheduler_address(scheduler)
+    if not address:
+        raise InputError("give the Dask scheduler's address (tcp://HOST:8786), or set DASK_SCHEDULER_ADDRESS")
+    serve_workers(address, memory_limit=memory_limit, gpus=gpus, name_prefix=name, nthreads=nthreads,
+                  death_timeout=death_timeout, interface=interface)  # refuses bad options and a lost scheduler first
 
 
 def main() -> None:

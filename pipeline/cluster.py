@@ -6,6 +6,15 @@ workers is not oversubscribed. An address comes from ``--scheduler`` or
 ``DASK_SCHEDULER_ADDRESS`` or Dask's ``scheduler-address`` setting; an unreachable one is a one-line error within seconds.
 Workers started with ``--resources GPU=1`` are GPU workers (:func:`gpu_workers`).
 
+Several GPUs per machine: one worker per GPU, each pinned to its device (``CUDA_VISIBLE_DEVICES``)
+and advertising ``GPU=1``, with :data:`GPU_TASKS_IN_FLIGHT` threads; the rest of the workers are
+1-thread CPU workers that see no GPU. This is dask-cuda's convention (``LocalCUDACluster``,
+``dask cuda worker``), implemented here because dask-cuda does not fit our pins (it requires
+rapids-dask-dependency, which pins dask and distributed to another release, plus cuda-core and
+pandas). A local cluster follows it on a machine where torch sees GPUs (:func:`dask_client`), and
+``cscsr worker`` (:func:`serve_workers`) starts a cluster node's workers by it. Without a GPU
+nothing changes.
+
 A local cluster listens on loopback only: its scheduler, workers and dashboard (the dashboard
 shows task names and file paths, and can run profiling). ``CSCSR_DASHBOARD=HOST:PORT`` (e.g.
 ``0.0.0.0:8787``) serves the dashboard elsewhere, for a user who asks for it.
@@ -14,13 +23,17 @@ shows task names and file paths, and can run profiling). ``CSCSR_DASHBOARD=HOST:
 import asyncio
 import contextlib
 import errno
+import functools
+import importlib.metadata
 import logging
 import os
+import signal
+import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 
 import dask
-from distributed import Client, LocalCluster, WorkerPlugin
+from distributed import Client, LocalCluster, Nanny, WorkerPlugin
 
 from stages.errors import InputError, describe
 from stages.numbers import check_number
@@ -29,6 +42,15 @@ CONNECT_TIMEOUT = "5s"
 WORKERS_PER_CORE, MOST_WORKERS = 4, 256  # --workers at most 4 per core and 256 in all: beyond that a local
 # cluster only multiplies processes (~100 MiB each) and start-up time, with no core left to run them
 GPU = "GPU"  # the Dask worker resource a GPU worker advertises; network tasks ask for one
+# Threads of a GPU worker. A network task asks for GPU_SHARE = 1 / GPU_TASKS_IN_FLIGHT of the GPU
+# resource (0.25, exact in binary), so up to four network tasks are in flight on one GPU worker: one
+# on the device (the reconstructor serialises device work with a lock) while the others read and
+# decompress their input or compress and write their output.
+GPU_TASKS_IN_FLIGHT = 4
+GPU_SHARE = 1 / GPU_TASKS_IN_FLIGHT
+DEVICES_VARIABLE = "CUDA_VISIBLE_DEVICES"  # the devices a process sees: what pins a worker to its GPU
+
+_log = logging.getLogger("cscsr.worker")
 LOOPBACK = "127.0.0.1"
 DASHBOARD_VARIABLE = "CSCSR_DASHBOARD"  # HOST:PORT of a local cluster's dashboard; default loopback, any free port
 
@@ -113,9 +135,80 @@ def check_scheduler(scheduler: str | None) -> None:
                          f"protocol ({type(error).__name__})")
 
 
+def visible_gpus() -> int:
+    """How many CUDA devices this process sees: ``torch.cuda.device_count()``, which honours
+    ``CUDA_VISIBLE_DEVICES`` and asks NVML, so no CUDA context is made (and nothing is initialised
+    that a forked process would inherit); 0 if torch is missing or built without CUDA. A CPU build of
+    torch (``+cpu``) is answered from its version without importing it (a second and a half)."""
+    if os.environ.get(DEVICES_VARIABLE) is not None and not _listed_devices():
+        return 0  # CUDA_VISIBLE_DEVICES="" (or "-1"): every device hidden
+    if "torch" not in sys.modules:
+        try:
+            if importlib.metadata.version("torch").endswith("+cpu"):
+                return 0
+        except importlib.metadata.PackageNotFoundError:
+            return 0
+    try:
+        import torch
+
+        return int(torch.cuda.device_count())
+    except Exception:  # noqa: BLE001 - a broken CUDA install is no GPU
+        return 0
+
+
+def _listed_devices() -> list[str]:
+    """The entries of this process's ``CUDA_VISIBLE_DEVICES`` (SLURM and container runtimes set it to the
+    GPUs a job was given): indices or UUIDs; CUDA stops at the first invalid one, e.g. ``-1``."""
+    listed = []
+    for entry in os.environ.get(DEVICES_VARIABLE, "").split(","):
+        entry = entry.strip()
+        if not entry or entry.startswith("-"):
+            break
+        listed.append(entry)
+    return listed
+
+
+def _devices(gpus: int) -> list[str]:
+    """``CUDA_VISIBLE_DEVICES`` of each of ``gpus`` pinned workers: the i-th device this process sees (its own
+    ``CUDA_VISIBLE_DEVICES`` entry when it has one, as dask-cuda does, else ``i``)."""
+    listed = _listed_devices()
+    if not listed:
+        return [str(i) for i in range(gpus)]
+    if gpus > len(listed):
+        raise InputError(f"--gpus {gpus}: this machine's {DEVICES_VARIABLE}={os.environ[DEVICES_VARIABLE]} "
+                         f"shows only {len(listed)} GPU{'s' if len(listed) > 1 else ''}")
+    return listed[:gpus]
+
+
+def gpu_worker_specs(workers: int, gpus: int, devices: Sequence[str] | None = None) -> list[dict]:
+    """The options of each of ``workers`` worker processes on a machine with ``gpus`` GPUs, as keyword
+    arguments of :class:`distributed.Nanny`: ``{"env": {...}, "resources": {...}, "nthreads": n}``.
+
+    The first ``min(workers, gpus)`` are GPU workers: ``CUDA_VISIBLE_DEVICES`` the i-th device
+    (``devices[i]``, default ``str(i)``), ``resources={"GPU": 1}``, :data:`GPU_TASKS_IN_FLIGHT`
+    threads. The rest are CPU workers: ``CUDA_VISIBLE_DEVICES=""`` (they never touch a GPU), no
+    resources, one thread."""
+    pinned = max(0, min(workers, gpus))
+    devices = [str(i) for i in range(pinned)] if devices is None else list(devices)
+    if len(devices) < pinned:
+        raise ValueError(f"{pinned} GPU workers need {pinned} devices, got {devices}")
+    return ([{"env": {DEVICES_VARIABLE: devices[i]}, "resources": {GPU: 1}, "nthreads": GPU_TASKS_IN_FLIGHT}
+             for i in range(pinned)]
+            + [{"env": {DEVICES_VARIABLE: ""}, "resources": {}, "nthreads": 1} for _ in range(workers - pinned)])
+
+
+def _check_gpus(gpus: int) -> None:
+    check_number("--gpus", gpus, at_least=0, integer=True)
+
+
 @contextlib.contextmanager
-def dask_client(*, workers: int | None = None, scheduler: str | None = None) -> Iterator[Client]:
-    """A connected client; a local cluster of ``workers`` processes unless a scheduler is named."""
+def dask_client(*, workers: int | None = None, scheduler: str | None = None,
+                gpus: int | None = None) -> Iterator[Client]:
+    """A connected client; a local cluster of ``workers`` processes unless a scheduler is named.
+
+    On a machine with GPUs (``gpus``, default :func:`visible_gpus`) the first ``min(workers, gpus)``
+    workers of a local cluster are pinned GPU workers and the rest CPU workers
+    (:func:`gpu_worker_specs`); with none, every worker is a 1-thread CPU worker as before."""
     address = scheduler_address(scheduler)
     if address:
         check_scheduler(address)  # a port that accepts and never answers would hang Client() for ever
@@ -127,13 +220,121 @@ def dask_client(*, workers: int | None = None, scheduler: str | None = None) -> 
             yield client
         return
     check_workers(workers)
+    if gpus is not None:
+        _check_gpus(gpus)
     workers = workers if workers is not None else os.cpu_count() or 1
+    gpus = visible_gpus() if gpus is None else gpus
+    options = {}
+    if gpus:  # LocalCluster's own options for every worker, then each one's threads, resources and device
+        specs = gpu_worker_specs(workers, gpus, _devices(min(workers, gpus)))
+        options["worker_class"] = functools.partial(_pinned_nanny, specs)
     with dask.config.set(_PRE_SPAWN), \
             LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host=LOOPBACK,
                          dashboard_address=os.environ.get(DASHBOARD_VARIABLE) or f"{LOOPBACK}:0",
-                         silence_logs=_dask_log_level(), env=_thread_env(workers)) as cluster, Client(cluster) as client:
+                         silence_logs=_dask_log_level(), env=_thread_env(workers), **options) as cluster, \
+            Client(cluster) as client:
         client.register_plugin(_QuietWorkerLogs())  # our own workers only: a shared cluster's logs are its owner's
         yield client
+
+
+def _pinned_nanny(specs: list[dict], scheduler: str, *, name, env: dict | None = None, **options) -> Nanny:
+    """The local cluster's worker ``name`` (0, 1, ...): a Nanny with LocalCluster's options (loopback, memory
+    limit, logs, thread environment) and the threads, resources and device of ``specs[name]``."""
+    spec = specs[name] if isinstance(name, int) and 0 <= name < len(specs) else gpu_worker_specs(1, 0)[0]
+    return Nanny(scheduler, name=name, **{**options, "nthreads": spec["nthreads"], "resources": spec["resources"]},
+                 env={**(env or {}), **spec["env"]})
+
+
+def serve_workers(scheduler: str, *, memory_limit: str | int | None = "4GiB", gpus: int | None = None,
+                  name_prefix: str | None = None, nthreads: int | None = None, death_timeout: float | None = None,
+                  interface: str | None = None, stop: threading.Event | None = None) -> None:
+    """The workers of one cluster node, as ``dask cuda worker`` starts them (``cscsr worker``): one
+    :class:`distributed.Nanny` per GPU (``gpus``, default :func:`visible_gpus`), pinned to it and
+    advertising ``GPU=1`` with :data:`GPU_TASKS_IN_FLIGHT` threads; one ordinary 1-thread worker when there is
+    no GPU (:func:`gpu_worker_specs`). ``memory_limit`` is each worker's (Dask's forms: ``4GiB``, a fraction
+    of the machine's, ``auto``, 0 for none); ``name_prefix`` names them ``NAME`` (one worker) or ``NAME-0``,
+    ``NAME-1``, ... (dask-jobqueue expects those); ``nthreads`` replaces every worker's thread count;
+    ``death_timeout`` and ``interface`` are ``dask worker``'s. Numerical libraries get ``cores // workers``
+    threads unless the environment sets them.
+
+    Blocks until the scheduler goes away, or SIGTERM or SIGINT (in the main thread), or ``stop`` is set;
+    then closes the workers (their tasks go back to the scheduler) and returns. Refuses a bad option or an
+    unreachable scheduler first, in one line (:class:`InputError`)."""
+    if gpus is not None:
+        _check_gpus(gpus)
+    if nthreads is not None:
+        check_number("--nthreads", nthreads, at_least=1, integer=True)
+    if death_timeout is not None:
+        check_number("--death-timeout", death_timeout, above=0)
+    gpus = visible_gpus() if gpus is None else gpus
+    specs = gpu_worker_specs(max(gpus, 1), gpus, _devices(gpus))
+    memory = _memory_limit(memory_limit, len(specs))
+    check_scheduler(scheduler)
+    env = {name: value for name, value in _thread_env(len(specs)).items() if name not in os.environ}
+    names = [name_prefix if not name_prefix or len(specs) == 1 else f"{name_prefix}-{i}" for i in range(len(specs))]
+    if gpus:
+        devices = ", ".join(spec["env"][DEVICES_VARIABLE] for spec in specs)
+        _log.info("%d GPU worker%s (CUDA devices %s) for %s", gpus, "s" if gpus > 1 else "", devices, scheduler)
+    else:
+        _log.info("one CPU worker for %s (no GPU)", scheduler)
+    with dask.config.set(_PRE_SPAWN):
+        asyncio.run(_serve(scheduler, [dict(name=name, memory_limit=memory, death_timeout=death_timeout,
+                                            interface=interface, nthreads=nthreads or spec["nthreads"],
+                                            resources=spec["resources"], env={**env, **spec["env"]})
+                                       for name, spec in zip(names, specs)], stop))
+
+
+def _memory_limit(value: str | int | float | None, workers: int) -> int | None:
+    """Bytes of the memory limit of each of ``workers`` workers, in Dask's forms (``4GiB``, ``0.5`` of the
+    machine's; ``auto``: the machine's shared among them; 0 or None: no limit), or a one-line refusal."""
+    from distributed.worker_memory import parse_memory_limit
+
+    try:
+        limit = parse_memory_limit(value, 1, workers, logger=logging.getLogger("distributed.worker.memory"))
+    except (ValueError, TypeError, OverflowError):
+        limit = -1
+    if limit is not None and limit <= 0:
+        raise InputError(f"--memory-limit must be a size like 4GiB, a fraction of the machine's memory like 0.5, "
+                         f"auto, or 0 for no limit, got {value!r}")
+    return limit
+
+
+async def _serve(scheduler: str, options: list[dict], stop: threading.Event | None) -> None:
+    """Start a Nanny of each of ``options`` and wait until they all finish (their scheduler went away) or a
+    stop is asked (SIGTERM, SIGINT, ``stop``); then close them. ``dask worker``'s loop."""
+    loop = asyncio.get_running_loop()
+    nannies = [Nanny(scheduler, **each) for each in options]  # made in the loop they run in
+    stopping = asyncio.Event()
+    handled = []
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        with contextlib.suppress(ValueError, RuntimeError, NotImplementedError):  # not the main thread
+            loop.add_signal_handler(signum, stopping.set)
+            handled.append(signum)
+
+    async def asked() -> None:
+        while not (stopping.is_set() or (stop is not None and stop.is_set())):
+            with contextlib.suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(stopping.wait(), 0.2)
+
+    async def finished() -> None:
+        await asyncio.gather(*nannies)
+        await asyncio.gather(*(nanny.finished() for nanny in nannies))
+
+    running, stopper = asyncio.create_task(finished()), asyncio.create_task(asked())
+    try:
+        done, _ = await asyncio.wait([running, stopper], return_when=asyncio.FIRST_COMPLETED)
+        if running in done:
+            running.result()  # a worker that could not start
+        else:
+            await asyncio.gather(*(nanny.close(timeout=10, reason="cscsr-worker-stopped") for nanny in nannies),
+                                 return_exceptions=True)
+            running.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await running
+    finally:
+        stopper.cancel()
+        for signum in handled:
+            loop.remove_signal_handler(signum)
 
 
 def _dask_log_level() -> int:

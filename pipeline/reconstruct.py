@@ -10,29 +10,36 @@ its tasks in a bounded window. The reconstructor (a model, for
 cluster runs its tasks in segments, each in a fresh process and cluster
 (``pipeline.executor``), so that memory stays bounded over millions of tasks.
 
-GPU workers: when the cluster has workers that advertise the ``GPU`` resource (``dask worker
---resources GPU=1``), network tasks ask for one (so they run there and only there) and each
-takes several tiles of the same shape (``gpu_batch`` windows in all), which the GPU runs as
-one batch; classic tasks run anywhere. Without such workers tasks are cut and placed as above.
+GPU workers: when the cluster has workers that advertise the ``GPU`` resource (one per GPU,
+``pipeline.cluster``), network tasks ask for a share of one (``GPU_SHARE``), so they run there and
+only there, several at once: one on the device while the others read and write. On GPU workers
+the default weights are ``full`` (``lite`` on CPUs), and the default tile is the largest that the
+GPU's memory holds (the whole frame where it fits, several frames a pass), else tasks take
+several tiles of the same shape (``gpu_batch`` windows in all) as one batch; classic tasks run
+anywhere. Without such workers tasks are cut and placed as above.
 
 The gain is fixed for the whole recording before any task runs (``--gain``, else the store's,
 else automatic exposure of the middle window), so tiles and frames agree with each other.
 """
 
 import contextlib
+import dataclasses
 import functools
 import sys
+import threading
 import uuid
 from collections.abc import Iterable, Iterator
 from typing import NamedTuple
 
 import numpy as np
 
-from pipeline.cluster import GPU, check_scheduler, check_workers, dashboard_link, dask_client, gpu_workers, scheduler_address
+from pipeline.cluster import (GPU, GPU_SHARE, check_scheduler, check_workers, dashboard_link, dask_client,
+                              scheduler_address, visible_gpus)
 from pipeline.hold import hold_point
 from pipeline.lease import check_free, claimed, held
 from pipeline.progress import progress_bar
-from pipeline.reconstruct_plan import MADE_FROM, Plan, ReconstructOptions, made_from, task_groups, tile_blocks
+from pipeline.reconstruct_plan import (DEFAULT_TILE, DEFAULT_WEIGHTS, GPU_BATCH, MADE_FROM, Plan, ReconstructOptions,
+                                      made_from, task_groups, tile_blocks)
 from pipeline.executor import failure, in_segments, submitted
 from pipeline.spike_store import SpikeStore, open_spike_store, read_frames
 from pipeline.outputs import VIDEO_STORE, new_output
@@ -42,30 +49,38 @@ from stages.colour import auto_gain
 from stages.errors import InputError
 from stages.methods import NETWORKS, Reconstructor, Window, classic, output_centres
 from stages.tfp import tfp_rate
-from stages.tiles import Tile, tile_grid
+from stages.tiles import Tile, device_tile, tile_grid
 
 def reconstructor(method: str, weights: str | None, precision: str | None = "fp32", backend: str | None = "torch",
-                  weights_sha256: str | None = None) -> Reconstructor:
+                  weights_sha256: str | None = None, *, fast_gpu: bool = False,
+                  device: str | None = None) -> Reconstructor:
     """The method, built once per process and file contents (the cache lives in each worker) and reused
-    by its tasks: for the network, loaded from its weights once, onto the worker's GPU if any. Keyed by
-    the weights' SHA-256 (a job's tasks pass the one the job was planned with; else the file is hashed
-    now), so a long-lived worker or watcher never runs a model cached from an older file at that path."""
+    by its tasks: for the network, loaded from its weights once, onto the worker's GPU if any (or onto
+    ``device``: the job's own process checks the weights on the CPU). Keyed by the weights' SHA-256 (a
+    job's tasks pass the one the job was planned with; else the file is hashed now), so a long-lived
+    worker or watcher never runs a model cached from an older file at that path."""
     if method not in NETWORKS:
-        return _built(method, None, None, None, None)
+        with _building:
+            return _built(method, None, None, None, None)
     from cscsr.weights_io import weights_file
     from cscsr.weights_io import weights_sha256 as sha256_of
 
-    return _built(method, weights, precision, backend, weights_sha256 or sha256_of(weights_file(weights)))
+    with _building:  # the worker's tasks in flight start together: one loads, the others wait for its network
+        return _built(method, weights, precision, backend, weights_sha256 or sha256_of(weights_file(weights)),
+                      fast_gpu, device)
+
+
+_building = threading.Lock()
 
 
 @functools.lru_cache(maxsize=4)
 def _built(method: str, weights: str | None, precision: str | None, backend: str | None,
-           weights_sha256: str | None) -> Reconstructor:
+           weights_sha256: str | None, fast_gpu: bool = False, device: str | None = None) -> Reconstructor:
     if method in NETWORKS:
         from cscsr.reconstructor import load_reconstructor
 
-        loaded = load_reconstructor(weights, self_ensemble=method == "cscsr-ensemble", precision=precision or "fp32",
-                                    backend=backend or "torch")
+        loaded = load_reconstructor(weights, device, self_ensemble=method == "cscsr-ensemble",
+                                    precision=precision or "fp32", backend=backend or "torch", fast_gpu=fast_gpu)
         if loaded.weights_sha256 != weights_sha256:
             raise InputError(f"weights file {loaded.weights} changed since the job started (sha256 "
                              f"{weights_sha256[:12]}… -> {loaded.weights_sha256[:12]}…): run the job again")
@@ -88,7 +103,8 @@ def _reconstruct_tiles(plan: Plan, frames: tuple[tuple[int, int], ...],
     hold_point()  # inert unless a fault test asks (pipeline.hold)
     half = plan.window // 2
     spikes, writer = _opened(plan.spikes, plan.out, plan.run)
-    method = reconstructor(plan.method, plan.weights, plan.precision, plan.backend, plan.weights_sha256)
+    method = reconstructor(plan.method, plan.weights, plan.precision, plan.backend, plan.weights_sha256,
+                           fast_gpu=bool(plan.fast_gpu))
     windows = []
     for _, _, tile in tiles:
         region = (slice(tile.ry0, tile.ry1), slice(tile.rx0 // 8, -(-tile.rx1 // 8)))
@@ -121,12 +137,82 @@ def network_options(options: ReconstructOptions) -> tuple[str | None, str | None
 
 def checked_method(store: SpikeStore, options: ReconstructOptions) -> tuple[int, Reconstructor]:
     """Every check of a job on ``store`` that needs no output: the options against the recording, the
-    scale (``--scale``, else the store's, else 4) and the method, its weights loaded. -> (scale, method)."""
+    scale (``--scale``, else the store's, else 4) and the method, its weights loaded (on the CPU: this
+    process only checks them; without ``--weights``, those for CPU workers). -> (scale, method)."""
     check_options(options, store.n_frames)
     scale = options.scale if options.scale is not None else int(store.attrs.get("scale", 4))
-    method = reconstructor(options.method, options.weights, *network_options(options))  # loads and checks the weights here too
+    weights = options.weights or (DEFAULT_WEIGHTS["cpu"] if options.method in NETWORKS else None)
+    method = reconstructor(options.method, weights, *network_options(options), device="cpu")  # loads and checks them
     method.check(options.window, scale, store.meta.cfa)
     return scale, method
+
+
+class Placement(NamedTuple):
+    """Where a job's network tasks run: on GPU workers or not, and the memory of the smallest GPU (None
+    when not known: no GPU, or workers that advertise one without CUDA, as in the tests)."""
+
+    gpus: bool
+    memory: int | None
+
+
+def placement(options: ReconstructOptions, client) -> Placement:
+    """On ``client``'s GPU workers if it has any, else (no client: a local cluster) on this machine's GPUs."""
+    if options.method not in NETWORKS or options.backend != "torch":
+        return Placement(False, None)
+    if client is None:
+        gpus = visible_gpus()
+        if not gpus:
+            return Placement(False, None)
+        import torch
+
+        return Placement(True, min(torch.cuda.get_device_properties(i).total_memory for i in range(gpus)))
+    addresses = [address for address, worker in client.scheduler_info()["workers"].items()
+                 if (worker.get("resources") or {}).get(GPU, 0) >= 1]
+    if not addresses:
+        return Placement(False, None)
+    sizes = [size for size in client.run(gpu_memory_bytes, workers=addresses).values() if size]
+    return Placement(True, min(sizes) if sizes else None)
+
+
+def gpu_memory_bytes() -> int | None:
+    """Run on a GPU worker: the memory of its GPU (pinned, it sees only its own, as device 0); None without one."""
+    import torch
+
+    return torch.cuda.get_device_properties(0).total_memory if torch.cuda.is_available() else None
+
+
+def placed(options: ReconstructOptions, where: Placement, recorded: dict) -> ReconstructOptions:
+    """The options with the weights that depend on where the network runs filled in: ``--weights``, else
+    what a resumed output records, else ``full`` on GPU workers and ``lite`` on CPUs. Chosen once per
+    job; the output records it."""
+    if options.method not in NETWORKS or options.weights:
+        return options
+    return dataclasses.replace(options, weights=recorded.get("weights") or DEFAULT_WEIGHTS["gpu" if where.gpus else "cpu"])
+
+
+def sized(options: ReconstructOptions, where: Placement, method: Reconstructor, shape: tuple[int, int],
+          recorded: dict) -> ReconstructOptions:
+    """The options with the tile and the windows per pass filled in: ``--tile`` (else what a resumed output
+    records), ``--gpu-batch``; else on GPUs of known memory what the smallest holds
+    (:func:`stages.tiles.device_tile`: the whole frame where it fits), and otherwise ``DEFAULT_TILE`` and
+    ``GPU_BATCH``."""
+    tile, batch = options.tile or recorded.get("tile_lr"), options.gpu_batch
+    if where.gpus and where.memory and (tile is None or batch is None):
+        from cscsr.device_memory import bytes_per_lr_pixel, usable_bytes
+
+        fitted = device_tile(*shape, method.halo, usable_bytes(where.memory),
+                             bytes_per_lr_pixel(method.model.config.name, options.precision), GPU_BATCH)
+        tile, batch = tile or fitted[0], batch or fitted[1]
+    return dataclasses.replace(options, tile=tile or DEFAULT_TILE, gpu_batch=batch or GPU_BATCH)
+
+
+def _recorded_attrs(out: str) -> dict:
+    """What the output to resume records, or nothing if it cannot be read as a video store (the resume's
+    own checks then refuse it, in their words)."""
+    try:
+        return dict(open_video_store(out).attrs)
+    except Exception:  # noqa: BLE001 - refused later, with the reason, by new_output and _prepare_output
+        return {}
 
 
 def reconstruct(store_url: str, out: str, options: ReconstructOptions = ReconstructOptions(), *,
@@ -143,16 +229,23 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
     check_apart(out, store_url, options.weights)
     store = open_spike_store(store_url)
     meta = store.meta
-    scale, method = checked_method(store, options)
-    precision, backend = network_options(options)
+    checked_method(store, options)  # the options and the weights given, before any cluster
     if options.resume and not exists(out):
         raise InputError(f"cannot resume: {out} does not exist")
-    centres = output_centres(store.n_frames, options.window, options.every)
-    grid = tile_grid(meta.height, meta.width, options.tile, method.halo)
     if client is None:
         check_scheduler(scheduler)  # a named scheduler answers (within seconds) before OUT is claimed or replaced
 
     with contextlib.ExitStack() as stack:
+        if client is None and scheduler_address(scheduler):  # a long-lived cluster: connect once, before any output
+            client = stack.enter_context(dask_client(scheduler=scheduler))
+        where = placement(options, client)
+        found = _recorded_attrs(out) if options.resume else {}
+        options = placed(options, where, found)
+        scale, method = checked_method(store, options)  # the weights by where the network runs
+        options = sized(options, where, method, (meta.height, meta.width), found)
+        precision, backend = network_options(options)
+        centres = output_centres(store.n_frames, options.window, options.every)
+        grid = tile_grid(meta.height, meta.width, options.tile, method.halo)
         stack.enter_context(claimed(out))  # one job per output, taken atomically before OUT is touched
         if options.resume:
             check_free(out)  # and no live lease (a job on a machine that shares no claim file with us)
@@ -160,8 +253,6 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
         # failed job's new store stays for --resume
         stack.enter_context(new_output(out, overwrite=options.overwrite, kind=VIDEO_STORE,
                                        flag="--resume or --overwrite", resume=options.resume, keep_partial=True))
-        if client is None and scheduler_address(scheduler):  # a long-lived cluster: connect once, before any output
-            client = stack.enter_context(dask_client(scheduler=scheduler))
         gain = options.gain or meta.gain
         if gain is None:  # one window: on the cluster if there is one, else here (not worth a cluster of its own)
             args = (store_url, centres[len(centres) // 2], options.window, meta.reset)
@@ -169,15 +260,15 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
         # the spike store as workers find it, whatever their working directory (and as the output records it)
         plan = Plan(recorded(store_url), out, options.method, method.weights, options.window, options.every, float(gain),
                     scale, meta.cfa, meta.reset, options.tile, uuid.uuid4().hex, precision, options.gpu_batch, backend,
+                    fast_gpu=options.fast_gpu and where.gpus if options.method in NETWORKS else None,
                     **made_from(store, method.weights_sha256))  # what --resume checks beside the paths
         batch = method.batch
-        on_gpus = backend == "torch" and client is not None and gpu_workers(client) > 0  # our local cluster has none
         done = _prepare_output(plan, options.resume, centres, grid, (meta.height * scale, meta.width * scale),
                                fps=meta.fps / options.every)
-        blocks = tile_blocks(grid, max(1, options.gpu_batch // batch) if on_gpus else 1)
+        blocks = tile_blocks(grid, max(1, options.gpu_batch // batch) if where.gpus else 1)
         groups = task_groups(len(centres), batch, blocks, done)
         work = functools.partial(run_groups, plan=plan, centres=centres, grid=grid,
-                                 resources={GPU: 1} if on_gpus else None)
+                                 resources={GPU: GPU_SHARE} if where.gpus else None)
         with held(out), progress_bar(f"reconstruct {options.method}", len(centres), enabled=progress) as advance:
             if client:
                 if progress and (link := dashboard_link(client)):
@@ -269,7 +360,8 @@ def _prepare_output(plan: Plan, resume: bool, centres: list[int], grid: list[lis
         if other := plan.other_data(dict(group.attrs)):  # the same paths, another recording or other weights
             raise InputError(f"cannot resume {plan.out}: {other}")
         network = plan.method in NETWORKS  # stores from before --precision and --backend:
-        before = {"precision": "fp32" if network else None, "backend": "torch" if network else None}
+        before = {"precision": "fp32" if network else None, "backend": "torch" if network else None,
+                  "fast_gpu": False if network else None}
         # stores from before the record of what they were made from: resumed on the paths alone, as they were
         # then, and the record added now (a later resume checks it)
         adopted = {k: expected[k] for k in MADE_FROM if k not in group.attrs}

@@ -17,9 +17,10 @@ from stages.numbers import check_flag, check_number, check_text
 from stages.tiles import Tile
 
 SEGMENT_TASKS = 10_000  # minutes of work on any real frame size; a fresh process and cluster cost ~5 s
-DEFAULT_TILE = 256  # LR pixels: a 1000x1000 frame becomes 16 tasks of 1024x1024 HR
-GPU_BATCH = 16  # windows per network pass on a GPU worker: 4 frames x 4 tiles of 320x320 LR (tile 256 + halos),
-# about 25 GB of GPU memory for the lite network in fp32 (measured 15.4 GB for one 1000x1000 window)
+DEFAULT_TILE = 256  # LR pixels, on CPU workers: a 1000x1000 frame becomes 16 tasks of 1024x1024 HR (on GPU workers
+# the tile is sized for the device's memory: cscsr.device_memory, stages.tiles.device_tile)
+GPU_BATCH = 16  # the most windows per network pass on a GPU worker (fewer where the device's memory holds fewer)
+DEFAULT_WEIGHTS = {"gpu": "full", "cpu": "lite"}  # where the network runs -> the weights a job takes by default
 
 
 @dataclass(frozen=True)
@@ -29,14 +30,15 @@ class ReconstructOptions:
     window: int = WINDOW
     gain: float | None = None
     scale: int | None = None  # default: the store's scale, else 4
-    tile: int = DEFAULT_TILE
-    weights: str | None = None
+    tile: int | None = None  # None: DEFAULT_TILE on CPU workers, sized for the device's memory on GPU workers
+    weights: str | None = None  # None: DEFAULT_WEIGHTS by where the network runs
     resume: bool = False
     overwrite: bool = False
     segment_tasks: int = SEGMENT_TASKS  # tasks per fresh cluster when the job starts its own (bounded memory)
     precision: str = "fp32"  # the network's: fp32, or bf16 (autocast on the worker's device)
-    gpu_batch: int = GPU_BATCH  # windows per task and per network pass on GPU workers
+    gpu_batch: int | None = None  # windows per task and per network pass on GPU workers (None: what fits, <= GPU_BATCH)
     backend: str = "torch"  # what runs the network: torch, or onnx (ONNX Runtime, CPU)
+    fast_gpu: bool = False  # on GPU workers: channels-last, cuDNN autotuning, torch.compile (a CPU ignores it)
 
     def check(self) -> None:
         """Every check that needs no recording (see :func:`check_options` for the rest)."""
@@ -44,10 +46,13 @@ class ReconstructOptions:
         for name in ("method", "precision", "backend"):
             check_text(f"--{name}", getattr(self, name))
         check_text("--weights", self.weights, optional=True)
-        for name in ("every", "window", "tile", "segment_tasks", "gpu_batch"):
+        for name in ("every", "window", "segment_tasks"):
             check_number(f"--{name.replace('_', '-')}", getattr(self, name), integer=True)
-        for name in ("resume", "overwrite"):
-            check_flag(f"--{name}", getattr(self, name))
+        for name in ("tile", "gpu_batch"):
+            if getattr(self, name) is not None:
+                check_number(f"--{name.replace('_', '-')}", getattr(self, name), integer=True)
+        for name in ("resume", "overwrite", "fast_gpu"):
+            check_flag(f"--{name.replace('_', '-')}", getattr(self, name))
         if self.method not in METHODS:
             raise InputError(f"unknown method {self.method!r}: expected one of {', '.join(METHODS)}")
         if self.window <= 0 or self.window % 2 == 0:
@@ -58,7 +63,7 @@ class ReconstructOptions:
             check_gain("--gain", self.gain)
         if self.scale is not None:  # 0 must not mean "the default"
             check_number("--scale", self.scale, at_least=1, integer=True)
-        if self.tile <= 0 or self.tile % 8:
+        if self.tile is not None and (self.tile <= 0 or self.tile % 8):
             raise InputError(f"--tile must be a positive multiple of 8 LR pixels, got {self.tile}")
         if self.resume and self.overwrite:
             raise InputError("--resume and --overwrite contradict each other: choose one")
@@ -77,8 +82,11 @@ class ReconstructOptions:
         if self.weights is not None and self.method not in NETWORKS:  # a classic method has none: never recorded
             raise InputError(f"--weights is for the network (--method cscsr or cscsr-ensemble); {self.method} has "
                              f"no weights to load: leave --weights out")
-        if self.gpu_batch < 1:
+        if self.gpu_batch is not None and self.gpu_batch < 1:
             raise InputError(f"--gpu-batch must be >= 1, got {self.gpu_batch}")
+        if self.fast_gpu and (self.method not in NETWORKS or self.backend != "torch"):
+            raise InputError("--fast-gpu is for the network on torch (--method cscsr or cscsr-ensemble, --backend "
+                             "torch)")
 
 
 @dataclass(frozen=True)
@@ -104,6 +112,7 @@ class Plan:
     precision: str | None = None  # the network's (None for classic methods)
     gpu_batch: int = GPU_BATCH  # most windows per network pass, where a reconstructor joins tiles (GPU)
     backend: str | None = None  # what runs the network (None for classic methods)
+    fast_gpu: bool | None = None  # channels-last, cuDNN autotuning, torch.compile on GPU workers (None: classic)
     # what the output is made from (made_from): the same paths may hold another recording or other weights later
     source_identity: str | None = None  # the spike store's identity (pipeline.spike_store.store_identity)
     source_shape: tuple[int, int, int] | None = None  # its (frames, height, width)
@@ -112,7 +121,7 @@ class Plan:
     def attrs(self) -> dict:
         """What the output store records (and ``--resume`` checks)."""
         return {"method": self.method, "weights": self.weights, "precision": self.precision, "backend": self.backend,
-                "window": self.window,
+                "fast_gpu": self.fast_gpu, "window": self.window,
                 "every": self.every, "gain": self.gain, "scale": self.scale, "source": recorded(self.spikes), "cfa": self.cfa,
                 "reset": self.reset, "tile_lr": self.tile, "source_identity": self.source_identity,
                 "source_shape": None if self.source_shape is None else list(self.source_shape),

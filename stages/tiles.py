@@ -6,6 +6,8 @@ is clipped at the frame's edges, so an edge tile sees exactly what the whole fra
 
 from dataclasses import dataclass
 
+from stages.errors import InputError
+
 
 @dataclass(frozen=True)
 class Tile:
@@ -37,3 +39,20 @@ def tile_grid(height: int, width: int, tile: int, halo: int) -> list[list[Tile]]
                             max(x0 - halo, 0), min(x1 + halo, width)))
         rows.append(row)
     return rows
+
+
+def device_tile(height: int, width: int, halo: int, budget_bytes: float, bytes_per_pixel: float,
+                most_windows: int) -> tuple[int, int]:
+    """The tile side and windows per pass that fit ``budget_bytes`` of device memory, a window taking
+    ``bytes_per_pixel`` per LR pixel it reads. The whole frame when one window of it fits (no halo
+    computed twice), with as many windows per pass as fit (at most ``most_windows``); else the largest
+    tile (a multiple of 8) whose halo-padded read fits, one window per pass. -> (tile, windows)."""
+    whole = height * width * bytes_per_pixel
+    if whole <= budget_bytes:
+        return -(-max(height, width) // 8) * 8, max(1, min(most_windows, int(budget_bytes // whole)))
+    side = int((budget_bytes / bytes_per_pixel) ** 0.5) - 2 * halo  # read side = tile + 2 halos
+    tile = side // 8 * 8
+    if tile < 8:
+        raise InputError(f"the GPU's memory ({budget_bytes / 2**30:.1f} GiB usable) holds no tile of 8 LR pixels "
+                         f"with a {halo}-pixel halo")
+    return tile, 1

@@ -126,10 +126,15 @@ def test_gpu_worker_only_in_gpu_profile(config, tmp_path):
     gpu = config["services"]["gpu-worker"]
     assert gpu["profiles"] == ["gpu"]
     command = _command(gpu)
-    assert command[:3] == ["dask", "worker", "tcp://scheduler:8786"]
-    assert "GPU=1" in command[command.index("--resources") + 1]
+    # One pinned worker per GPU, each advertising GPU=1 (pipeline.cluster.serve_workers, tested in
+    # tests/test_gpu_cluster.py), with the CPU workers' memory limit; every GPU of the host.
+    assert command[:3] == ["cscsr", "worker", "tcp://scheduler:8786"]
+    assert command[command.index("--memory-limit") + 1] == "4GiB"
+    assert "--gpus" not in command and "--resources" not in command
     devices = gpu["deploy"]["resources"]["reservations"]["devices"]
     assert any(d.get("driver") == "nvidia" and "gpu" in d.get("capabilities", []) for d in devices)
+    assert [d.get("count") for d in devices] == [-1]  # `count: all`, as the resolved model writes it
+    assert "replicas" not in gpu.get("deploy", {})
     assert gpu["image"] != config["services"]["worker"]["image"]
     assert "cu" in gpu["build"]["args"]["TORCH_INDEX"]
     assert {"/data/inbox", "/data/outbox"} <= _targets(gpu)

@@ -57,8 +57,8 @@ def _job_script(slurm, **kwargs) -> tuple[str, str]:
         return cluster.job_script(), cluster.scheduler_address
 
 
-def _worker_line(script: str) -> list[str]:
-    lines = [line for line in script.splitlines() if "distributed.cli.dask_worker" in line]
+def _worker_line(script: str, command: str = "distributed.cli.dask_worker") -> list[str]:
+    lines = [line for line in script.splitlines() if f" -m {command} " in line]
     assert len(lines) == 1, script
     return shlex.split(lines[0])
 
@@ -85,14 +85,57 @@ def test_slurm_cpu_job_script(slurm):
     assert "--resources" not in options
 
 
-def test_slurm_gpu_job_script_matches_the_compose_gpu_worker(slurm):
-    script, _ = _job_script(slurm, gpu=True)
-    assert "#SBATCH --gres=gpu:1" in script.splitlines()
-    assert "#SBATCH -J cscsr-gpu" in script.splitlines()
-    options = _worker_options(_worker_line(script))
-    compose = _worker_options(shlex.split(_compose_service("gpu-worker")["command"]))
-    assert options["--resources"] == compose["--resources"] == "GPU=1"
-    assert options["--nthreads"] == compose["--nthreads"]
+@pytest.mark.parametrize("gpus", [1, 3])
+def test_slurm_gpu_job_script_matches_the_compose_gpu_worker(slurm, gpus):
+    from pipeline.cluster import GPU_TASKS_IN_FLIGHT
+
+    script, address = _job_script(slurm, gpu=True, gpus_per_job=gpus)
+    directives = [line for line in script.splitlines() if line.startswith("#SBATCH")]
+    assert f"#SBATCH --gres=gpu:{gpus}" in directives
+    assert "#SBATCH -J cscsr-gpu" in directives
+    assert f"#SBATCH --cpus-per-task={GPU_TASKS_IN_FLIGHT * gpus}" in directives
+    assert f"#SBATCH --mem={4 * gpus}G" in directives
+    # `cscsr worker` (the compose gpu-worker's command): one pinned GPU=1 worker per GPU of the job,
+    # each with the compose worker's memory and GPU_TASKS_IN_FLIGHT threads.
+    command = _worker_line(script, "pipeline.cli worker")
+    assert command[:5] == [sys.executable, "-m", "pipeline.cli", "worker", address]
+    options = _worker_options(command)
+    compose = _compose_service("gpu-worker")["command"]
+    assert shlex.split(compose)[:2] == ["cscsr", "worker"]
+    assert options["--memory-limit"] in {"4GiB", "4.00GiB"}
+    assert _worker_options(shlex.split(compose))["--memory-limit"] == "4GiB"
+    assert options["--nthreads"] == str(GPU_TASKS_IN_FLIGHT)
+    assert options["--gpus"] == str(gpus)
+    assert "--resources" not in options and "--nworkers" not in options
+
+
+def test_slurm_gpu_job_runs_its_worker_line(slurm, monkeypatch):
+    """The very command line dask-jobqueue writes for a 2-GPU job, run against that cluster's own scheduler:
+    `cscsr worker` takes every option it is given, and starts two pinned workers named as dask-jobqueue
+    expects; SIGTERM ends it."""
+    import os
+    import signal
+    import time
+
+    from distributed import Client
+
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    with slurm.make_cluster(gpu=True, gpus_per_job=2, scheduler_options={"host": "127.0.0.1"},
+                            interface="lo") as cluster, Client(cluster) as client:
+        command = _worker_line(cluster.job_script(), "pipeline.cli worker")
+        process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        try:
+            client.wait_for_workers(2, timeout=60)
+            workers = client.scheduler_info()["workers"].values()
+            assert sorted(w["name"] for w in workers) == ["dummy-name-0", "dummy-name-1"]
+            assert all(w["resources"] == {"GPU": 1} and w["nthreads"] == 4 for w in workers)
+            assert sorted(client.run(lambda: os.environ["CUDA_VISIBLE_DEVICES"]).values()) == ["0", "1"]
+            time.sleep(0.5)  # the nannies finish registering
+        finally:
+            process.send_signal(signal.SIGTERM)
+            _, stderr = process.communicate(timeout=60)
+        assert process.returncode == 0, stderr
+        assert "2 GPU workers (CUDA devices 0, 1)" in stderr
 
 
 def test_slurm_script_prints_its_job_script_and_needs_a_command():
@@ -101,7 +144,7 @@ def test_slurm_script_prints_its_job_script_and_needs_a_command():
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert done.stdout.startswith("#!/usr/bin/env bash")
-    assert "--resources GPU=1" in done.stdout and "--gres=gpu:1" in done.stdout
+    assert " -m pipeline.cli worker " in done.stdout and "--gres=gpu:1" in done.stdout
 
     done = subprocess.run([sys.executable, str(SLURM_SCRIPT), "--jobs", "2"],
                           capture_output=True, text=True, timeout=120)
@@ -145,7 +188,7 @@ def test_kubernetes_workers_match_compose(manifest, group, service):
     compose = _compose_service(service)
     assert container["image"] == compose["image"]
     args = container["args"]
-    assert args[:2] == ["dask", "worker"]
+    assert args[:2] == shlex.split(compose["command"])[:2]  # dask worker; cscsr worker for the GPU workers
     # The operator gives the scheduler's address in DASK_SCHEDULER_ADDRESS; every compose
     # option but the address is here with the same value.
     options, compose_options = _worker_options(args), _worker_options(shlex.split(compose["command"]))
@@ -163,7 +206,9 @@ def test_kubernetes_gpu_group(manifest):
     assert group["spec"]["cluster"] == manifest["DaskCluster"]["metadata"]["name"]
     gpu = _container(group["spec"]["worker"]["spec"])
     assert gpu["resources"]["limits"]["nvidia.com/gpu"] == 1
-    assert gpu["args"][gpu["args"].index("--resources") + 1] == "GPU=1"
+    # `cscsr worker`: one pinned GPU=1 worker per GPU of the pod, the scheduler from DASK_SCHEDULER_ADDRESS
+    assert gpu["args"][:2] == ["cscsr", "worker"] and not gpu["args"][2].startswith("tcp://")
+    assert "--resources" not in gpu["args"] and "--gpus" not in gpu["args"]
     cpu = _container(manifest["DaskCluster"]["spec"]["worker"]["spec"])
     assert "nvidia.com/gpu" not in cpu["resources"]["limits"]
     assert "--resources" not in cpu["args"]
