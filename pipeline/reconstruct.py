@@ -110,10 +110,11 @@ def _reconstruct_tiles(plan: Plan, frames: tuple[tuple[int, int], ...],
         region = (slice(tile.ry0, tile.ry1), slice(tile.rx0 // 8, -(-tile.rx1 // 8)))
         windows.append([Window(read_frames(spikes, plan.spikes, c - half, c + half + 1, region), tile.rx1 - tile.rx0,
                                plan.cfa, plan.reset, plan.gain, plan.scale) for _, c in frames])
+    first = frames[0][0]  # a task's output frames are consecutive
     for (ty, tx, tile), images in zip(tiles, method.many_tiles(windows, plan.gpu_batch)):
         ys, xs = tile.crop(plan.scale)
-        for (index, _), image in zip(frames, images):
-            writer.write(index, (ty, tx), (tile.y0 * plan.scale, tile.x0 * plan.scale), image[ys, xs])
+        writer.write_frames(first, (ty, tx), (tile.y0 * plan.scale, tile.x0 * plan.scale),
+                            [image[ys, xs] for image in images])  # compressed and stored together
     return len(frames) * len(tiles)
 
 

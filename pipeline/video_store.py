@@ -11,11 +11,15 @@ The metadata is consolidated once every array is declared (xarray opens the stor
 as the coordinate of ``video``); only the group's attributes change after, which keeps it valid.
 """
 
+import asyncio
+from collections.abc import Sequence
+
 import numpy as np
 import zarr
 
 import cscsr
 from zarr.codecs import ZstdCodec
+from zarr.core.sync import sync
 
 from pipeline.storage import consolidate, missing_chunks, open_group, zarr_store
 from stages.errors import InputError
@@ -137,6 +141,20 @@ class TileWriter:
 
     def write(self, index: int, tile_index: tuple[int, int], origin: tuple[int, int], image: np.ndarray) -> None:
         """Write one HR tile of output frame ``index`` (its own chunk), then record it committed."""
+        self.write_frames(index, tile_index, origin, [image])
+
+    def write_frames(self, first: int, tile_index: tuple[int, int], origin: tuple[int, int],
+                     images: Sequence[np.ndarray]) -> None:
+        """Write one HR tile of output frames ``first``, ``first + 1``, ... (``images``, (h, w, 3) each, a chunk
+        each) together through Zarr's asynchronous API, so that it compresses and stores them at once on its
+        threads (no copy into one array); then record them committed."""
         y, x = origin
-        self.video[index, y : y + image.shape[0], x : x + image.shape[1]] = image
-        self.committed[index, tile_index[0], tile_index[1]] = 1
+        n = len(images)
+        video = self.video.async_array
+
+        async def every_frame() -> None:
+            await asyncio.gather(*(video.setitem((first + k, slice(y, y + image.shape[0]), slice(x, x + image.shape[1])),
+                                                 image) for k, image in enumerate(images)))
+
+        sync(every_frame())
+        self.committed[first : first + n, tile_index[0], tile_index[1]] = 1
