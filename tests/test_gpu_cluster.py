@@ -12,6 +12,7 @@ import threading
 import time
 import types
 
+import dask
 import pytest
 from distributed import Client, LocalCluster
 
@@ -140,8 +141,11 @@ def test_a_negative_gpu_count_is_refused():
 
 @pytest.fixture
 def scheduler():
-    """A scheduler without workers, and a client of it."""
-    with LocalCluster(n_workers=0, host="127.0.0.1", dashboard_address=":0") as cluster, Client(cluster) as client:
+    """A scheduler without workers, and a client of it. Dask's ``scheduler`` setting is put back afterwards: a
+    client closed inside the test (its scheduler going away) and then again on exit leaves it at
+    ``dask.distributed``, and every later ``.compute()`` in this process would ask for a client."""
+    with dask.config.set(scheduler=None), \
+            LocalCluster(n_workers=0, host="127.0.0.1", dashboard_address=":0") as cluster, Client(cluster) as client:
         yield cluster, client
 
 

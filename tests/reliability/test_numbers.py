@@ -203,7 +203,7 @@ def test_non_finite_pixels_are_never_marked_complete(tmp_path, store, monkeypatc
     def nan_rate(packed, width, reset):
         return np.full((packed.shape[1], width), np.nan, np.float32)
 
-    monkeypatch.setattr(module, "reconstructor", lambda *args: RateReconstructor("tfp", nan_rate))
+    monkeypatch.setattr(module, "reconstructor", lambda *args, **kwargs: RateReconstructor("tfp", nan_rate))
     out = tmp_path / "o.zarr"
     with Client(processes=False, n_workers=1, threads_per_worker=1, dashboard_address=":0") as client:
         with pytest.raises(module.JobIncomplete, match="not finite"):
