@@ -13,8 +13,9 @@ Where the work runs, for the jobs on Dask (``simulate``, ``reconstruct``, ``eval
    configuration (a file in ``~/.config/dask/``, ``DASK_CONFIG``, or ``dask.config.set``): that scheduler;
 3. else a local cluster of ``workers=`` processes (default one per core), started and stopped by the call.
 
-``ingest`` reads one capture as one stream in bounded memory: it runs in the calling process, with or
-without a client. Bad input raises :class:`stages.errors.InputError` (a ``ValueError``) before any output
+``ingest`` runs there only when given ``client=``, ``scheduler=`` or ``workers=`` (``DASK_SCHEDULER_ADDRESS`` alone
+is not enough); otherwise it reads the capture as one stream in bounded memory in the calling process (the
+same bytes). Bad input raises :class:`stages.errors.InputError` (a ``ValueError``) before any output
 exists, with the same one-line message the command prints. A wrong type (``out=None``, ``every="5"``,
 ``flip="no"``, ``client="..."``) raises :class:`stages.errors.InputTypeError`, a ``TypeError`` (and an
 ``InputError``) naming the argument; a closed client, an ``InputError``. Paths may be ``str`` or
@@ -105,20 +106,27 @@ def _address_of(client) -> str:
     return address
 
 
-def ingest(src: str, store: str, *, client=None, progress: bool = False, **options) -> Written:
+def ingest(src: str, store: str, *, client=None, workers: int | None = None, scheduler: str | None = None,
+           progress: bool = False, dry_run: bool = False, **options) -> Written:
     """A raw capture (``.dat``, ``.npy``, ``.npz``) into a new spike store at ``store``.
 
     ``options``: ``height``, ``width`` (required for ``.dat``), ``cfa`` (``"mono"``), ``fps``, ``flip``,
-    ``head_columns``, ``key``, ``reset``, ``overwrite`` as in ``cscsr ingest``. ``client`` is accepted like
-    everywhere else and not needed: the capture is one stream, read in this process.
+    ``head_columns``, ``key``, ``reset``, ``overwrite``, ``resume``, ``task_frames`` as in ``cscsr ingest``.
+    With ``client``, ``workers`` or ``scheduler`` it runs in parallel on Dask (``.dat`` and ``.npy``), as
+    ``cscsr ingest --workers/--scheduler``; without any, in this process, one stream (the same bytes).
+    ``dry_run=True`` writes nothing: ``counts`` then holds the plan (as ``cscsr ingest --dry-run --json``).
     """
-    from pipeline.ingest import IngestOptions, ingest as run
+    from pipeline.ingest import IngestOptions, plan_ingest, run_ingest
 
     src, store = _path("ingest", "src", src), _path("ingest", "store", store)
-    _checked("ingest", client=client, progress=progress)
-    del client  # one sequential stream: nothing to spread over a cluster
-    attrs = run(src, store, _options(IngestOptions, "ingest", options), progress=progress)
-    return Written(str(store), dict(attrs), _spike_counts(store))
+    _checked("ingest", client=client, workers=workers, scheduler=scheduler, progress=progress)
+    check_flag("dry_run", dry_run)
+    checked = _options(IngestOptions, "ingest", options)
+    if dry_run:
+        return Written(str(store), {}, plan_ingest(src, store, checked, workers=workers, scheduler=scheduler,
+                                                   client=client))
+    done = run_ingest(src, store, checked, progress=progress, workers=workers, scheduler=scheduler, client=client)
+    return Written(str(store), dict(done["attrs"]), _spike_counts(store))
 
 
 def simulate(src: str, store: str, *, client=None, workers: int | None = None, scheduler: str | None = None,
@@ -141,20 +149,26 @@ def simulate(src: str, store: str, *, client=None, workers: int | None = None, s
 
 
 def reconstruct(store: str, out: str, *, client=None, workers: int | None = None, scheduler: str | None = None,
-                progress: bool = False, **options) -> Written:
+                progress: bool = False, dry_run: bool = False, **options) -> Written:
     """HR colour video from the spike store at ``store`` into a new video store at ``out``, on Dask.
 
     ``options``: the fields of ``ReconstructOptions`` (``method`` ``"tfp"``/``"tfi"``/``"cscsr"``/
     ``"cscsr-ensemble"``, ``weights``, ``every``, ``window``, ``gain``, ``scale``, ``tile``, ``precision``,
-    ``backend``, ``gpu_batch``, ``fast_gpu``, ``segment_tasks``, ``resume``, ``overwrite``) as in ``cscsr reconstruct``.
+    ``backend``, ``gpu_batch``, ``fast_gpu``, ``segment_tasks``, ``resume``, ``overwrite``, and the part of the
+    recording: ``start``, ``stop`` (spike frames, or text such as ``"2.5s"``), ``region`` (``"Y0:Y1,X0:X1"`` or
+    ``(y0, y1, x0, x1)`` in LR pixels)) as in ``cscsr reconstruct``. ``dry_run``: every check, nothing created;
+    ``counts`` holds the plan that ``cscsr reconstruct --dry-run --json`` prints (``attrs`` is empty).
     """
     from pipeline.reconstruct import ReconstructOptions, reconstruct as run
     from pipeline.video_store import open_video_store
 
     store, out = _path("reconstruct", "store", store), _path("reconstruct", "out", out)
     _checked("reconstruct", client=client, workers=workers, scheduler=scheduler, progress=progress)
+    check_flag("dry_run", dry_run)
     counts = run(store, out, _options(ReconstructOptions, "reconstruct", options), workers=workers,
-                 scheduler=scheduler, client=client, progress=progress)
+                 scheduler=scheduler, client=client, progress=progress, dry_run=dry_run)
+    if dry_run:
+        return Written(str(out), {}, dict(counts))
     return Written(str(out), dict(open_video_store(out).attrs), dict(counts))
 
 

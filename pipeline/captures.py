@@ -1,9 +1,20 @@
-"""Raw captures (``.dat``, ``.npy``, ``.npz`` at any URL) read as a stream of packed blocks.
+"""Raw captures (``.dat``, ``.npy``, ``.npz`` at any URL) read as a stream of packed blocks, or by frame range.
 
 Each reader checks everything it can from sizes and headers before the first frame is
 read, then yields ``(first_frame, packed_block)`` pairs of bounded size, so a capture larger
 than memory goes through in constant memory.
+
+A capture that is frames of a fixed size at a fixed offset (``.dat``, ``.npy``) is also *ranged*:
+``read(start, stop)`` reads frames ``[start, stop)`` by one byte-range request, which is what a
+parallel ingest's tasks do, each on its own worker (``pipeline.ingest``). What a capture offers:
+``n_frames``, ``height``, ``width``, ``frame_bytes`` and ``offset`` (where frame 0 starts), ``ranged``,
+``read``, ``blocks`` and ``fingerprint``. Another raw layout (the megapixel camera's) plugs in as a
+:class:`RawCapture` with a layout object of its own: its ``frame_bytes``, ``offset``,
+``frame_count(nbytes)`` and ``to_packed(raw)`` ((n, frame_bytes) uint8 -> (n, H, ceil(W/8)) packed,
+upright), as :class:`stages.dat.DatLayout` has; ``open_capture`` chooses it.
 """
+
+import hashlib
 
 import tokenize
 import zipfile
@@ -19,7 +30,9 @@ from stages.dat import DatLayout, dat_to_packed
 from stages.errors import InputError, describe
 
 KINDS = (".dat", ".npy", ".npz")
+RANGED_KINDS = (".dat", ".npy")  # read by frame range: what a parallel ingest reads
 DEFAULT_NPZ_KEY = "spk"
+ENDS_BYTES = 2**20  # bytes at each end of a capture that its fingerprint hashes
 
 
 def _open(url: str):
@@ -42,16 +55,37 @@ def _why_absent(fs, path: str, url: str) -> str:
     return f"cannot read {url}: no such file"
 
 
+def fingerprint(fs, path: str) -> dict:
+    """What tells one capture from another cheaply, even at a terabyte: its size in bytes and a SHA-256 of
+    its first and last :data:`ENDS_BYTES` (two range reads). ``ingest --resume`` compares it."""
+    size = int(fs.size(path))
+    digest = hashlib.sha256()
+    for start, end in ((0, min(ENDS_BYTES, size)), (max(0, size - ENDS_BYTES), size)):
+        digest.update(fs.cat_file(path, start=start, end=end) if end > start else b"")
+    return {"bytes": size, "sha256_ends": digest.hexdigest()}
+
+
+def _read_range(fs, path: str, url: str, start: int, end: int, first_frame: int) -> bytes:
+    """Bytes ``[start, end)`` of the file, all of them or an error naming the frame where it ended."""
+    data = fs.cat_file(path, start=start, end=end) if end > start else b""
+    if len(data) != end - start:
+        raise InputError(f"{url} ended early near frame {first_frame}: it changed while being read")
+    return data
+
+
 @dataclass
-class DatCapture:
-    """A headerless ``.dat`` capture; its frame count follows from its size."""
+class RawCapture:
+    """A headerless capture of fixed-size frames: a ``.dat`` (:class:`stages.dat.DatLayout`), or any layout
+    that converts a frame's bytes to packed frames (see the module docstring); its frame count follows
+    from its size."""
 
     url: str
     layout: DatLayout
+    ranged = True
 
     def __post_init__(self):
         self.fs, self.path = _open(self.url)
-        self.n_frames = self.layout.frame_count(self.fs.size(self.path))
+        self.n_frames = self.layout.frame_count(self.fs.size(self.path) - self.offset)
 
     @property
     def height(self) -> int:
@@ -61,16 +95,44 @@ class DatCapture:
     def width(self) -> int:
         return self.layout.width
 
-    def blocks(self, frames_per_block: int) -> Iterator[tuple[int, np.ndarray]]:
-        frame_bytes = self.layout.frame_bytes
+    @property
+    def frame_bytes(self) -> int:
+        return self.layout.frame_bytes
+
+    @property
+    def offset(self) -> int:
+        return getattr(self.layout, "offset", 0)
+
+    def _packed(self, data: bytes, count: int) -> np.ndarray:
+        raw = np.frombuffer(data, np.uint8).reshape(count, self.frame_bytes)
+        return dat_to_packed(raw, self.layout) if isinstance(self.layout, DatLayout) else self.layout.to_packed(raw)
+
+    def read(self, start: int, stop: int) -> np.ndarray:
+        """Packed frames ``[start, stop)``, upright: one byte-range read."""
+        begin = self.offset + start * self.frame_bytes
+        return self._packed(_read_range(self.fs, self.path, self.url, begin, begin + (stop - start) * self.frame_bytes,
+                                        start), stop - start)
+
+    def blocks(self, frames_per_block: int, skip=()) -> Iterator[tuple[int, np.ndarray]]:
+        """``(first_frame, packed)`` of each block of ``frames_per_block`` frames in order, one stream; the
+        blocks whose first frame is in ``skip`` are neither read nor yielded."""
+        frame_bytes = self.frame_bytes
         with self.fs.open(self.path, "rb", block_size=frames_per_block * frame_bytes) as stream:
             for start in range(0, self.n_frames, frames_per_block):
+                if start in skip:
+                    continue
                 count = min(frames_per_block, self.n_frames - start)
+                stream.seek(self.offset + start * frame_bytes)
                 data = stream.read(count * frame_bytes)
                 if len(data) != count * frame_bytes:
                     raise InputError(f"{self.url} ended early at frame {start}: it changed while being read")
-                raw = np.frombuffer(data, np.uint8).reshape(count, frame_bytes)
-                yield start, dat_to_packed(raw, self.layout)
+                yield start, self._packed(data, count)
+
+    def fingerprint(self) -> dict:
+        return fingerprint(self.fs, self.path)
+
+
+DatCapture = RawCapture  # the name it had when .dat was the only raw layout
 
 
 class ArrayCapture:
@@ -82,7 +144,27 @@ class ArrayCapture:
         self.key = self._choose_key(key) if url.endswith(".npz") else None
         with self._stream() as stream:
             shape, self.dtype = self._read_header(stream)
+            self.offset = stream.tell() if self.key is None else None  # where frame 0 starts in a .npy
         self.n_frames, self.height, self.width = shape
+        self.frame_bytes = self.height * self.width * self.dtype.itemsize
+
+    @property
+    def ranged(self) -> bool:
+        """A ``.npy`` is read by frame range; a ``.npz`` member (deflated, as a rule) only as one stream."""
+        return self.key is None
+
+    def read(self, start: int, stop: int) -> np.ndarray:
+        """Packed frames ``[start, stop)`` of a ``.npy``: one byte-range read."""
+        if not self.ranged:
+            raise InputError(f"{self.url}: a .npz member is read as one stream, not by frame range")
+        begin = self.offset + start * self.frame_bytes
+        data = _read_range(self.fs, self.path, self.url, begin, begin + (stop - start) * self.frame_bytes, start)
+        frames = np.frombuffer(data, self.dtype).reshape(stop - start, self.height, self.width)
+        packed = binary_to_packed(frames, first_frame=start)
+        return np.ascontiguousarray(packed[:, ::-1]) if self.flip else packed
+
+    def fingerprint(self) -> dict:
+        return fingerprint(self.fs, self.path)
 
     def _choose_key(self, key: str | None) -> str:
         with self.fs.open(self.path, "rb") as raw:
@@ -120,17 +202,23 @@ class ArrayCapture:
             raise InputError(f"{self.url} holds a Fortran-ordered array; save it C-ordered (np.ascontiguousarray)")
         return shape, dtype
 
-    def blocks(self, frames_per_block: int) -> Iterator[tuple[int, np.ndarray]]:
+    def blocks(self, frames_per_block: int, skip=()) -> Iterator[tuple[int, np.ndarray]]:
+        """As :meth:`RawCapture.blocks`; a skipped block of a ``.npz`` is still read (a stream), not packed."""
         frame_items = self.height * self.width
         with self._stream() as stream:
             self._read_header(stream)
             for start in range(0, self.n_frames, frames_per_block):
                 count = min(frames_per_block, self.n_frames - start)
                 nbytes = count * frame_items * self.dtype.itemsize
+                if start in skip and self.ranged:
+                    stream.seek(self.offset + (start + count) * self.frame_bytes)
+                    continue
                 try:
                     data = stream.read(nbytes)
                 except (zlib.error, zipfile.BadZipFile, EOFError) as error:
                     raise InputError(f"{self.url} is damaged near frame {start}: {describe(error)}") from None
+                if start in skip:
+                    continue
                 if len(data) != nbytes:
                     raise InputError(f"{self.url} is truncated: frame {start + len(data) // (frame_items * self.dtype.itemsize)} of {self.n_frames} is incomplete")
                 frames = np.frombuffer(data, self.dtype).reshape(count, self.height, self.width)
@@ -161,7 +249,7 @@ def open_capture(url: str, *, height: int | None, width: int | None, flip: bool 
     if suffix == ".dat":
         if height is None or width is None:
             raise InputError("a .dat capture has no header: give both --height and --width")
-        return DatCapture(url, DatLayout(height, width, head_columns, flip))
+        return RawCapture(url, DatLayout(height, width, head_columns, flip))
     if suffix in (".npy", ".npz"):
         if head_columns:
             raise InputError("--head-columns applies to .dat captures only")

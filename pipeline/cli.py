@@ -227,12 +227,40 @@ def ingest(src: Annotated[str, typer.Argument(help="Capture: .dat, .npy or .npz 
            head_columns: Annotated[int, typer.Option(help="Header columns at the end of each .dat row, dropped (SPS10: 16 of 416).")] = 0,
            key: Annotated[Optional[str], typer.Option(help="Array name inside a .npz (default: spk).")] = None,
            reset: Annotated[str, typer.Option(help="Integrator reset of the sensor: subtract or zero.")] = "subtract",
+           workers: Annotated[Optional[int], typer.Option(help="Ingest in parallel on a local Dask cluster of this many "
+                                                               "worker processes (.dat and .npy; default: in this "
+                                                               "process, one stream).")] = None,
+           scheduler: Annotated[Optional[str], typer.Option(help="Ingest in parallel on the Dask scheduler at this "
+                                                                 "address (.dat and .npy).")] = None,
+           task_frames: Annotated[Optional[int], typer.Option(help="Frames per task, rounded up to whole chunks "
+                                                                   "(default: about 64 MiB of spikes).")] = None,
+           resume: Annotated[bool, typer.Option("--resume", help="Finish an interrupted ingest into STORE, from the "
+                                                "same capture.")] = False,
+           dry_run: Annotated[bool, typer.Option("--dry-run", help="Check everything, create nothing, print the plan "
+                                                 "(size at rest, hours on 1, 8, 64 workers, measured on one task).")] = False,
+           as_json: Annotated[bool, typer.Option("--json", help="With --dry-run: print the plan as JSON.")] = False,
            overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace STORE if it exists.")] = False):
-    """Copy a raw capture into a new spike store, streaming in bounded memory."""
-    from pipeline.ingest import IngestOptions, ingest as run
+    """Copy a raw capture into a new spike store, streaming in bounded memory, or in parallel on Dask; resumable."""
+    from pipeline.ingest import IngestOptions, plan_ingest, run_ingest
 
-    attrs = run(src, store, IngestOptions(height, width, cfa, fps, flip, head_columns, key, reset, overwrite))
-    stdout.print(f"{store}: {attrs['spike_count']} spikes, {attrs['height']}x{attrs['width']}, cfa {attrs['cfa']}")
+    if as_json and not dry_run:
+        raise ValueError("--json is for --dry-run (the plan as JSON): add --dry-run, or leave --json out")
+    options = IngestOptions(height, width, cfa, fps, flip, head_columns, key, reset, overwrite, resume, task_frames)
+    if dry_run:
+        plan = plan_ingest(src, store, options, workers=workers, scheduler=scheduler)
+        if as_json:
+            print(json.dumps(plan, allow_nan=False))
+            return
+        hours = plan.pop("hours")
+        rows = {k: v for k, v in plan.items() if k not in ("source", "store")}
+        rows.update({f"hours on {n} worker{'s' if n != '1' else ''}": h for n, h in hours.items()})
+        show_table(f"ingest {src} -> {store} (dry run: nothing created)", rows)
+        return
+    done = run_ingest(src, store, options, workers=workers, scheduler=scheduler)
+    attrs = done["attrs"]
+    tasks = (f" ({done['tasks_run']} tasks run, {done['tasks_skipped']} already committed)"
+             if resume or workers is not None or scheduler is not None else "")
+    stdout.print(f"{store}: {attrs['spike_count']} spikes, {attrs['height']}x{attrs['width']}, cfa {attrs['cfa']}{tasks}")
 
 
 @command()
@@ -336,15 +364,81 @@ def reconstruct(store: Annotated[str, typer.Argument(help="Spike store URL.")],
                                                                           "CPU ignores it.")] = False,
                 backend: Annotated[str, typer.Option(help="What runs the network: torch, or onnx (ONNX Runtime on "
                                                           "the CPU: ~1.3x faster, ~18 s to export per tile shape "
-                                                          "and worker; pip install 'cscsr[onnx]').")] = "torch"):
+                                                          "and worker; pip install 'cscsr[onnx]').")] = "torch",
+                start: Annotated[Optional[str], typer.Option(help="Only output frames centred at or after this: "
+                                                                  "a spike frame (1200) or seconds (2.5s, "
+                                                                  "1500ms).")] = None,
+                stop: Annotated[Optional[str], typer.Option(help="Only output frames centred before this (spike "
+                                                                 "frame or seconds).")] = None,
+                region: Annotated[Optional[str], typer.Option(help="Only this region, Y0:Y1,X0:X1 in LR pixels (X0 a "
+                                                                   "multiple of 8; even bounds for a Bayer "
+                                                                   "CFA).")] = None,
+                dry_run: Annotated[bool, typer.Option("--dry-run", help="Check everything, create nothing, and "
+                                                                        "print the plan, priced by a few of its "
+                                                                        "tasks run for real on its workers.")]
+                = False,
+                as_json: Annotated[bool, typer.Option("--json", help="With --dry-run: the plan as JSON.")] = False):
     """Reconstruct HR colour video from a spike store, over Dask (network tasks on GPU workers if there are any)."""
     from pipeline.reconstruct import ReconstructOptions, reconstruct as run
 
+    if as_json and not dry_run:
+        raise ValueError("--json is for --dry-run (the plan as JSON): add --dry-run, or leave --json out")
     options = ReconstructOptions(method=method, every=every, window=window, gain=gain, scale=scale, tile=tile,
                                  weights=weights, resume=resume, overwrite=overwrite, segment_tasks=segment_tasks,
-                                 precision=precision, gpu_batch=gpu_batch, backend=backend, fast_gpu=fast_gpu)
-    counts = run(store, out, options, workers=workers, scheduler=scheduler)
+                                 precision=precision, gpu_batch=gpu_batch, backend=backend, fast_gpu=fast_gpu,
+                                 start=start, stop=stop, region=region)
+    counts = run(store, out, options, workers=workers, scheduler=scheduler, progress=not dry_run, dry_run=dry_run)
+    if dry_run:
+        show_plan(counts, as_json)
+        return
     stdout.print(f"{out}: {counts['frames']} frames ({counts['tasks_run']} tasks run, {counts['tasks_skipped']} already committed)")
+
+
+def in_units(size: float) -> str:
+    """Bytes as a few digits in binary units: ``1.2 GiB``."""
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if size < 1024 or unit == "TiB":
+            return f"{size:.3g} {unit}"
+        size /= 1024
+
+
+def duration(seconds: float) -> str:
+    """Seconds as a few digits in the unit that suits them: ``41 s``, ``12 min``, ``3.2 hours``."""
+    if seconds < 90:
+        return f"{seconds:.2g} s"
+    return f"{seconds / 60:.3g} min" if seconds < 5400 else f"{seconds / 3600:.3g} hours"
+
+
+def show_plan(plan: dict, as_json: bool) -> None:
+    """``reconstruct --dry-run``'s plan: JSON on standard output, or a table and the hours on N workers."""
+    if as_json:
+        print(json.dumps(plan, allow_nan=False))
+        return
+    measured = plan["measured"]
+    y0, y1, x0, x1 = plan["region"]
+    rows = {"output frames": f"{plan['frames']} (centres at spike frames {plan['spike_frames']}, every "
+                             f"{plan['every']}; part [{plan['start']}, {plan['stop']}))",
+            "region": f"{y0}:{y1},{x0}:{x1} LR -> {plan['hr_width']}x{plan['hr_height']} HR (x{plan['scale']})",
+            "method": f"{plan['method']} on {plan['runs_on']}"
+                      + (f", weights {plan['weights']}" if plan["weights"] else ""),
+            "tile": f"{plan['tile_lr']} LR ({plan['tiles_per_frame']} per frame)",
+            "tasks": f"{plan['tasks']} ({plan['tasks_to_run']} to run), {plan['frames_per_task']} frame(s) each",
+            "gain": plan["gain"],
+            "measured": f"{measured['tasks']} tasks run on {plan['measured_on']} at once: "
+                        f"{measured['seconds_per_task']:.3g} s each, {in_units(measured['bytes'])} written",
+            "output size": f"~{in_units(plan['output_bytes'])} (the measured tasks' bytes per pixel)",
+            "this job": f"~{duration(plan['job_seconds'])} on {plan['workers']} worker(s)"
+                        + (f" (each segment's local cluster: {plan['segment_start_seconds']:.2g} s to start and stop)"
+                           if plan["segment_start_seconds"] else "")}
+    show_table(f"plan: {plan['store']} -> {plan['out']}", rows)
+    workers = "GPU workers" if plan["runs_on"] == "GPU workers" else "workers"
+    table = Table(title="estimated time")
+    table.add_column(workers, justify="right")
+    table.add_column("hours", justify="right")
+    for count, hours in plan["hours"].items():
+        table.add_row(count, f"{hours:.3g}")
+    stdout.print(table)
+    stdout.print(f"{plan['seconds_per_task']:.3g} s per task, one task at a time per worker", soft_wrap=True)
 
 
 @command()

@@ -68,8 +68,9 @@ def missing_frames(spikes) -> str | None:
 
 
 def summarize_video(url: str, group) -> dict:
-    """Frames, size, frame rate, method and state of an HR video store; a store whose written tiles are not
-    all there is never called complete, and the frames they belong to are named."""
+    """Frames, size, frame rate, method, state and the part of its recording (spike frames ``start``..``stop``,
+    LR ``region``) of an HR video store; a store whose written tiles are not all there is never called complete,
+    and the frames they belong to are named."""
     attrs = dict(group.attrs)
     video, frames = group[VIDEO], group[FRAMES][:]
     n, height, width = video.shape[:3]
@@ -92,6 +93,10 @@ def summarize_video(url: str, group) -> dict:
         "fps": fps,
         "duration_s": None if fps is None else n / fps,
         "spike_frames": f"{frames[0]}..{frames[-1]}" if len(frames) else "",
+        # the part of the recording it holds (reconstruct --start/--stop/--region); None: a store from before them
+        "start": attrs.get("start"),
+        "stop": attrs.get("stop"),
+        "region": attrs.get("region"),  # [y0, y1, x0, x1] in LR pixels
         "method": attrs.get("method"),
         "weights": attrs.get("weights"),
         "scale": attrs.get("scale"),

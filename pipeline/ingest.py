@@ -1,20 +1,63 @@
-"""``cscsr ingest``: a raw capture streamed into a new spike store."""
+"""``cscsr ingest``: a raw capture into a new spike store, in this process or over Dask; resumable.
 
+**Tasks.** The capture is cut into tasks, runs of ``task_frames`` whole frames (a whole number of the
+store's chunks, about :data:`BLOCK_BYTES` of packed spikes; ``--task-frames``): task ``i`` is frames
+``[i * task_frames, (i + 1) * task_frames)``. A task packs its frames, writes their chunks of ``spikes``
+(no two tasks share a chunk), then records itself committed: ``committed[i]`` = the spikes it counted
+(``pipeline.spike_store``). The job writes the metadata first (``state: "writing"``, every task -1 in
+``committed``, whose attributes record the capture's fingerprint and the options), and finishes the store
+(spike count, identity, consolidated metadata, ``state: "complete"``) only once every task is committed.
+
+**Where.** Without ``--workers``, ``--scheduler`` (or a client) the tasks run in this process, one stream
+read ahead of the writes: the reference, whose bytes every other way reproduces. With them each task is
+a Dask task that reads its frames by byte range (ranged captures, ``.dat`` and ``.npy``: a ``.npz`` is one
+stream) wherever it runs; tasks are idempotent (the same chunks, the same bytes), so a lost worker's
+tasks run again (``pipeline.executor``). A local cluster runs in a child process that dies with the job
+(``in_segments``), so a killed ingest leaves nothing writing.
+
+**Resume.** ``--resume`` checks that the capture is the one the store was ingested from (its size and a
+SHA-256 of its first and last MiB: two range reads, even at a terabyte), with the same options and task
+size, then runs only the tasks not committed and finishes the store. A failed parallel ingest keeps
+what it committed for ``--resume``; a failed one-process ingest is removed, as before.
+
+**Dry run.** :func:`plan_ingest` checks everything a run would, creates nothing, and measures one task
+(read, pack, compress into memory) for the store's size at rest and the hours on 1, 8, 64 workers.
+"""
+
+import contextlib
+import functools
+import math
+import sys
+import time
+import uuid
+from collections.abc import Iterable, Iterator
 from dataclasses import asdict, dataclass
+from typing import NamedTuple
 
-from pipeline.captures import open_capture
-from stages.prefetch import prefetched
+import numpy as np
+import zarr
+
+from pipeline.captures import RANGED_KINDS, open_capture
+from pipeline.cluster import check_scheduler, check_workers, dashboard_link, dask_client, scheduler_address
+from pipeline.executor import failure, in_segments, submitted
+from pipeline.hold import hold_point
+from pipeline.lease import check_free, claimed, held
+from pipeline.outputs import SPIKE_STORE, check_ours, new_output
 from pipeline.progress import progress_bar
-from pipeline.spike_store import SpikeMeta, SpikeStoreWriter, chunk_frames_for
-from pipeline.lease import claimed
-from pipeline.outputs import SPIKE_STORE, new_output
-from pipeline.storage import check_apart, recorded
+from pipeline.spike_store import (CODEC_LEVEL, COMMITTED, SPIKES, WRITE_CONFIG, SpikeMeta, SpikeStoreWriter,
+                                  chunk_frames_for, open_spike_store)
+from pipeline.storage import check_apart, exists, recorded, zarr_store
 from stages.bits import count_spikes, packed_width
 from stages.cfa import check_cfa, flip_vertically
+from stages.errors import InputError, exists_error
 from stages.numbers import check_flag, check_number, check_text
+from stages.prefetch import prefetched
 from stages.sensor import check_reset
 
-BLOCK_BYTES = 64 * 2**20  # packed bytes per block read: bounds memory, amortises I/O
+BLOCK_BYTES = 64 * 2**20  # packed bytes per task (and per block read): bounds memory, amortises I/O
+SEGMENT_TASKS = 10_000  # tasks per segment of a local cluster (a terabyte is ~16,000 tasks)
+PLANNED_WORKERS = (1, 8, 64)  # the dry run's table of hours
+COMMITTED_UNITS = "spikes in the task's frames, written once they are stored; -1 = not committed"
 
 
 @dataclass(frozen=True)
@@ -28,6 +71,8 @@ class IngestOptions:
     key: str | None = None
     reset: str = "subtract"
     overwrite: bool = False
+    resume: bool = False
+    task_frames: int | None = None  # frames per task, rounded up to whole chunks (default: ~BLOCK_BYTES)
 
     def check(self) -> None:
         """Every check of the options that needs no capture, types first (only the Python API can get them
@@ -43,27 +88,91 @@ class IngestOptions:
         check_text("--key", self.key, optional=True)
         check_text("--reset", self.reset)
         check_flag("--overwrite", self.overwrite)
+        check_flag("--resume", self.resume)
+        if self.task_frames is not None:
+            check_number("--task-frames", self.task_frames, at_least=1, integer=True)
         check_cfa(self.cfa)
         check_reset(self.reset)
+        if self.resume and self.overwrite:
+            raise InputError("--resume and --overwrite contradict each other: choose one")
+
+
+JOB_FIELDS = ("overwrite", "resume", "task_frames")  # how a capture is ingested, not what it is taken to be
 
 
 def capture_fields(options: IngestOptions) -> dict:
-    """What the capture is taken to be (every field but ``overwrite``): the watcher keys its work on these."""
+    """What the capture is taken to be (every field but :data:`JOB_FIELDS`): the watcher keys its work on these."""
     fields = asdict(options)
-    del fields["overwrite"]
+    for name in JOB_FIELDS:
+        del fields[name]
     return fields
 
 
-def ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *, progress: bool = True) -> dict:
-    """Copy ``src`` into a spike store at ``dest``; return the store's final attributes.
+@dataclass(frozen=True)
+class IngestPlan:
+    """What every task needs, a few hundred bytes travelling in each task: the capture as workers open it
+    (absolute, or a URL), the store, and the cut into tasks."""
 
-    ``options.cfa`` is the pattern as recorded by the sensor; with ``flip`` the store
-    records the pattern of the upright image it holds.
-    """
+    src: str
+    dest: str
+    height: int | None
+    width: int | None
+    flip: bool
+    head_columns: int
+    key: str | None
+    n_frames: int
+    task_frames: int
+    run: str  # this job's id: workers open the capture and the store once per job
+
+    @property
+    def n_tasks(self) -> int:
+        return -(-self.n_frames // self.task_frames)
+
+    def frames(self, index: int) -> tuple[int, int]:
+        """Frames ``[start, stop)`` of task ``index``."""
+        start = index * self.task_frames
+        return start, min(start + self.task_frames, self.n_frames)
+
+    def open_capture(self):
+        return open_capture(self.src, height=self.height, width=self.width, flip=self.flip,
+                            head_columns=self.head_columns, key=self.key)
+
+
+@dataclass
+class _Job:
+    """An ingest checked and cut into tasks, before anything is written."""
+
+    capture: object
+    meta: SpikeMeta
+    chunk: int
+    plan: IngestPlan
+    record: dict  # the attributes of ``committed``: what --resume compares
+    parallel: bool
+
+
+def task_frames_for(chunk: int, frame_bytes: int, asked: int | None = None) -> int:
+    """Frames per task: ``asked`` rounded up to whole chunks, else about :data:`BLOCK_BYTES` of packed frames."""
+    if asked is not None:
+        return chunk * -(-asked // chunk)
+    return chunk * max(1, BLOCK_BYTES // (chunk * frame_bytes))
+
+
+def _prepare(src: str, dest: str, options: IngestOptions, *, parallel: bool, client) -> _Job:
+    """Every check of an ingest that writes nothing: the options, the places, the capture, whether it can be
+    read in parallel, and for ``--resume`` the store to finish (:func:`_check_resumable`)."""
     options.check()
     check_apart(dest, src)
+    if options.resume and not exists(dest):
+        raise InputError(f"cannot resume: {dest} does not exist")
+    if parallel and client is None and any(str(url).startswith("memory://") for url in (src, dest)):
+        raise InputError("memory:// lives in this process only, where a cluster's workers cannot see it: ingest "
+                         "without --workers or --scheduler, or use a path or another URL")
     capture = open_capture(src, height=options.height, width=options.width, flip=options.flip,
                            head_columns=options.head_columns, key=options.key)
+    if parallel and not capture.ranged:
+        raise InputError(f"{src}: a .npz is read as one stream, and parallel ingest (--workers, --scheduler) reads "
+                         f"a capture by frame range ({', '.join(RANGED_KINDS)}): ingest it without them, or save "
+                         f"the array as .npy")
     sensor_cfa = check_cfa(options.cfa, capture.height, capture.width)
     meta = SpikeMeta(
         height=capture.height, width=capture.width,
@@ -71,14 +180,275 @@ def ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *, pro
         fps=options.fps, source=recorded(src), flipped=options.flip, head_columns=options.head_columns, reset=options.reset,
     )
     chunk = chunk_frames_for(meta, capture.n_frames)
-    frames_per_block = chunk * max(1, BLOCK_BYTES // (chunk * capture.height * packed_width(capture.width)))
-    with claimed(dest), new_output(dest, overwrite=options.overwrite, kind=SPIKE_STORE):
-        writer = SpikeStoreWriter(dest, meta, capture.n_frames, chunk_frames=chunk)
-        spikes = 0
-        with progress_bar(f"ingest {src}", capture.n_frames, enabled=progress) as advance:
-            for start, packed in prefetched(capture.blocks(frames_per_block)):
-                writer.write(start, packed)
-                spikes += count_spikes(packed)
-                advance(packed.shape[0])
-        writer.finish(spike_count=spikes)
-    return dict(writer.group.attrs)
+    found = _found_record(dest) if options.resume else {}
+    asked = options.task_frames
+    if asked is None and isinstance(found.get("task_frames"), int) and found["task_frames"] > 0:
+        asked = found["task_frames"]  # resumed as it was cut
+    task_frames = task_frames_for(chunk, capture.height * packed_width(capture.width), asked)
+    record = {"units": COMMITTED_UNITS, "task_frames": task_frames, "capture": capture.fingerprint(),
+              "options": {"height": capture.height, "width": capture.width, "cfa": sensor_cfa, "fps": options.fps,
+                          "flip": options.flip, "head_columns": options.head_columns,
+                          "key": getattr(capture, "key", None), "reset": options.reset}}
+    plan = IngestPlan(recorded(src), recorded(dest), options.height, options.width, options.flip, options.head_columns,
+                      options.key, capture.n_frames, task_frames, uuid.uuid4().hex)
+    job = _Job(capture, meta, chunk, plan, record, parallel)
+    if options.resume:
+        _check_resumable(dest, src, job)
+    return job
+
+
+def _found_record(dest: str) -> dict:
+    """The attributes of the ``committed`` record of the store to resume; refuses a store that has none."""
+    store = open_spike_store(dest, allow_incomplete=True)  # a video store, a folder, ...: refused by name
+    if COMMITTED not in store.group or not isinstance(store.group[COMMITTED], zarr.Array):
+        raise InputError(f"cannot resume {dest}: it holds no record of ingest tasks (a simulated store, or one "
+                         f"ingested by cscsr before resumable ingest): ingest it again with --overwrite")
+    return dict(store.group[COMMITTED].attrs)
+
+
+def _check_resumable(dest: str, src: str, job: _Job) -> np.ndarray:
+    """Refuse to resume ``dest`` from another capture, with other options or another cut into tasks; -> the
+    spike counts of its tasks (-1: not committed). Reads, never writes."""
+    store = open_spike_store(dest, allow_incomplete=True)
+    found = _found_record(dest)
+    was, now = found.get("capture") or {}, job.record["capture"]
+    if was != now:
+        why = (f"{was.get('bytes')} bytes -> {now['bytes']} bytes" if was.get("bytes") != now["bytes"]
+               else "the same size, but its first or last MiB differ")
+        raise InputError(f"cannot resume {dest}: {src} is not the capture it was ingested from ({why}): give that "
+                         f"capture, or start again with --overwrite")
+    options = found.get("options") or {}
+    changed = [f"{k} {options.get(k)!r} -> {v!r}" for k, v in job.record["options"].items() if options.get(k) != v]
+    if found.get("task_frames") != job.plan.task_frames:
+        changed.append(f"task_frames {found.get('task_frames')!r} -> {job.plan.task_frames!r}")
+    if changed:
+        raise InputError(f"cannot resume {dest}: it was ingested with other options ({', '.join(changed)}): give "
+                         f"those, or start again with --overwrite")
+    committed = store.group[COMMITTED]
+    if (store.n_frames != job.plan.n_frames or store.spikes.chunks[0] != job.chunk
+            or committed.shape != (job.plan.n_tasks,)):
+        raise InputError(f"cannot resume {dest}: its arrays do not match the capture ({store.n_frames} frames in "
+                         f"chunks of {store.spikes.chunks[0]}, {committed.shape[0]} tasks): start again with --overwrite")
+    return committed[:].astype(np.int64)
+
+
+def ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *, progress: bool = True,
+           workers: int | None = None, scheduler: str | None = None, client=None) -> dict:
+    """Copy ``src`` into a spike store at ``dest``; return the store's final attributes (:func:`run_ingest`)."""
+    return run_ingest(src, dest, options, progress=progress, workers=workers, scheduler=scheduler,
+                      client=client)["attrs"]
+
+
+def run_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *, progress: bool = True,
+               workers: int | None = None, scheduler: str | None = None, client=None) -> dict:
+    """Copy ``src`` into a spike store at ``dest`` (``options.resume``: finish the one there); return
+    ``attrs`` (the store's final attributes), ``frames``, ``tasks``, ``tasks_run``, ``tasks_skipped``.
+
+    In this process unless ``client``, ``workers`` or ``scheduler`` is given (then on Dask, as the other
+    jobs: the client, else the named scheduler or ``DASK_SCHEDULER_ADDRESS``, else a local cluster of
+    ``workers``). ``options.cfa`` is the pattern as recorded by the sensor; with ``flip`` the store
+    records the pattern of the upright image it holds.
+    """
+    check_workers(workers)
+    check_text("--scheduler", scheduler, optional=True)
+    parallel = client is not None or workers is not None or scheduler is not None
+    job = _prepare(src, dest, options, parallel=parallel, client=client)
+    if parallel and client is None:
+        check_scheduler(scheduler)  # a named scheduler answers (within seconds) before DEST is claimed or replaced
+    plan = job.plan
+    with contextlib.ExitStack() as stack:
+        if parallel and client is None and scheduler_address(scheduler):  # a long-lived cluster: connect once
+            client = stack.enter_context(dask_client(scheduler=scheduler))
+        stack.enter_context(claimed(dest))  # one job per store, taken atomically before DEST is touched
+        if options.resume:
+            check_free(dest)  # and no live lease (a job on a machine that shares no claim file with us)
+        stack.enter_context(new_output(dest, overwrite=options.overwrite, kind=SPIKE_STORE, flag="--resume or --overwrite",
+                                       resume=options.resume, keep_partial=parallel))
+        if options.resume:
+            counts = _check_resumable(dest, src, job)  # again, under the claim
+            writer = SpikeStoreWriter.reopened(dest)
+            complete = writer.group.attrs.get("state") == "complete"
+        else:
+            writer = SpikeStoreWriter(dest, job.meta, plan.n_frames, chunk_frames=job.chunk)
+            writer.add_array(COMMITTED, (plan.n_tasks,), (1,), np.int64, ("task",), job.record, fill_value=-1)
+            counts, complete = np.full(plan.n_tasks, -1, np.int64), False
+        todo = [index for index in range(plan.n_tasks) if counts[index] < 0]
+        if todo:
+            with held(dest), progress_bar(f"ingest {src}", plan.n_frames, enabled=progress) as advance:
+                advance(plan.n_frames - sum(plan.frames(i)[1] - plan.frames(i)[0] for i in todo))
+                if parallel:
+                    failed = _run_on_cluster(plan, todo, counts, advance, client=client, workers=workers,
+                                             progress=progress)
+                else:
+                    failed = _run_here(job.capture, writer, plan, counts, advance)
+            if failed:
+                raise IngestIncomplete(dest, plan, failed)
+        if not complete:
+            writer.finish(spike_count=int(counts.sum()))
+    return {"attrs": dict(writer.group.attrs), "frames": plan.n_frames, "tasks": plan.n_tasks,
+            "tasks_run": len(todo), "tasks_skipped": plan.n_tasks - len(todo)}
+
+
+def _run_here(capture, writer: SpikeStoreWriter, plan: IngestPlan, counts: np.ndarray, advance) -> dict:
+    """The tasks not committed, in this process: one stream of blocks read ahead of the writes."""
+    committed = writer.group[COMMITTED]
+    skip = {plan.frames(index)[0] for index in range(plan.n_tasks) if counts[index] >= 0}
+    for start, packed in prefetched(capture.blocks(plan.task_frames, skip)):
+        hold_point()  # inert unless a fault test asks (pipeline.hold)
+        writer.write(start, packed)
+        index = start // plan.task_frames
+        counts[index] = count_spikes(packed)
+        committed[index] = counts[index]
+        advance(packed.shape[0])
+    return {}
+
+
+class Outcome(NamedTuple):
+    """One finished task: its index, the spikes it counted, or its error."""
+
+    index: int
+    spikes: int | None
+    error: str | None
+
+
+def _run_on_cluster(plan: IngestPlan, todo: list[int], counts: np.ndarray, advance, *, client, workers: int | None,
+                    progress: bool) -> dict[int, str]:
+    """The tasks ``todo`` on ``client`` (else in segments, each on a fresh local cluster of ``workers``); their
+    counts into ``counts``; -> {task: error} of those that failed."""
+    work = functools.partial(run_tasks, plan=plan)
+    if client is not None:
+        if progress and (link := dashboard_link(client)):
+            print(f"dashboard: {link}", file=sys.stderr)  # never mixed with results on stdout
+        outcomes = work(client, todo)
+    else:
+        outcomes = in_segments(work, todo, SEGMENT_TASKS, workers=workers, show_dashboard=progress)
+    failed = {}
+    for outcome in outcomes:
+        if outcome.error is not None:
+            failed[outcome.index] = outcome.error
+            continue
+        counts[outcome.index] = outcome.spikes
+        start, stop = plan.frames(outcome.index)
+        advance(stop - start)
+    return failed
+
+
+def run_tasks(client, tasks: Iterable[int], *, plan: IngestPlan) -> Iterator[Outcome]:
+    """Run ingest tasks on ``client`` (``pipeline.executor``: a bounded window, lost workers survived, tasks the
+    cluster drops submitted again); yield each outcome as it finishes."""
+    def submit(index: int):  # the plan travels in each task
+        return client.submit(_ingest_task, plan, index, pure=False)
+
+    for index, future in submitted(client, tasks, submit, idempotent=True):
+        error = failure(future)
+        yield Outcome(index, None if error else int(future.result()), error)
+
+
+@functools.lru_cache(maxsize=4)
+def _opened(plan: IngestPlan):
+    """The capture and the store's arrays, opened once per worker process and job."""
+    capture = plan.open_capture()
+    if capture.n_frames != plan.n_frames:
+        raise InputError(f"{plan.src} changed since the ingest started: {capture.n_frames} frames, not {plan.n_frames}")
+    group = zarr.open_group(zarr_store(plan.dest, read_only=False), mode="r+", use_consolidated=False)
+    # write_empty_chunks is a runtime setting, not stored: every chunk is written, empty or not
+    return capture, group[SPIKES].with_config({"write_empty_chunks": True}), group[COMMITTED]
+
+
+def _ingest_task(plan: IngestPlan, index: int) -> int:
+    """Task: read frames of task ``index`` by byte range, pack them, write their chunks, record the task
+    committed (its spike count); -> that count. Idempotent: run again, it writes the same bytes."""
+    hold_point()  # inert unless a fault test asks (pipeline.hold)
+    capture, spikes, committed = _opened(plan)
+    start, stop = plan.frames(index)
+    packed = capture.read(start, stop)
+    with zarr.config.set(WRITE_CONFIG):
+        spikes[start:stop] = packed
+    count = count_spikes(packed)
+    committed[index] = count
+    return count
+
+
+class IngestIncomplete(RuntimeError):
+    """Some tasks failed: which frames are missing and why; the rest is committed in the store."""
+
+    def __init__(self, dest: str, plan: IngestPlan, failed: dict[int, str]):
+        indices = sorted(failed)
+        ranges = [f"{plan.frames(i)[0]}..{plan.frames(i)[1] - 1}" for i in indices]
+        shown = ", ".join(ranges[:4]) + (", ..." if len(ranges) > 4 else "")
+        causes = set(failed.values())
+        cause = (f"each: {causes.pop()}" if len(causes) == 1 and len(indices) > 1  # one cause (a full disk): once
+                 else f"frames {ranges[0]}: {failed[indices[0]]}")
+        super().__init__(f"{len(indices)} of {plan.n_tasks} ingest tasks failed (frames {shown}; {cause}); the other "
+                         f"tasks are committed in {dest}: fix the cause and run again with --resume")
+        self.failed = failed
+
+
+def plan_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *, workers: int | None = None,
+                scheduler: str | None = None, client=None) -> dict:
+    """``ingest --dry-run``: every check a run makes, nothing created, and the plan: frames, the capture's bytes,
+    tasks, chunks, the store's size at rest and the hours on 1, 8 and 64 workers, both from one task read,
+    packed and compressed into memory here (the middle task; the first of a ``.npz``)."""
+    check_workers(workers)
+    check_text("--scheduler", scheduler, optional=True)
+    parallel = client is not None or workers is not None or scheduler is not None
+    job = _prepare(src, dest, options, parallel=parallel, client=client)
+    if parallel and client is None:
+        check_scheduler(scheduler)
+    counts = np.full(job.plan.n_tasks, -1, np.int64)
+    if options.resume:
+        counts = _check_resumable(dest, src, job)
+        check_free(dest)
+    elif exists(dest):  # what new_output would refuse, refused now
+        check_free(dest)
+        check_ours(dest, SPIKE_STORE)
+        if not options.overwrite:
+            raise exists_error(dest, "--resume or --overwrite")
+    plan, meta = job.plan, job.meta
+    seconds, stored, measured = _measure(job)
+    todo = int((counts < 0).sum())
+    per_task = seconds * plan.task_frames / measured  # a whole task's worth
+    pixels = plan.n_frames * meta.height * meta.width
+    estimate = stored * plan.n_frames / measured
+    where = ("this process" if not parallel else "the given client" if client is not None
+             else f"scheduler {scheduler_address(scheduler)}" if scheduler_address(scheduler)
+             else f"a local cluster of {workers} workers")
+    return {
+        "source": str(src), "store": str(dest), "runs_on": where, "resume": options.resume,
+        "frames": plan.n_frames, "height": meta.height, "width": meta.width,
+        "capture_bytes": job.record["capture"]["bytes"],
+        "chunk_frames": job.chunk, "chunks": -(-plan.n_frames // job.chunk),
+        "task_frames": plan.task_frames, "tasks": plan.n_tasks, "tasks_committed": plan.n_tasks - todo,
+        "tasks_to_run": todo,
+        "store_bytes_estimate": int(round(estimate)), "bits_per_pixel_estimate": 8 * estimate / pixels,
+        "measured_frames": measured, "seconds_per_task": per_task,
+        "hours": {str(n): math.ceil(todo / n) * per_task / 3600 for n in PLANNED_WORKERS},
+    }
+
+
+def _measure(job: _Job) -> tuple[float, int, int]:
+    """One task read and packed from the capture, then written to an in-memory array chunked and compressed as
+    the store's: -> (seconds, compressed bytes of its chunks, frames)."""
+    plan, capture, meta = job.plan, job.capture, job.meta
+    index = plan.n_tasks // 2 if capture.ranged else 0
+
+    def write(packed: np.ndarray) -> int:
+        memory = zarr.storage.MemoryStore()
+        array = zarr.create_array(memory, shape=packed.shape, chunks=(job.chunk, *packed.shape[1:]), dtype=np.uint8,
+                                  fill_value=0, compressors=zarr.codecs.ZstdCodec(level=CODEC_LEVEL),
+                                  config={"write_empty_chunks": True})
+        with zarr.config.set(WRITE_CONFIG):
+            array[:] = packed
+        count_spikes(packed)
+        return sum(len(value) for key, value in memory._store_dict.items() if key.startswith("c/"))
+
+    began = time.perf_counter()
+    if capture.ranged:
+        packed = capture.read(*plan.frames(index))
+    else:
+        packed = next(iter(capture.blocks(plan.task_frames)))[1]
+    read = time.perf_counter() - began
+    write(packed[: min(len(packed), job.chunk)])  # warm-up: the codec and Zarr's threads
+    began = time.perf_counter()
+    stored = write(packed)
+    return read + time.perf_counter() - began, stored, packed.shape[0]

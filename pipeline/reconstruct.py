@@ -19,14 +19,26 @@ several tiles of the same shape (``gpu_batch`` windows in all) as one batch; cla
 anywhere. Without such workers tasks are cut and placed as above.
 
 The gain is fixed for the whole recording before any task runs (``--gain``, else the store's,
-else automatic exposure of the middle window), so tiles and frames agree with each other.
+else automatic exposure of the whole recording's middle window), so tiles and frames agree with each
+other, and a part of a recording with a whole run.
+
+A part (``--start``/``--stop``, ``--region``; ``reconstruct_plan.job_part``): the output frames of the whole
+recording whose centre lies in [start, stop), each read from its whole window (outside the range where the
+window reaches past it); tiles cut inside the region, their halo read from outside it where the recording
+has pixels. The output records the part (``start``, ``stop``, ``region``), and ``--resume`` checks it.
+
+``--dry-run`` (:func:`plan_job`): every check of a real run, nothing created; a few of the job's tasks run
+for real on its workers, all busy at once, into a temporary store in each worker's memory, price the job
+(``pipeline.estimate``).
 """
 
 import contextlib
 import dataclasses
 import functools
+import itertools
 import sys
 import threading
+import time
 import uuid
 from collections.abc import Iterable, Iterator
 from typing import NamedTuple
@@ -36,17 +48,18 @@ import numpy as np
 from pipeline.cluster import (GPU, GPU_SHARE, check_scheduler, check_workers, dashboard_link, dask_client,
                               scheduler_address, visible_gpus)
 from pipeline.hold import hold_point
+from pipeline.estimate import hours, hours_table, output_bytes
 from pipeline.lease import check_free, claimed, held
 from pipeline.progress import progress_bar
-from pipeline.reconstruct_plan import (DEFAULT_TILE, DEFAULT_WEIGHTS, GPU_BATCH, MADE_FROM, Plan, ReconstructOptions,
-                                      made_from, task_groups, tile_blocks)
+from pipeline.reconstruct_plan import (DEFAULT_TILE, DEFAULT_WEIGHTS, GPU_BATCH, MADE_FROM, Part, Plan,
+                                      ReconstructOptions, job_part, made_from, task_count, task_groups, tile_blocks)
 from pipeline.executor import failure, in_segments, submitted
 from pipeline.spike_store import SpikeStore, open_spike_store, read_frames
-from pipeline.outputs import VIDEO_STORE, new_output
-from pipeline.storage import check_apart, exists, recorded, remove_partial_writes
+from pipeline.outputs import VIDEO_STORE, check_ours, new_output
+from pipeline.storage import check_apart, exists, recorded, remove, remove_partial_writes, resolve
 from pipeline.video_store import VIDEO, TileWriter, committed_mask, create_video_store, open_video_store
 from stages.colour import auto_gain
-from stages.errors import InputError
+from stages.errors import InputError, exists_error
 from stages.methods import NETWORKS, Reconstructor, Window, classic, output_centres
 from stages.tfp import tfp_rate
 from stages.tiles import Tile, device_tile, tile_grid
@@ -111,9 +124,10 @@ def _reconstruct_tiles(plan: Plan, frames: tuple[tuple[int, int], ...],
         windows.append([Window(read_frames(spikes, plan.spikes, c - half, c + half + 1, region), tile.rx1 - tile.rx0,
                                plan.cfa, plan.reset, plan.gain, plan.scale) for _, c in frames])
     first = frames[0][0]  # a task's output frames are consecutive
+    top, _, left, _ = plan.region or (0, None, 0, None)  # the output's corner in the recording (LR)
     for (ty, tx, tile), images in zip(tiles, method.many_tiles(windows, plan.gpu_batch)):
         ys, xs = tile.crop(plan.scale)
-        writer.write_frames(first, (ty, tx), (tile.y0 * plan.scale, tile.x0 * plan.scale),
+        writer.write_frames(first, (ty, tx), ((tile.y0 - top) * plan.scale, (tile.x0 - left) * plan.scale),
                             [image[ys, xs] for image in images])  # compressed and stored together
     return len(frames) * len(tiles)
 
@@ -217,13 +231,15 @@ def _recorded_attrs(out: str) -> dict:
 
 
 def reconstruct(store_url: str, out: str, options: ReconstructOptions = ReconstructOptions(), *,
-                workers: int | None = None, scheduler: str | None = None, client=None, progress: bool = True) -> dict:
-    """Reconstruct the recording at ``store_url`` into an HR video store at ``out``.
+                workers: int | None = None, scheduler: str | None = None, client=None, progress: bool = True,
+                dry_run: bool = False) -> dict:
+    """Reconstruct the recording at ``store_url`` (or the part ``options`` name) into an HR video store at ``out``.
 
     Runs on ``client`` if given, else on the scheduler named by ``scheduler`` (or the environment),
     else in segments of ``options.segment_tasks`` tasks, each on a fresh local cluster of
     ``workers`` (see :mod:`pipeline.executor`). Returns
-    counts: output frames, tasks run now, tasks found already committed.
+    counts: output frames, tasks run now, tasks found already committed. ``dry_run``: every check, nothing
+    created; returns the plan, priced by a few of its tasks run for real (:func:`plan_job`).
     """
     check_workers(workers)
     options.check()
@@ -231,6 +247,7 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
     store = open_spike_store(store_url)
     meta = store.meta
     checked_method(store, options)  # the options and the weights given, before any cluster
+    part = job_part(options, store.n_frames, meta.fps, meta.height, meta.width, meta.cfa)  # --start/--stop/--region
     if options.resume and not exists(out):
         raise InputError(f"cannot resume: {out} does not exist")
     if client is None:
@@ -243,33 +260,44 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
         found = _recorded_attrs(out) if options.resume else {}
         options = placed(options, where, found)
         scale, method = checked_method(store, options)  # the weights by where the network runs
-        options = sized(options, where, method, (meta.height, meta.width), found)
+        y0, y1, x0, x1 = part.region
+        options = sized(options, where, method, (y1 - y0, x1 - x0), found)
         precision, backend = network_options(options)
-        centres = output_centres(store.n_frames, options.window, options.every)
-        grid = tile_grid(meta.height, meta.width, options.tile, method.halo)
-        stack.enter_context(claimed(out))  # one job per output, taken atomically before OUT is touched
-        if options.resume:
-            check_free(out)  # and no live lease (a job on a machine that shares no claim file with us)
-        # only one of our stores is replaced, and kept aside until the new one is complete (pipeline.outputs); a
-        # failed job's new store stays for --resume
-        stack.enter_context(new_output(out, overwrite=options.overwrite, kind=VIDEO_STORE,
-                                       flag="--resume or --overwrite", resume=options.resume, keep_partial=True))
+        centres = part.centres
+        grid = tile_grid(meta.height, meta.width, options.tile, method.halo, part.region)
+        if dry_run:
+            _check_output(out, options)  # what the claim and new_output below refuse, creating nothing
+        else:
+            stack.enter_context(claimed(out))  # one job per output, taken atomically before OUT is touched
+            if options.resume:
+                check_free(out)  # and no live lease (a job on a machine that shares no claim file with us)
+            # only one of our stores is replaced, and kept aside until the new one is complete (pipeline.outputs); a
+            # failed job's new store stays for --resume
+            stack.enter_context(new_output(out, overwrite=options.overwrite, kind=VIDEO_STORE,
+                                           flag="--resume or --overwrite", resume=options.resume, keep_partial=True))
         gain = options.gain or meta.gain
         if gain is None:  # one window: on the cluster if there is one, else here (not worth a cluster of its own)
-            args = (store_url, centres[len(centres) // 2], options.window, meta.reset)
+            whole = output_centres(store.n_frames, options.window, options.every)  # the same gain for any part
+            args = (store_url, whole[len(whole) // 2], options.window, meta.reset)
             gain = client.submit(_auto_gain, *args).result() if client else _auto_gain(*args)
         # the spike store as workers find it, whatever their working directory (and as the output records it)
         plan = Plan(recorded(store_url), out, options.method, method.weights, options.window, options.every, float(gain),
                     scale, meta.cfa, meta.reset, options.tile, uuid.uuid4().hex, precision, options.gpu_batch, backend,
                     fast_gpu=options.fast_gpu and where.gpus if options.method in NETWORKS else None,
-                    **made_from(store, method.weights_sha256))  # what --resume checks beside the paths
+                    **made_from(store, method.weights_sha256),  # what --resume checks beside the paths
+                    start=part.start, stop=part.stop, region=part.region)
         batch = method.batch
-        done = _prepare_output(plan, options.resume, centres, grid, (meta.height * scale, meta.width * scale),
-                               fps=meta.fps / options.every)
+        hr_size = ((y1 - y0) * scale, (x1 - x0) * scale)
         blocks = tile_blocks(grid, max(1, options.gpu_batch // batch) if where.gpus else 1)
-        groups = task_groups(len(centres), batch, blocks, done)
-        work = functools.partial(run_groups, plan=plan, centres=centres, grid=grid,
-                                 resources={GPU: GPU_SHARE} if where.gpus else None)
+        resources = {GPU: GPU_SHARE} if where.gpus else None
+        if dry_run:
+            done = (_check_resumable(plan, open_video_store(out), centres) if options.resume
+                    else np.zeros((len(centres), len(grid), len(grid[0])), bool))
+            return plan_job(plan, part, grid, blocks, batch, done, hr_size, where, client=client, workers=workers,
+                            resources=resources, store=store_url, segment_tasks=options.segment_tasks)
+        done = _prepare_output(plan, options.resume, centres, grid, hr_size, fps=meta.fps / options.every)
+        groups = task_groups(len(centres), batch, blocks, done, part.first)
+        work = functools.partial(run_groups, plan=plan, centres=centres, grid=grid, resources=resources)
         with held(out), progress_bar(f"reconstruct {options.method}", len(centres), enabled=progress) as advance:
             if client:
                 if progress and (link := dashboard_link(client)):
@@ -284,6 +312,68 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
         open_video_store(out, writable=True).attrs["state"] = "complete"  # still under the claim
     skipped = int(done.sum())
     return {"frames": len(centres), "tasks_run": done.size - skipped, "tasks_skipped": skipped}
+
+
+def _check_output(out: str, options: ReconstructOptions) -> None:
+    """For a dry run: what a real run refuses about ``out`` once it has claimed it (another live job writing it;
+    an output that exists and is not ours, or that we were not asked to resume or replace), creating nothing.
+    (A job that has claimed ``out`` and not yet started writing it holds no lease yet: it is not seen.)"""
+    if not exists(out):
+        return
+    check_free(out)
+    if not options.resume:
+        check_ours(out, VIDEO_STORE)
+        if not options.overwrite:
+            raise exists_error(out, "--resume or --overwrite")
+
+
+def plan_job(plan: Plan, part: Part, grid: list[list[Tile]], blocks: list, batch: int, done: np.ndarray,
+             hr_size: tuple[int, int], where: Placement, *, client=None, workers: int | None = None,
+             resources: dict | None = None, store: str | None = None, segment_tasks: int = 10_000) -> dict:
+    """The plan of a checked job, priced by some of its own tasks run for real on the workers that would run
+    them, all busy at once, into a temporary store in each worker's memory (:func:`_measured`): on the job's
+    cluster, or, for a job that would start its own local cluster, in a segment alike (its own process and
+    local cluster), whose fixed cost each of the job's segments pays too.
+    Their time and compressed bytes give the hours on 1, 8 and 64 such workers, this job's time on its
+    workers, and the output's size (``pipeline.estimate``)."""
+    centres = part.centres
+    tasks = task_count(len(centres), batch, len(blocks), part.first)
+    to_run = tasks if not done.any() else sum(1 for _ in task_groups(len(centres), batch, blocks, done, part.first))
+    job = (plan, part, grid, blocks, batch, hr_size, resources)
+    if client is not None:
+        measured = _measured(client, *job, seconds=SAMPLE_SECONDS)
+        start_up, segments, on = 0.0, 1, "of the cluster"
+    else:  # the job would start a local cluster of its own per segment: measured in a segment alike, whose fixed
+        began = time.perf_counter()  # cost (a fresh process and cluster, started, warmed and stopped) each pays
+        measured, = in_segments(functools.partial(_measured_here, job=job, seconds=SAMPLE_SECONDS), [None], 1,
+                                workers=workers, show_dashboard=False)
+        start_up = max(0.0, time.perf_counter() - began - measured["seconds"] - measured["seconds_per_task"])
+        segments, on = -(-to_run // segment_tasks), "local"
+    count = measured["of"]  # the workers the job runs on (measured on at most TRIAL_WORKERS of them)
+    total = len(centres) * hr_size[0] * hr_size[1]  # HR pixels of the output
+    # tasks differ in size (edge tiles, a range's part-full first and last groups): the time per HR pixel of the
+    # tasks measured, over the pixels of the job's average task
+    per_task = measured["seconds_per_task"] / (measured["hr_pixels"] / measured["tasks"]) * total / tasks
+    runs_on = ("GPU workers" if where.gpus else "CPU workers") if plan.method in NETWORKS else "any worker"
+    return {
+        "store": store, "out": plan.out, "method": plan.method, "weights": plan.weights,
+        "runs_on": runs_on, "precision": plan.precision, "backend": plan.backend,
+        "frames": len(centres), "spike_frames": f"{centres[0]}..{centres[-1]}", "every": plan.every,
+        "window": plan.window, "start": plan.start, "stop": plan.stop, "region": list(plan.region),
+        "hr_height": hr_size[0], "hr_width": hr_size[1], "scale": plan.scale, "gain": plan.gain,
+        "tile_lr": plan.tile, "tiles_per_frame": len(grid) * len(grid[0]),
+        "frames_per_task": batch, "tiles_per_task": max(map(len, blocks)),
+        "tasks": tasks, "tasks_to_run": to_run,
+        "measured_on": (f"{measured['workers']} {'local ' if on == 'local' else ''}{'GPU ' if where.gpus else ''}"
+                        f"worker{'s' if measured['workers'] > 1 else ''}{' of the cluster' if on != 'local' else ''}"),
+        "measured": measured,
+        "seconds_per_task": per_task,  # on one worker while every worker is busy
+        "output_bytes": output_bytes(measured["bytes"], measured["hr_pixels"], total),
+        "hours": hours_table(per_task, to_run),
+        # this job on the workers it will run on: its tasks, and a fresh local cluster per segment (measured)
+        "workers": count, "segment_start_seconds": start_up,
+        "job_seconds": hours(per_task, to_run, count) * 3600 + segments * start_up if to_run else 0.0,
+    }
 
 
 class JobIncomplete(RuntimeError):
@@ -356,28 +446,155 @@ def _prepare_output(plan: Plan, resume: bool, centres: list[int], grid: list[lis
     first = grid[0][0]
     tile_hr = ((first.y1 - first.y0) * plan.scale, (first.x1 - first.x0) * plan.scale)
     if resume:
-        group = open_video_store(plan.out, writable=True)
-        expected = plan.attrs()
-        if other := plan.other_data(dict(group.attrs)):  # the same paths, another recording or other weights
-            raise InputError(f"cannot resume {plan.out}: {other}")
-        network = plan.method in NETWORKS  # stores from before --precision and --backend:
-        before = {"precision": "fp32" if network else None, "backend": "torch" if network else None,
-                  "fast_gpu": False if network else None}
-        # stores from before the record of what they were made from: resumed on the paths alone, as they were
-        # then, and the record added now (a later resume checks it)
-        adopted = {k: expected[k] for k in MADE_FROM if k not in group.attrs}
-        before.update(adopted)
-        found = {k: group.attrs.get(k, before.get(k)) for k in expected}
-        if isinstance(found["source"], str):  # stores from before sources were absolute: as seen from here
-            found["source"] = recorded(found["source"])
-        changed = [k for k in expected if found[k] != expected[k]]
-        if changed or group[VIDEO].shape[0] != len(centres):
-            what = ", ".join(f"{k} {found[k]!r} -> {expected[k]!r}" for k in changed) or "frame count"
-            raise InputError(f"cannot resume {plan.out}: it was made with other parameters ({what})")
-        if adopted:
-            group.attrs.update(adopted)
-        return committed_mask(group)
+        return _check_resumable(plan, open_video_store(plan.out, writable=True), centres, adopt=True)
     create_video_store(plan.out, centres=centres, hr_size=hr_size, tile_hr=tile_hr, tiles=tiles,
                        attrs=plan.attrs(), fps=fps)
     return np.zeros((len(centres), *tiles), bool)
 
+
+def _check_resumable(plan: Plan, group, centres: list[int], *, adopt: bool = False) -> np.ndarray:
+    """Refuse to resume ``group`` (the output) with ``plan`` unless it was made from the same data with the same
+    parameters (the part of the recording included); -> its commit mask. ``adopt``: an output from before the
+    record of what it was made from gets it now (a dry run leaves it as it is)."""
+    expected = plan.attrs()
+    if other := plan.other_data(dict(group.attrs)):  # the same paths, another recording or other weights
+        raise InputError(f"cannot resume {plan.out}: {other}")
+    network = plan.method in NETWORKS  # stores from before --precision and --backend:
+    before = {"precision": "fp32" if network else None, "backend": "torch" if network else None,
+              "fast_gpu": False if network else None, **plan.whole()}  # and before parts: all of the recording
+    # stores from before the record of what they were made from: resumed on the paths alone, as they were
+    # then, and the record added now (a later resume checks it)
+    adopted = {k: expected[k] for k in MADE_FROM if k not in group.attrs}
+    before.update(adopted)
+    found = {k: group.attrs.get(k, before.get(k)) for k in expected}
+    if isinstance(found["source"], str):  # stores from before sources were absolute: as seen from here
+        found["source"] = recorded(found["source"])
+    changed = [k for k in expected if found[k] != expected[k]]
+    if changed or group[VIDEO].shape[0] != len(centres):
+        what = ", ".join(f"{k} {found[k]!r} -> {expected[k]!r}" for k in changed) or "frame count"
+        raise InputError(f"cannot resume {plan.out}: it was made with other parameters ({what})")
+    if adopted and adopt:
+        group.attrs.update(adopted)
+    return committed_mask(group)
+
+
+def _sampled(plan: Plan, frames: tuple[tuple[int, int], ...], tiles: tuple[tuple[int, int, Tile], ...]) -> dict:
+    """Task of a dry run: a task of the job, written into the temporary store in this process's memory
+    (:func:`_trial_store`) -> the compressed bytes and HR pixels of video it wrote, which it then drops (a
+    sample holds one task's output at a time)."""
+    _reconstruct_tiles(plan, frames, tiles)
+    video = _opened(plan.spikes, plan.out, plan.run)[1].video
+    fs, root = resolve(f"{plan.out}/{VIDEO}")
+    written = pixels = 0
+    for index, _ in frames:
+        for ty, tx, tile in tiles:
+            path = f"{root}/{video.metadata.encode_chunk_key((index, ty, tx, 0))}"
+            try:  # a task of a small job may run twice at once on a worker of several threads: counted once
+                written += fs.size(path)
+                fs.rm_file(path)
+            except FileNotFoundError:
+                continue
+            pixels += (tile.y1 - tile.y0) * (tile.x1 - tile.x0) * plan.scale ** 2
+    return {"bytes": written, "hr_pixels": pixels}
+
+
+def _trial_store(url: str, attrs: dict | None = None, layout: dict | None = None, keep: bool = False) -> None:
+    """Create the dry run's video store at ``url`` (``memory://``: this process's memory), or (no ``attrs``) remove
+    it, unless ``keep`` (a store that others remove), and forget its writer."""
+    if attrs is not None:
+        create_video_store(url, attrs=attrs, **layout)
+        return
+    if not keep:
+        remove(url.rsplit("/", 1)[0] if url.startswith("memory://") else url)
+    _opened.cache_clear()  # the writer of a store that is gone
+
+
+def _scratch(out: str) -> str:
+    """Where a dry run writes its tasks: beside ``out`` (a hidden sibling, removed after), so that they pay what the
+    job's writes pay; in the workers' memory where ``out`` is there too (``memory://``)."""
+    if str(out).startswith("memory://"):
+        return f"memory://cscsr-dry-run-{uuid.uuid4().hex}/out.zarr"
+    parent, _, name = str(out).rstrip("/").rpartition("/")
+    return f"{parent + '/' if parent else ''}.{name}.dry-run-{uuid.uuid4().hex[:12]}"
+
+
+TRIAL_WORKERS = 64  # the most workers a dry run measures on
+SAMPLE_SECONDS = 3.0  # about how long a dry run keeps them busy after a task each to warm them
+MOST_TASKS = 100  # a worker, in that time (tasks of milliseconds)
+
+
+def _measured(client, plan: Plan, part: Part, grid: list[list[Tile]], blocks: list, batch: int,
+              hr_size: tuple[int, int], resources: dict | None, *, seconds: float = SAMPLE_SECONDS) -> dict:
+    """Run tasks of the job (from its middle on) on every worker that would run them (at most
+    ``TRIAL_WORKERS``), all at once as the job keeps them busy (workers that share a machine share its
+    cores, caches and memory bandwidth: one worker measured alone runs up to twice as fast as in the job),
+    into a temporary store (:func:`_scratch`), removed after: one task per worker to warm them (the method
+    built, the stores opened, code compiled, as a worker's first task does once), then tasks submitted as
+    the job submits them (a bounded window, ``pipeline.executor.submitted``) for about ``seconds``.
+    -> {"workers" measured on, "of" how many would run the job's tasks, "tasks" timed, "seconds" until the
+    last workers went idle, "seconds_per_task" on one worker (that time over the tasks each ran: the
+    client's and scheduler's work included, and the workers' waits for it), "bytes" and "hr_pixels" of video
+    they wrote}."""
+    workers = client.scheduler_info()["workers"]
+    able = [address for address, worker in workers.items()
+            if all((worker.get("resources") or {}).get(k, 0) >= v for k, v in (resources or {}).items())]
+    if not able:
+        raise InputError("the cluster has no worker that would run this job's tasks: add workers, then plan again")
+    of, able = len(able), able[:TRIAL_WORKERS]
+    url = _scratch(plan.out)
+    shared = not url.startswith("memory://")  # one store that every worker reaches, else one in each worker
+    trial = dataclasses.replace(plan, out=url, run=uuid.uuid4().hex)
+    first = grid[0][0]
+    layout = {"centres": part.centres, "hr_size": hr_size, "tiles": (len(grid), len(grid[0])),
+              "tile_hr": ((first.y1 - first.y0) * plan.scale, (first.x1 - first.x0) * plan.scale)}
+    groups = _from_the_middle(len(part.centres), batch, blocks, part.first)
+
+    def submit(group, where: list[str] = able):
+        frames, block = group
+        return client.submit(_sampled, trial, tuple((i, part.centres[i]) for i in frames),
+                             tuple((ty, tx, grid[ty][tx]) for ty, tx in block), pure=False, workers=where,
+                             allow_other_workers=False, resources=resources)
+
+    def sample() -> Iterator:  # for about ``seconds``, and 3 tasks a worker at least
+        for n, group in enumerate(groups):
+            if n >= MOST_TASKS * len(able) or (n >= 3 * len(able) and time.perf_counter() - began >= seconds):
+                return
+            yield group
+
+    if shared:
+        _trial_store(url, trial.attrs(), layout)
+    else:
+        client.run(_trial_store, url, trial.attrs(), layout, workers=able)
+    try:
+        client.gather([submit(group, [address]) for address, group in zip(able, groups)])  # warm
+        began, finished, results = time.perf_counter(), [], []
+        for _, future in submitted(client, sample(), submit):  # as the job submits them: a bounded window
+            results.append(future.result())
+            finished.append(time.perf_counter())
+    finally:
+        client.run(_trial_store, url, None, None, shared, workers=able)
+        if shared:
+            _trial_store(url)
+    # until the last workers go idle: the time of the task that leaves one task a worker to finish
+    counted = max(1, len(finished) - len(able) + 1)
+    seconds = finished[counted - 1] - began
+    return {"workers": len(able), "of": of, "tasks": len(results), "seconds": seconds,
+            "seconds_per_task": seconds * len(able) / counted, "bytes": sum(r["bytes"] for r in results),
+            "hr_pixels": sum(r["hr_pixels"] for r in results)}
+
+
+def _measured_here(client, items, *, job: tuple, seconds: float) -> Iterator[dict]:
+    """:func:`_measured` as a segment of :func:`pipeline.executor.in_segments` runs it (in its own process and
+    local cluster, as each segment of the job runs its tasks)."""
+    yield _measured(client, *job, seconds=seconds)
+
+
+def _from_the_middle(n_frames: int, batch: int, blocks: list, first: int) -> Iterator[tuple[range, tuple]]:
+    """The job's tasks (frames, block) from its middle frames on, round and round for ever: the sample a dry run
+    measures (the ends of a recording are often dark, or still)."""
+    starts = range(-(first % batch), n_frames, batch)  # as task_groups cuts them
+    middle = (n_frames // 2 + first % batch) // batch
+    while True:
+        for k in itertools.chain(range(middle, len(starts)), range(middle)):
+            for block in blocks:
+                yield range(max(starts[k], 0), min(starts[k] + batch, n_frames)), block

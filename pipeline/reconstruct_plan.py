@@ -5,15 +5,17 @@ store; ``pipeline.reconstruct`` checks a job, makes its plan and runs it (``pipe
 
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from cscsr.config import BACKENDS, PRECISIONS
 from pipeline.storage import recorded
 from stages.errors import InputError
-from stages.methods import METHODS, NETWORKS, WINDOW
+from stages.methods import METHODS, NETWORKS, WINDOW, output_centres
 from stages.colour import check_gain
 from stages.numbers import check_flag, check_number, check_text
+from stages.ranges import parse_region, parse_time, region, time_range
 from stages.tiles import Tile
 
 SEGMENT_TASKS = 10_000  # minutes of work on any real frame size; a fresh process and cluster cost ~5 s
@@ -39,6 +41,11 @@ class ReconstructOptions:
     gpu_batch: int | None = None  # windows per task and per network pass on GPU workers (None: what fits, <= GPU_BATCH)
     backend: str = "torch"  # what runs the network: torch, or onnx (ONNX Runtime, CPU)
     fast_gpu: bool = False  # on GPU workers: channels-last, cuDNN autotuning, torch.compile (a CPU ignores it)
+    # the part of the recording to reconstruct (stages.ranges): spike frames (int, or "1200") or seconds with a
+    # unit ("2.5s", "1500ms"); a region "Y0:Y1,X0:X1" or (y0, y1, x0, x1) in LR pixels. None: the whole of it
+    start: int | str | None = None
+    stop: int | str | None = None
+    region: str | tuple | None = None
 
     def check(self) -> None:
         """Every check that needs no recording (see :func:`check_options` for the rest)."""
@@ -87,6 +94,40 @@ class ReconstructOptions:
         if self.fast_gpu and (self.method not in NETWORKS or self.backend != "torch"):
             raise InputError("--fast-gpu is for the network on torch (--method cscsr or cscsr-ensemble, --backend "
                              "torch)")
+        parse_time("--start", self.start)  # their text here; against the recording in job_part
+        parse_time("--stop", self.stop)
+        parse_region(self.region)
+
+
+class Part(NamedTuple):
+    """The part of a recording a job reconstructs: spike frames ``[start, stop)``, LR pixels ``region`` (y0, y1,
+    x0, x1), and its output frames: ``centres``, the whole recording's from index ``first`` on (so a part's
+    frames are exactly the matching frames of a whole run)."""
+
+    start: int
+    stop: int
+    region: tuple[int, int, int, int]
+    first: int
+    centres: list[int]
+
+
+def job_part(options: ReconstructOptions, n_frames: int, fps: float, height: int, width: int, cfa: str) -> Part:
+    """``--start``/``--stop``/``--region`` checked against a recording (``stages.ranges``; one line each, before
+    anything is created): the output frames are those of the whole recording whose centre lies in [start,
+    stop); a window near the range's edges reads the spikes it needs outside it. A range edge closer than
+    W//2 to the recording's ends simply has no centre there (no window fits)."""
+    every_centre = output_centres(n_frames, options.window, options.every)
+    start, stop = time_range(options.start, options.stop, n_frames, fps, every_centre, options.window, options.every)
+    first = _first_at(every_centre, start, options.every)
+    last = _first_at(every_centre, stop, options.every)
+    return Part(start, stop, region(options.region, height, width, cfa), first, every_centre[first:last])
+
+
+def _first_at(centres: list[int], frame: int, every: int) -> int:
+    """The index of the first of ``centres`` (W//2 + j*every) at or after spike frame ``frame``."""
+    if not centres:
+        return 0
+    return min(len(centres), max(0, -(-(frame - centres[0]) // every)))
 
 
 @dataclass(frozen=True)
@@ -117,6 +158,10 @@ class Plan:
     source_identity: str | None = None  # the spike store's identity (pipeline.spike_store.store_identity)
     source_shape: tuple[int, int, int] | None = None  # its (frames, height, width)
     weights_sha256: str | None = None  # the weights file's SHA-256 (None for classic methods)
+    # the part of the recording (Part): spike frames [start, stop), LR region (y0, y1, x0, x1); None: all of it
+    start: int | None = None
+    stop: int | None = None
+    region: tuple[int, int, int, int] | None = None
 
     def attrs(self) -> dict:
         """What the output store records (and ``--resume`` checks)."""
@@ -125,7 +170,14 @@ class Plan:
                 "every": self.every, "gain": self.gain, "scale": self.scale, "source": recorded(self.spikes), "cfa": self.cfa,
                 "reset": self.reset, "tile_lr": self.tile, "source_identity": self.source_identity,
                 "source_shape": None if self.source_shape is None else list(self.source_shape),
-                "weights_sha256": self.weights_sha256}
+                "weights_sha256": self.weights_sha256, "start": self.start, "stop": self.stop,
+                "region": None if self.region is None else list(self.region)}
+
+    def whole(self) -> dict:
+        """The part an output from before ``start``/``stop``/``region`` were recorded holds: all of its recording
+        (what ``--resume`` takes them to be)."""
+        frames, height, width = self.source_shape or (None, None, None)
+        return {"start": 0, "stop": frames, "region": None if height is None else [0, height, 0, width]}
 
     def other_data(self, found: dict) -> str | None:
         """Why an output whose attributes are ``found`` was made from other data than this plan reads (another
@@ -180,16 +232,24 @@ def tile_blocks(grid: list[list[Tile]], per_task: int) -> list[tuple[tuple[int, 
 
 
 def task_groups(n_frames: int, batch: int, blocks: list[tuple[tuple[int, int], ...]],
-                done: np.ndarray) -> Iterator[tuple[range, tuple[tuple[int, int], ...]]]:
+                done: np.ndarray, first: int = 0) -> Iterator[tuple[range, tuple[tuple[int, int], ...]]]:
     """(frames, tiles) of every task still to run: ``batch`` consecutive output frames of a block of tiles.
+    ``first``: the index of output frame 0 in the whole recording's output (a time range's): groups keep the
+    whole recording's batches, so that a range's frames are made in the batches a whole run makes them in
+    (the range's first and last groups may be part of one).
 
     Groups are fixed by frame number and tile block, not by what is left, so a resumed job runs
     every batch exactly as an uninterrupted one would (a batch's numbers can depend on its size);
     a group with any (frame, tile) not committed runs whole. Generated as consumed: a terabyte
     capture has millions of tasks, and the job's process should not hold them all.
     """
-    for start in range(0, n_frames, batch):
-        frames = range(start, min(start + batch, n_frames))
+    for start in range(-(first % batch), n_frames, batch):
+        frames = range(max(start, 0), min(start + batch, n_frames))
         for block in blocks:
             if not all(done[frames.start : frames.stop, ty, tx].all() for ty, tx in block):
                 yield frames, block
+
+
+def task_count(n_frames: int, batch: int, blocks: int, first: int = 0) -> int:
+    """How many tasks :func:`task_groups` makes of a job with nothing done: its frame groups times its tile blocks."""
+    return (-(-(first % batch + n_frames) // batch) if n_frames else 0) * blocks

@@ -15,6 +15,11 @@ of its first and last frames (:func:`recording_identity`), so the same capture i
 same simulation run again) gives the same bytes and identity, a copy keeps it, and another recording
 at the same path has another. An output records the identity and shape of the store it was made from,
 and ``--resume`` refuses a store that is not that one (:func:`store_identity`).
+
+An ingested store also holds ``committed``: int64, one element (and chunk) per ingest task (a run of
+whole chunks of ``spikes``), the spikes counted in that task's frames, written once they are stored;
+-1 = not committed. Its attributes record the capture (size and a checksum of its ends) and the ingest
+options, which ``ingest --resume`` compares (``pipeline.ingest``).
 """
 
 import hashlib
@@ -39,6 +44,7 @@ from stages.sensor import check_reset
 
 FORMAT_VERSION = 1
 SPIKES = "spikes"
+COMMITTED = "committed"  # an ingested store's record of its tasks (the module docstring)
 CODEC_LEVEL = 1
 TARGET_CHUNK_BYTES = 4 * 2**20
 # What a viewer shows beside the spikes (``spikes``'s own attributes; xarray shows them as the variable's).
@@ -278,11 +284,22 @@ class SpikeStoreWriter:
             config={"write_empty_chunks": True},
         )
 
+    @classmethod
+    def reopened(cls, url: str) -> "SpikeStoreWriter":
+        """The writer of the unfinished store at ``url`` (which the caller has claimed), to fill its remaining
+        regions and finish it (``ingest --resume``); opening it writes nothing."""
+        writer = cls.__new__(cls)
+        writer.url = url
+        writer.group = zarr.open_group(zarr_store(url, read_only=False), mode="r+", use_consolidated=False)
+        writer.spikes = writer.group[SPIKES].with_config({"write_empty_chunks": True})
+        writer.chunk_frames = writer.spikes.chunks[0]
+        return writer
+
     def add_array(self, name: str, shape: tuple, chunks: tuple, dtype, dimension_names: tuple,
-                  attributes: dict | None = None) -> None:
-        """Declare another array of the store (``truth``, ``flow``, ...) before regions are filled.
+                  attributes: dict | None = None, fill_value=0) -> None:
+        """Declare another array of the store (``truth``, ``flow``, ``committed``, ...) before regions are filled.
         Dimension names mean one thing per store (xarray refuses two lengths under one name)."""
-        self.group.create_array(name, shape=shape, chunks=chunks, dtype=dtype, fill_value=0,
+        self.group.create_array(name, shape=shape, chunks=chunks, dtype=dtype, fill_value=fill_value,
                                 compressors=ZstdCodec(level=CODEC_LEVEL), dimension_names=dimension_names,
                                 attributes=attributes or {}, config={"write_empty_chunks": True})
 

@@ -28,13 +28,17 @@ class Tile:
                 slice((self.x0 - self.rx0) * scale, (self.x1 - self.rx0) * scale))
 
 
-def tile_grid(height: int, width: int, tile: int, halo: int) -> list[list[Tile]]:
-    """Rows of tiles of at most ``tile`` x ``tile`` LR pixels (``tile`` a multiple of 8)."""
+def tile_grid(height: int, width: int, tile: int, halo: int,
+              region: tuple[int, int, int, int] | None = None) -> list[list[Tile]]:
+    """Rows of tiles of at most ``tile`` x ``tile`` LR pixels (``tile`` a multiple of 8) of a ``height`` x
+    ``width`` frame, or of its ``region`` (y0, y1, x0, x1; starting on even rows and byte columns): tiles
+    cut inside the region from its corner, their halo read from outside it where the frame has pixels."""
+    top, bottom, left, right = region or (0, height, 0, width)
     rows = []
-    for y0 in range(0, height, tile):
+    for y0 in range(top, bottom, tile):
         row = []
-        for x0 in range(0, width, tile):
-            y1, x1 = min(y0 + tile, height), min(x0 + tile, width)
+        for x0 in range(left, right, tile):
+            y1, x1 = min(y0 + tile, bottom), min(x0 + tile, right)
             row.append(Tile(y0, y1, x0, x1, max(y0 - halo, 0), min(y1 + halo, height),
                             max(x0 - halo, 0), min(x1 + halo, width)))
         rows.append(row)

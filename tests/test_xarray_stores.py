@@ -42,7 +42,8 @@ def test_an_ingested_store_opens_with_xarray(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)  # a relative source: the store records where it really is
     ingest("capture.npy", "spikes.zarr", IngestOptions(fps=1000.0), progress=False)
     ds = opened(str(tmp_path / "spikes.zarr"))
-    assert ds["spikes"].dims == ("t", "y", "xbyte") and dict(ds.sizes) == {"t": 20, "y": 8, "xbyte": 2}
+    assert ds["spikes"].dims == ("t", "y", "xbyte") and dict(ds.sizes) == {"t": 20, "y": 8, "xbyte": 2, "task": 1}
+    assert ds["committed"].values.tolist() == [int(bits.sum())]  # ingest's record of its tasks (one here)
     assert ds["spikes"].dtype == np.uint8
     np.testing.assert_array_equal(ds["spikes"].values, np.packbits(bits, axis=-1, bitorder="little"))
     assert ds["spikes"].attrs["units"] == "bit-packed spikes, 1 = fired"
