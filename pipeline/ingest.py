@@ -44,9 +44,9 @@ from pipeline.hold import hold_point
 from pipeline.lease import check_free, claimed, held
 from pipeline.outputs import SPIKE_STORE, check_ours, new_output
 from pipeline.progress import progress_bar
-from pipeline.spike_store import (CODEC_LEVEL, COMMITTED, SPIKES, WRITE_CONFIG, SpikeMeta, SpikeStoreWriter,
-                                  chunk_frames_for, open_spike_store)
-from pipeline.storage import check_apart, exists, recorded, zarr_store
+from pipeline.spike_store import (CODEC_LEVEL, COMMITTED, WRITE_CONFIG, SpikeMeta, SpikeStoreWriter, chunk_frames_for,
+                                  ingest_task_arrays, open_spike_store)
+from pipeline.storage import check_apart, exists, recorded
 from stages.bits import count_spikes, packed_width
 from stages.cfa import check_cfa, flip_vertically
 from stages.errors import InputError, exists_error
@@ -350,9 +350,7 @@ def _opened(plan: IngestPlan):
     capture = plan.open_capture()
     if capture.n_frames != plan.n_frames:
         raise InputError(f"{plan.src} changed since the ingest started: {capture.n_frames} frames, not {plan.n_frames}")
-    group = zarr.open_group(zarr_store(plan.dest, read_only=False), mode="r+", use_consolidated=False)
-    # write_empty_chunks is a runtime setting, not stored: every chunk is written, empty or not
-    return capture, group[SPIKES].with_config({"write_empty_chunks": True}), group[COMMITTED]
+    return (capture, *ingest_task_arrays(plan.dest))
 
 
 def _ingest_task(plan: IngestPlan, index: int) -> int:
@@ -429,7 +427,7 @@ def plan_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *
 def _measure(job: _Job) -> tuple[float, int, int]:
     """One task read and packed from the capture, then written to an in-memory array chunked and compressed as
     the store's: -> (seconds, compressed bytes of its chunks, frames)."""
-    plan, capture, meta = job.plan, job.capture, job.meta
+    plan, capture = job.plan, job.capture
     index = plan.n_tasks // 2 if capture.ranged else 0
 
     def write(packed: np.ndarray) -> int:
