@@ -228,7 +228,8 @@ def _check_resumable(dest: str, src: str, job: _Job) -> np.ndarray:
     if (store.n_frames != job.plan.n_frames or store.spikes.chunks[0] != job.chunk
             or committed.shape != (job.plan.n_tasks,)):
         raise InputError(f"cannot resume {dest}: its arrays do not match the capture ({store.n_frames} frames in "
-                         f"chunks of {store.spikes.chunks[0]}, {committed.shape[0]} tasks): start again with --overwrite")
+                         f"chunks of {store.spikes.chunks[0]}, {committed.shape[0]} tasks): start again with "
+                         f"--overwrite")
     return committed[:].astype(np.int64)
 
 
@@ -262,8 +263,8 @@ def run_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *,
         stack.enter_context(claimed(dest))  # one job per store, taken atomically before DEST is touched
         if options.resume:
             check_free(dest)  # and no live lease (a job on a machine that shares no claim file with us)
-        stack.enter_context(new_output(dest, overwrite=options.overwrite, kind=SPIKE_STORE, flag="--resume or --overwrite",
-                                       resume=options.resume, keep_partial=parallel))
+        stack.enter_context(new_output(dest, overwrite=options.overwrite, kind=SPIKE_STORE,
+                                       flag="--resume or --overwrite", resume=options.resume, keep_partial=parallel))
         if options.resume:
             counts = _check_resumable(dest, src, job)  # again, under the claim
             writer = SpikeStoreWriter.reopened(dest)

@@ -109,7 +109,8 @@ def test_resume_after_a_killed_ingest_equals_an_uninterrupted_one(client, cli, t
     128x112 frames (head columns, flipped) of 1792 packed bytes: 4 MiB chunks of 2340 frames, 8 tasks of one."""
     src, killed = tmp_path / "c.dat", tmp_path / "killed.zarr"
     random_dat(src, 16384, 128 * 128 // 8, seed=1)
-    args = ["--height", "128", "--width", "112", "--head-columns", "16", "--flip", "--cfa", "gbrg", "--task-frames", "2340"]
+    args = ["--height", "128", "--width", "112", "--head-columns", "16", "--flip", "--cfa", "gbrg",
+            "--task-frames", "2340"]
     assert cli("-q", "ingest", src, tmp_path / "clean.zarr", *args).exit_code == 0
     killed_ingest(src, killed, args, workers=True, tmp_path=tmp_path)
     shutil.copytree(killed, tmp_path / "copy.zarr")
