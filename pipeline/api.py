@@ -111,7 +111,8 @@ def ingest(src: str, store: str, *, client=None, workers: int | None = None, sch
     """A raw capture (``.dat``, ``.npy``, ``.npz``) into a new spike store at ``store``.
 
     ``options``: ``height``, ``width`` (required for ``.dat``), ``cfa`` (``"mono"``), ``fps``, ``flip``,
-    ``head_columns``, ``key``, ``reset``, ``overwrite``, ``resume``, ``task_frames`` as in ``cscsr ingest``.
+    ``head_columns``, ``key``, ``reset``, ``overwrite``, ``resume``, ``task_frames``, ``layout`` (``"sps100"``:
+    the megapixel camera's raw packets) as in ``cscsr ingest``.
     With ``client``, ``workers`` or ``scheduler`` it runs in parallel on Dask (``.dat`` and ``.npy``), as
     ``cscsr ingest --workers/--scheduler``; without any, in this process, one stream (the same bytes).
     ``dry_run=True`` writes nothing: ``counts`` then holds the plan (as ``cscsr ingest --dry-run --json``).

@@ -8,10 +8,13 @@ A capture that is frames of a fixed size at a fixed offset (``.dat``, ``.npy``) 
 ``read(start, stop)`` reads frames ``[start, stop)`` by one byte-range request, which is what a
 parallel ingest's tasks do, each on its own worker (``pipeline.ingest``). What a capture offers:
 ``n_frames``, ``height``, ``width``, ``frame_bytes`` and ``offset`` (where frame 0 starts), ``ranged``,
-``read``, ``blocks`` and ``fingerprint``. Another raw layout (the megapixel camera's) plugs in as a
-:class:`RawCapture` with a layout object of its own: its ``frame_bytes``, ``offset``,
-``frame_count(nbytes)`` and ``to_packed(raw)`` ((n, frame_bytes) uint8 -> (n, H, ceil(W/8)) packed,
-upright), as :class:`stages.dat.DatLayout` has; ``open_capture`` chooses it.
+``read``, ``blocks`` and ``fingerprint``. Another raw layout plugs in as a :class:`RawCapture` with a
+layout object of its own: its ``frame_bytes``, ``offset``, ``frame_count(nbytes)`` and
+``to_packed(raw, first_frame)`` ((n, frame_bytes) uint8 frames ``first_frame``.. -> (n, H, ceil(W/8)) packed,
+upright), as :class:`stages.dat.DatLayout` has; ``open_capture`` chooses it. The megapixel camera's
+(``--layout sps100``, :class:`stages.sps100.Sps100Layout`) is one: frames of a fixed size from the first frame
+start, which is found in the capture's first bytes (:func:`stages.sps100.find_layout`) by every process that
+opens it, each task checking its own frames' tags.
 """
 
 import hashlib
@@ -26,6 +29,7 @@ import numpy as np
 
 from pipeline.storage import resolve, unreachable
 from stages.spike_arrays import binary_to_packed, check_spike_array_header
+from stages import sps100
 from stages.dat import DatLayout, dat_to_packed
 from stages.errors import InputError, describe
 
@@ -103,15 +107,20 @@ class RawCapture:
     def offset(self) -> int:
         return getattr(self.layout, "offset", 0)
 
-    def _packed(self, data: bytes, count: int) -> np.ndarray:
+    def _packed(self, data: bytes, count: int, first_frame: int) -> np.ndarray:
         raw = np.frombuffer(data, np.uint8).reshape(count, self.frame_bytes)
-        return dat_to_packed(raw, self.layout) if isinstance(self.layout, DatLayout) else self.layout.to_packed(raw)
+        if isinstance(self.layout, DatLayout):
+            return dat_to_packed(raw, self.layout)
+        try:
+            return self.layout.to_packed(raw, first_frame)
+        except InputError as error:  # the layout's own words, the same type (sps100.CaptureDamaged), and the URL
+            raise type(error)(f"{self.url}: {error}") from None
 
     def read(self, start: int, stop: int) -> np.ndarray:
         """Packed frames ``[start, stop)``, upright: one byte-range read."""
         begin = self.offset + start * self.frame_bytes
         return self._packed(_read_range(self.fs, self.path, self.url, begin, begin + (stop - start) * self.frame_bytes,
-                                        start), stop - start)
+                                        start), stop - start, start)
 
     def blocks(self, frames_per_block: int, skip=()) -> Iterator[tuple[int, np.ndarray]]:
         """``(first_frame, packed)`` of each block of ``frames_per_block`` frames in order, one stream; the
@@ -126,7 +135,7 @@ class RawCapture:
                 data = stream.read(count * frame_bytes)
                 if len(data) != count * frame_bytes:
                     raise InputError(f"{self.url} ended early at frame {start}: it changed while being read")
-                yield start, self._packed(data, count)
+                yield start, self._packed(data, count, start)
 
     def fingerprint(self) -> dict:
         return fingerprint(self.fs, self.path)
@@ -243,9 +252,51 @@ class _ClosingMember:
         self.raw.close()
 
 
-def open_capture(url: str, *, height: int | None, width: int | None, flip: bool = False, head_columns: int = 0, key: str | None = None):
-    """The reader for a capture, chosen by its extension, with the declared sizes checked."""
-    suffix = "." + str(url).rsplit(".", 1)[-1].lower() if "." in str(url) else ""
+def default_layout(url: str) -> str | None:
+    """The raw layout a capture is read with when none is named: ``dat`` for a ``.dat``, else None (an array)."""
+    return "dat" if _suffix(url) == ".dat" else None
+
+
+def _suffix(url: str) -> str:
+    return "." + str(url).rsplit(".", 1)[-1].lower() if "." in str(url) else ""
+
+
+def open_sps100(url: str, *, height: int | None = None, width: int | None = None, flip: bool = False,
+                head_columns: int = 0) -> RawCapture:
+    """The megapixel camera's raw capture (:mod:`stages.sps100`), whatever its name: 1000x1000 frames from its
+    first frame start, found in its first :data:`stages.sps100.HEAD_BYTES` (one range read)."""
+    if head_columns:
+        raise InputError("--head-columns applies to the .dat layout only: an sps100 capture's tag bits are dropped "
+                         "by the layout")
+    for label, given in (("height", height), ("width", width)):
+        if given is not None and given != sps100.HEIGHT:
+            raise InputError(f"--{label} {given} is inconsistent with the sps100 layout's fixed {sps100.HEIGHT}x"
+                             f"{sps100.WIDTH} frames: leave --{label} out")
+    fs, path = _open(url)
+    size = int(fs.size(path))
+    head = _read_range(fs, path, url, 0, min(size, sps100.HEAD_BYTES), 0)
+    try:
+        layout = sps100.find_layout(head, flip=flip, complete=size <= sps100.HEAD_BYTES)
+    except InputError as error:
+        raise type(error)(f"{url}: {error}") from None
+    return RawCapture(url, layout)
+
+
+def open_capture(url: str, *, height: int | None, width: int | None, flip: bool = False, head_columns: int = 0,
+                 key: str | None = None, layout: str | None = None):
+    """The reader for a capture, with the declared sizes checked: chosen by ``layout`` (a raw layout of
+    :data:`stages.sps100.LAYOUTS`, whatever the file's name), else by its extension."""
+    suffix = _suffix(url)
+    if layout is not None:
+        sps100.check_layout(layout)
+        if suffix in (".npy", ".npz"):
+            raise InputError(f"--layout {layout} names a raw capture's layout, and {url} is a {suffix} array: leave "
+                             f"--layout out")
+        if layout == "sps100":
+            if key is not None:
+                raise InputError("--key names an array inside a .npz: an sps100 capture has none")
+            return open_sps100(url, height=height, width=width, flip=flip, head_columns=head_columns)
+        suffix = ".dat"
     if suffix == ".dat":
         if height is None or width is None:
             raise InputError("a .dat capture has no header: give both --height and --width")
@@ -258,4 +309,5 @@ def open_capture(url: str, *, height: int | None, width: int | None, flip: bool 
             if given is not None and given != actual:
                 raise InputError(f"--{label} {given} is inconsistent with the array's {label} {actual} in {url}")
         return capture
-    raise InputError(f"unknown capture type {suffix or '(no extension)'} for {url}: expected one of {', '.join(KINDS)}")
+    raise InputError(f"unknown capture type {suffix or '(no extension)'} for {url}: expected one of {', '.join(KINDS)}, "
+                     f"or name a raw layout with --layout ({', '.join(sps100.LAYOUTS)})")

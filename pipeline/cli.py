@@ -18,6 +18,7 @@ from rich.table import Table
 
 from stages.cfa import PATTERNS
 from stages.methods import METHODS, WINDOW
+from stages.sps100 import LAYOUTS
 
 # Click's usage error (Typer >= 0.17 vendors Click; older Typers use Click itself): found the same way in both
 USAGE_ERROR = next(kind for kind in typer.BadParameter.__mro__ if kind.__name__ == "UsageError")
@@ -79,6 +80,7 @@ def choices(names) -> str:
 
 
 METHOD_CHOICES, CFA_CHOICES = choices(METHODS), choices(PATTERNS)
+LAYOUT_CHOICES = choices(LAYOUTS)
 
 
 def show_version(value: bool) -> None:
@@ -217,7 +219,8 @@ def info(store: Annotated[str, typer.Argument(help="Spike store or HR video stor
 
 
 @command()
-def ingest(src: Annotated[str, typer.Argument(help="Capture: .dat, .npy or .npz (any URL).")],
+def ingest(src: Annotated[str, typer.Argument(help="Capture: .dat, .npy or .npz, or a raw capture of --layout "
+                                                  "(any URL).")],
            store: Annotated[str, typer.Argument(help="Spike store to create (any URL).")],
            height: Annotated[Optional[int], typer.Option(help="Frame height (required for .dat).")] = None,
            width: Annotated[Optional[int], typer.Option(help="Frame width without header columns (required for .dat).")] = None,
@@ -226,6 +229,10 @@ def ingest(src: Annotated[str, typer.Argument(help="Capture: .dat, .npy or .npz 
            fps: Annotated[float, typer.Option(help="Spike frames per second.")] = 20000.0,
            head_columns: Annotated[int, typer.Option(help="Header columns at the end of each .dat row, dropped (SPS10: 16 of 416).")] = 0,
            key: Annotated[Optional[str], typer.Option(help="Array name inside a .npz (default: spk).")] = None,
+           layout: Annotated[Optional[str], typer.Option(metavar=LAYOUT_CHOICES, help="A raw capture's layout, "
+                                                         "whatever its name: dat (frames of --height x --width "
+                                                         "bits), sps100 (the 1000x1000 camera's PCIe line packets, "
+                                                         "docs/formats.md) (default: by extension).")] = None,
            reset: Annotated[str, typer.Option(help="Integrator reset of the sensor: subtract or zero.")] = "subtract",
            workers: Annotated[Optional[int], typer.Option(help="Ingest in parallel on a local Dask cluster of this many "
                                                                "worker processes (.dat and .npy; default: in this "
@@ -245,7 +252,8 @@ def ingest(src: Annotated[str, typer.Argument(help="Capture: .dat, .npy or .npz 
 
     if as_json and not dry_run:
         raise ValueError("--json is for --dry-run (the plan as JSON): add --dry-run, or leave --json out")
-    options = IngestOptions(height, width, cfa, fps, flip, head_columns, key, reset, overwrite, resume, task_frames)
+    options = IngestOptions(height, width, cfa, fps, flip, head_columns, key, reset, overwrite, resume, task_frames,
+                            layout=layout)
     if dry_run:
         plan = plan_ingest(src, store, options, workers=workers, scheduler=scheduler)
         if as_json:
@@ -364,7 +372,8 @@ def reconstruct(store: Annotated[str, typer.Argument(help="Spike store URL.")],
                                                                           "CPU ignores it.")] = False,
                 backend: Annotated[str, typer.Option(help="What runs the network: torch, or onnx (ONNX Runtime on "
                                                           "the CPU: ~1.3x faster, ~18 s to export per tile shape "
-                                                          "and worker; pip install 'cscsr[onnx]').")] = "torch",
+                                                          "and worker; pip install 'cscsr\\[onnx]').")] = "torch",
+                # \[onnx]: --help is rich markup, where a bare [onnx] is a tag and prints nothing
                 start: Annotated[Optional[str], typer.Option(help="Only output frames centred at or after this: "
                                                                   "a spike frame (1200) or seconds (2.5s, "
                                                                   "1500ms).")] = None,
@@ -602,7 +611,9 @@ def watch(context: typer.Context,
           backoff: Annotated[float, typer.Option(help="Seconds before the first retry (doubles each time).")] = 60.0,
           height: Annotated[Optional[int], typer.Option(help="Default frame height of raw captures.")] = None,
           width: Annotated[Optional[int], typer.Option(help="Default frame width of raw captures.")] = None,
-          cfa: Annotated[str, typer.Option(metavar=CFA_CHOICES, help="Default CFA of raw captures.")] = "rggb",
+          cfa: Annotated[Optional[str], typer.Option(metavar=CFA_CHOICES, help="CFA of raw captures whose sidecar "
+                                                     "names none (default: none, such a capture is refused: "
+                                                     "never guessed).")] = None,
           flip: Annotated[bool, typer.Option("--flip", help="Raw captures are upside down by default.")] = False,
           fps: Annotated[float, typer.Option(help="Default spike frames per second of raw captures.")] = 20000.0,
           reset: Annotated[str, typer.Option(help="Default sensor reset of raw captures.")] = "subtract",

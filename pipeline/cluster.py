@@ -30,7 +30,8 @@ import os
 import signal
 import sys
 import threading
-from collections.abc import Iterator, Sequence
+import uuid
+from collections.abc import Iterable, Iterator, Sequence
 
 import dask
 from distributed import Client, LocalCluster, Nanny, WorkerPlugin
@@ -133,6 +134,43 @@ def check_scheduler(scheduler: str | None) -> None:
     if error is not None:  # an answer, but not Dask's protocol (a web server, say): undecodable frames
         raise InputError(f"cannot reach Dask scheduler {address}: what answers there does not speak Dask's "
                          f"protocol ({type(error).__name__})")
+
+
+_THIS_PROCESS = uuid.uuid4().hex  # a worker answering with this mark runs in this very process
+
+
+def _process_mark() -> str:
+    return _THIS_PROCESS
+
+
+def workers_in_this_process(client) -> bool:
+    """Whether every worker of ``client`` runs in this process (``LocalCluster(processes=False)``), where a
+    ``memory://`` store is theirs too. False for ``None`` (a job without a client starts a local cluster of
+    worker processes, or connects to a scheduler), for a cluster of worker processes, and for one with no
+    worker yet (whoever joins later is a process of its own)."""
+    if client is None:
+        return False
+    if str(client.scheduler.address).startswith("inproc://"):  # only this process can reach such a scheduler
+        return True
+    try:
+        marks = client.run(_process_mark)
+    except Exception:  # noqa: BLE001 - workers that cannot even answer share nothing with us
+        return False
+    return bool(marks) and all(mark == _THIS_PROCESS for mark in marks.values())
+
+
+def check_in_memory(urls: Iterable[str | None], *, client=None, instead: str = "") -> None:
+    """Refuse, in one line and before any output exists, a ``memory://`` input or output among ``urls`` of a
+    job whose tasks read or write it in worker processes (a local cluster's, or a scheduler's: ``client``
+    None, or one whose workers are not all in this process). A ``memory://`` store lives in one process's
+    memory: each worker would write into its own, and the job would fail only after every task had run,
+    advising a ``--resume`` that cannot help. ``instead``: a way out for this command (``, or ...``)."""
+    memory = [str(url) for url in urls if url is not None and str(url).startswith("memory://")]
+    if not memory or workers_in_this_process(client):
+        return
+    raise InputError(f"cannot use {memory[0]}: memory:// lives in this process only, and this job's tasks run in "
+                     f"worker processes (a local cluster's or a scheduler's) that cannot read or write it: give a "
+                     f"path or another URL (file://, s3://){instead}")
 
 
 def visible_gpus() -> int:

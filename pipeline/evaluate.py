@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 
-from pipeline.cluster import check_scheduler, check_workers, dask_client
+from pipeline.cluster import check_in_memory, check_scheduler, check_workers, dask_client
 from pipeline.ground_truth import read_truth
 from pipeline.images import write_image
 from pipeline.outputs import EVALUATION, mark_folder, new_output
@@ -67,6 +67,7 @@ def evaluate(store_url: str, methods: list[str], out_dir: str, *, weights: str |
     and a failed evaluation leaves none."""
     check_apart(out_dir, store_url, weights)
     check_workers(workers)
+    check_in_memory((store_url, out_dir, weights), client=client)  # the reconstructions' tasks read and write them
     store, truth_frames, options = checked_evaluation(store_url, methods, weights)
     if client is None:
         check_scheduler(scheduler)  # a named scheduler answers (within seconds) before OUT exists
@@ -81,8 +82,7 @@ def _evaluate(store_url: str, store, truth_frames, options: dict, methods: list[
     truth, _ = read_truth(store)
     fs, root = resolve(out_dir)
 
-    rows, per_frame, middle = [], [], len(truth_frames) // 2
-    pictures = [labelled(truth[middle], f"truth (frame {truth_frames[middle]})")]
+    rows, per_frame, videos = [], [], {}
     with contextlib.nullcontext(client) if client else dask_client(workers=workers, scheduler=scheduler) as client:
         for method in methods:
             out = f"{str(out_dir).rstrip('/')}/{method}.zarr"
@@ -95,11 +95,21 @@ def _evaluate(store_url: str, store, truth_frames, options: dict, methods: list[
             rows.append({"method": method, "psnr": float(np.mean([p for p, _ in scores])),
                          "ssim": float(np.mean([s for _, s in scores])), "frames": len(scores),
                          "seconds_per_image": seconds / len(scores)})
-            pictures.append(labelled(video[middle], f"{method}: {scores[middle][0]:.2f} dB"))
+            videos[method] = video
     _write_csv(f"{root}/metrics.csv", fs, per_frame)
     _write_csv(f"{root}/summary.csv", fs, rows)
-    write_image(f"{str(out_dir).rstrip('/')}/comparison.png", side_by_side(*pictures))
+    write_image(f"{str(out_dir).rstrip('/')}/comparison.png", comparison_picture(truth, truth_frames, videos))
     return rows
+
+
+def comparison_picture(truth, truth_frames, videos: dict) -> np.ndarray:
+    """The truth and every video side by side at the middle truth frame, each under its label and its PSNR
+    there (``videos``: label -> frames at the truth frames, as a video store holds them)."""
+    middle = len(truth_frames) // 2
+    pictures = [labelled(truth[middle], f"truth (frame {truth_frames[middle]})")]
+    pictures += [labelled(video[middle], f"{label}: {psnr(video[middle], truth[middle]):.2f} dB")
+                 for label, video in videos.items()]
+    return side_by_side(*pictures)
 
 
 def _write_csv(path: str, fs, rows: list[dict]) -> None:

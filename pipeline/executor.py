@@ -25,6 +25,7 @@
 
 import ctypes
 import itertools
+import logging
 import multiprocessing
 import queue
 import signal
@@ -38,6 +39,7 @@ from distributed.scheduler import KilledWorker
 from stages.errors import InputError, describe
 
 T = TypeVar("T")
+log = logging.getLogger("cscsr.executor")
 
 
 def submitted(client, tasks: Iterable[T], submit: Callable[[T], Future], *,
@@ -124,16 +126,24 @@ _END, _FAILED, _OUTCOME = "end", "failed", "outcome"
 def in_segments(run: Callable[..., Iterator[T]], items: Iterable, size: int, *, workers: int | None,
                 show_dashboard: bool) -> Iterator[T]:
     """``run(client, segment)`` for each ``size`` items in turn, each in its own process on its own local
-    cluster of ``workers`` (items are drawn one segment at a time; ``run`` must pickle)."""
+    cluster of ``workers`` (items are drawn one segment at a time; ``run`` must pickle). The first segment
+    prints the dashboard link if ``show_dashboard``, unless ``cscsr --quiet``; with ``cscsr --verbose`` each
+    segment's cluster lets Dask's own warnings through, as a cluster in this process would."""
+    from pipeline.progress import is_quiet
+
     context = multiprocessing.get_context("spawn")  # a fresh interpreter: nothing carried over
+    show_dashboard = show_dashboard and not is_quiet()
+    verbose = log.isEnabledFor(logging.DEBUG)  # a spawned child starts with logging unset: it is told
     items = iter(items)
     for number in itertools.count():
         segment = list(itertools.islice(items, size))
         if not segment:
             return
+        log.debug("segment %d: %d tasks, in a process of its own on a fresh local cluster (%s)", number, len(segment),
+                  f"{workers} workers" if workers is not None else "a worker per core")
         messages = context.Queue()
         child = context.Process(target=_segment, name=f"cscsr-segment-{number}",
-                                args=(run, segment, workers, show_dashboard and number == 0, messages))
+                                args=(run, segment, workers, show_dashboard and number == 0, messages, verbose))
         child.start()
         try:
             yield from _relay(messages, child)
@@ -163,10 +173,13 @@ def _relay(messages, child) -> Iterator:
         yield message[1]
 
 
-def _segment(run, items, workers, show_dashboard, messages) -> None:
+def _segment(run, items, workers, show_dashboard, messages, verbose=False) -> None:
     """Child: start a cluster, run the segment, send each outcome, exit (and all its memory with it)."""
     _die_with_parent()
     from pipeline.cluster import dashboard_link, dask_client
+
+    if verbose:  # what the cluster's log level is chosen by (cluster._dask_log_level)
+        logging.getLogger("cscsr").setLevel(logging.DEBUG)
 
     try:
         with dask_client(workers=workers) as client:

@@ -7,6 +7,7 @@ A video goes out frame by frame (H.264 through imageio-ffmpeg, or one PNG per fr
 by its centre spike frame), so memory stays at one frame.
 """
 
+import logging
 import os
 import tempfile
 
@@ -18,11 +19,14 @@ from pipeline.storage import check_apart, open_group, resolve
 from pipeline.video_store import FRAMES, VIDEO, lost_frames, open_video_store
 from stages.dat import DatLayout, packed_to_dat
 from stages.errors import InputError
+from stages.montage import padded_to
 
 FRAMES_PER_READ_BYTES = 64 * 2**20
 
 
 VIDEO_FPS = 10
+MP4_BLOCK = 2  # yuv420p (what players expect of H.264) halves the chroma: both sides must be even
+log = logging.getLogger("cscsr.export")  # the package is ``pipeline``; the logger is named for the command
 
 
 def export(store_url: str, dest: str, *, overwrite: bool = False, progress: bool = True) -> None:
@@ -53,21 +57,28 @@ def _complete_video(store_url: str):
 
 
 def export_mp4(store_url: str, dest: str, *, overwrite: bool = False, progress: bool = True) -> None:
-    """H.264 at 10 frames per second (libx264, yuv420p), written locally then moved to ``dest``."""
+    """H.264 at 10 frames per second (libx264, yuv420p), written locally then moved to ``dest``. Frames keep their
+    size; yuv420p needs even sides, so an odd side grows by one repeated row or column, said in one log line
+    (never resampled: imageio's default would stretch every frame to multiples of 16, with a warning of its own)."""
     import imageio.v2 as iio2
 
     check_apart(dest, store_url)
     group = _complete_video(store_url)
     video = group[VIDEO]
+    height, width = video.shape[1:3]
+    if odd := [name for name, side in (("row", height), ("column", width)) if side % MP4_BLOCK]:
+        log.warning("%s: frames are %dx%d and H.264 (yuv420p) needs even sides: the video is %dx%d, its last %s "
+                    "repeated", dest, width, height, width + -width % MP4_BLOCK, height + -height % MP4_BLOCK,
+                    " and last ".join(odd))
     fs, path = resolve(dest)
     # the old video (only an MP4: .mp4 is the kind written here) is kept until the new one is in place
     with new_output(dest, overwrite=overwrite, kind=".mp4"), tempfile.TemporaryDirectory() as scratch:
         local = os.path.join(scratch, "video.mp4")  # ffmpeg writes files, not streams
         with iio2.get_writer(local, format="FFMPEG", mode="I", fps=VIDEO_FPS, codec="libx264", quality=8,
-                             macro_block_size=16, ffmpeg_log_level="error") as writer, \
+                             pixelformat="yuv420p", macro_block_size=MP4_BLOCK, ffmpeg_log_level="error") as writer, \
                 progress_bar(f"export {dest}", video.shape[0], enabled=progress) as advance:
             for index in range(video.shape[0]):
-                writer.append_data(video[index])
+                writer.append_data(padded_to(video[index], MP4_BLOCK))  # sides already even: imageio resizes nothing
                 advance(1)
         fs.put_file(local, path)
 

@@ -8,8 +8,9 @@ store's chunks, about :data:`BLOCK_BYTES` of packed spikes; ``--task-frames``): 
 ``committed``, whose attributes record the capture's fingerprint and the options), and finishes the store
 (spike count, identity, consolidated metadata, ``state: "complete"``) only once every task is committed.
 
-**Where.** Without ``--workers``, ``--scheduler`` (or a client) the tasks run in this process, one stream
-read ahead of the writes: the reference, whose bytes every other way reproduces. With them each task is
+**Where.** Without ``--workers``, a scheduler (``--scheduler``, ``DASK_SCHEDULER_ADDRESS``) or a client the tasks
+run in this process, one stream read ahead of the writes: the reference, whose bytes every other way
+reproduces. With them each task is
 a Dask task that reads its frames by byte range (ranged captures, ``.dat`` and ``.npy``: a ``.npz`` is one
 stream) wherever it runs; tasks are idempotent (the same chunks, the same bytes), so a lost worker's
 tasks run again (``pipeline.executor``). A local cluster runs in a child process that dies with the job
@@ -26,6 +27,7 @@ what it committed for ``--resume``; a failed one-process ingest is removed, as b
 
 import contextlib
 import functools
+import logging
 import math
 import sys
 import time
@@ -37,27 +39,30 @@ from typing import NamedTuple
 import numpy as np
 import zarr
 
-from pipeline.captures import RANGED_KINDS, open_capture
-from pipeline.cluster import check_scheduler, check_workers, dashboard_link, dask_client, scheduler_address
+from pipeline.captures import RANGED_KINDS, default_layout, open_capture
+from pipeline.cluster import (check_in_memory, check_scheduler, check_workers, dashboard_link, dask_client,
+                              scheduler_address)
 from pipeline.executor import failure, in_segments, submitted
 from pipeline.hold import hold_point
 from pipeline.lease import check_free, claimed, held
 from pipeline.outputs import SPIKE_STORE, check_ours, new_output
-from pipeline.progress import progress_bar
+from pipeline.progress import is_quiet, progress_bar
 from pipeline.spike_store import (CODEC_LEVEL, COMMITTED, WRITE_CONFIG, SpikeMeta, SpikeStoreWriter, chunk_frames_for,
                                   ingest_task_arrays, open_spike_store)
-from pipeline.storage import check_apart, exists, recorded
+from pipeline.storage import check_apart, exists, recorded, remove
 from stages.bits import count_spikes, packed_width
 from stages.cfa import check_cfa, flip_vertically
 from stages.errors import InputError, exists_error
-from stages.numbers import check_flag, check_number, check_text
+from stages.numbers import as_float, check_flag, check_number, check_text
 from stages.prefetch import prefetched
 from stages.sensor import check_reset
+from stages.sps100 import CaptureDamaged, check_layout
 
 BLOCK_BYTES = 64 * 2**20  # packed bytes per task (and per block read): bounds memory, amortises I/O
 SEGMENT_TASKS = 10_000  # tasks per segment of a local cluster (a terabyte is ~16,000 tasks)
 PLANNED_WORKERS = (1, 8, 64)  # the dry run's table of hours
 COMMITTED_UNITS = "spikes in the task's frames, written once they are stored; -1 = not committed"
+log = logging.getLogger("cscsr.ingest")  # DEBUG lines (cscsr --verbose): the job's plan, each task's outcome
 
 
 @dataclass(frozen=True)
@@ -73,6 +78,10 @@ class IngestOptions:
     overwrite: bool = False
     resume: bool = False
     task_frames: int | None = None  # frames per task, rounded up to whole chunks (default: ~BLOCK_BYTES)
+    layout: str | None = None  # a raw capture's layout (stages.sps100.LAYOUTS); None: by extension
+
+    def __post_init__(self):
+        object.__setattr__(self, "fps", as_float(self.fps))  # fps=20000 records the bytes --fps 20000 does
 
     def check(self) -> None:
         """Every check of the options that needs no capture, types first (only the Python API can get them
@@ -91,6 +100,9 @@ class IngestOptions:
         check_flag("--resume", self.resume)
         if self.task_frames is not None:
             check_number("--task-frames", self.task_frames, at_least=1, integer=True)
+        check_text("--layout", self.layout, optional=True)
+        if self.layout is not None:
+            check_layout(self.layout)
         check_cfa(self.cfa)
         check_reset(self.reset)
         if self.resume and self.overwrite:
@@ -101,10 +113,14 @@ JOB_FIELDS = ("overwrite", "resume", "task_frames")  # how a capture is ingested
 
 
 def capture_fields(options: IngestOptions) -> dict:
-    """What the capture is taken to be (every field but :data:`JOB_FIELDS`): the watcher keys its work on these."""
+    """What the capture is taken to be (every field but :data:`JOB_FIELDS`): the watcher keys its work on these.
+    ``layout`` only when one is named: by extension (None), the fields are those before it existed, so the
+    watcher's keys of earlier recordings stay as they were."""
     fields = asdict(options)
     for name in JOB_FIELDS:
         del fields[name]
+    if fields["layout"] is None:
+        del fields["layout"]
     return fields
 
 
@@ -123,6 +139,7 @@ class IngestPlan:
     n_frames: int
     task_frames: int
     run: str  # this job's id: workers open the capture and the store once per job
+    layout: str | None = None  # as IngestOptions.layout
 
     @property
     def n_tasks(self) -> int:
@@ -135,7 +152,7 @@ class IngestPlan:
 
     def open_capture(self):
         return open_capture(self.src, height=self.height, width=self.width, flip=self.flip,
-                            head_columns=self.head_columns, key=self.key)
+                            head_columns=self.head_columns, key=self.key, layout=self.layout)
 
 
 @dataclass
@@ -164,13 +181,13 @@ def _prepare(src: str, dest: str, options: IngestOptions, *, parallel: bool, cli
     check_apart(dest, src)
     if options.resume and not exists(dest):
         raise InputError(f"cannot resume: {dest} does not exist")
-    if parallel and client is None and any(str(url).startswith("memory://") for url in (src, dest)):
-        raise InputError("memory:// lives in this process only, where a cluster's workers cannot see it: ingest "
-                         "without --workers or --scheduler, or use a path or another URL")
+    if parallel:  # a client whose workers are in this process shares its memory://
+        check_in_memory((src, dest), client=client, instead=", or ingest without --workers or --scheduler")
     capture = open_capture(src, height=options.height, width=options.width, flip=options.flip,
-                           head_columns=options.head_columns, key=options.key)
+                           head_columns=options.head_columns, key=options.key, layout=options.layout)
     if parallel and not capture.ranged:
-        raise InputError(f"{src}: a .npz is read as one stream, and parallel ingest (--workers, --scheduler) reads "
+        raise InputError(f"{src}: a .npz is read as one stream, and parallel ingest (--workers, --scheduler, "
+                         f"DASK_SCHEDULER_ADDRESS) reads "
                          f"a capture by frame range ({', '.join(RANGED_KINDS)}): ingest it without them, or save "
                          f"the array as .npy")
     sensor_cfa = check_cfa(options.cfa, capture.height, capture.width)
@@ -188,9 +205,10 @@ def _prepare(src: str, dest: str, options: IngestOptions, *, parallel: bool, cli
     record = {"units": COMMITTED_UNITS, "task_frames": task_frames, "capture": capture.fingerprint(),
               "options": {"height": capture.height, "width": capture.width, "cfa": sensor_cfa, "fps": options.fps,
                           "flip": options.flip, "head_columns": options.head_columns,
-                          "key": getattr(capture, "key", None), "reset": options.reset}}
+                          "key": getattr(capture, "key", None), "reset": options.reset,
+                          "layout": options.layout or default_layout(src)}}
     plan = IngestPlan(recorded(src), recorded(dest), options.height, options.width, options.flip, options.head_columns,
-                      options.key, capture.n_frames, task_frames, uuid.uuid4().hex)
+                      options.key, capture.n_frames, task_frames, uuid.uuid4().hex, options.layout)
     job = _Job(capture, meta, chunk, plan, record, parallel)
     if options.resume:
         _check_resumable(dest, src, job)
@@ -217,7 +235,8 @@ def _check_resumable(dest: str, src: str, job: _Job) -> np.ndarray:
                else "the same size, but its first or last MiB differ")
         raise InputError(f"cannot resume {dest}: {src} is not the capture it was ingested from ({why}): give that "
                          f"capture, or start again with --overwrite")
-    options = found.get("options") or {}
+    options = dict(found.get("options") or {})
+    options.setdefault("layout", default_layout(src))  # recorded before layouts: read by extension, as now
     changed = [f"{k} {options.get(k)!r} -> {v!r}" for k, v in job.record["options"].items() if options.get(k) != v]
     if found.get("task_frames") != job.plan.task_frames:
         changed.append(f"task_frames {found.get('task_frames')!r} -> {job.plan.task_frames!r}")
@@ -231,6 +250,13 @@ def _check_resumable(dest: str, src: str, job: _Job) -> np.ndarray:
                          f"chunks of {store.spikes.chunks[0]}, {committed.shape[0]} tasks): start again with "
                          f"--overwrite")
     return committed[:].astype(np.int64)
+
+
+def on_dask(client, workers: int | None, scheduler: str | None) -> bool:
+    """Whether the tasks run on Dask: a client, ``--workers``, or a scheduler named by ``--scheduler``,
+    ``DASK_SCHEDULER_ADDRESS`` or Dask's ``scheduler-address``, as for every other job (so an ingest under
+    ``deploy/slurm.py`` runs on its cluster, not on the login node)."""
+    return client is not None or workers is not None or scheduler_address(scheduler) is not None
 
 
 def ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *, progress: bool = True,
@@ -252,7 +278,7 @@ def run_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *,
     """
     check_workers(workers)
     check_text("--scheduler", scheduler, optional=True)
-    parallel = client is not None or workers is not None or scheduler is not None
+    parallel = on_dask(client, workers, scheduler)
     job = _prepare(src, dest, options, parallel=parallel, client=client)
     if parallel and client is None:
         check_scheduler(scheduler)  # a named scheduler answers (within seconds) before DEST is claimed or replaced
@@ -265,6 +291,8 @@ def run_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *,
             check_free(dest)  # and no live lease (a job on a machine that shares no claim file with us)
         stack.enter_context(new_output(dest, overwrite=options.overwrite, kind=SPIKE_STORE,
                                        flag="--resume or --overwrite", resume=options.resume, keep_partial=parallel))
+        if not options.resume:
+            stack.enter_context(_removed_if_damaged(dest))  # a damaged capture leaves nothing: --resume cannot help
         if options.resume:
             counts = _check_resumable(dest, src, job)  # again, under the claim
             writer = SpikeStoreWriter.reopened(dest)
@@ -274,14 +302,22 @@ def run_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *,
             writer.add_array(COMMITTED, (plan.n_tasks,), (1,), np.int64, ("task",), job.record, fill_value=-1)
             counts, complete = np.full(plan.n_tasks, -1, np.int64), False
         todo = [index for index in range(plan.n_tasks) if counts[index] < 0]
+        log.debug("%s -> %s: %d frames of %dx%d, cfa %s; %d tasks of %d frames, %d committed already; %s", src, dest,
+                  plan.n_frames, job.meta.height, job.meta.width, job.meta.cfa, plan.n_tasks, plan.task_frames,
+                  plan.n_tasks - len(todo), "in this process, one stream" if not parallel else
+                  f"on the cluster at {client.scheduler.address}" if client is not None else
+                  f"on local clusters of {workers or 'a worker per core'} workers, {SEGMENT_TASKS} tasks each")
         if todo:
+            damaged = {}
             with held(dest), progress_bar(f"ingest {src}", plan.n_frames, enabled=progress) as advance:
                 advance(plan.n_frames - sum(plan.frames(i)[1] - plan.frames(i)[0] for i in todo))
                 if parallel:
-                    failed = _run_on_cluster(plan, todo, counts, advance, client=client, workers=workers,
-                                             progress=progress)
+                    failed, damaged = _run_on_cluster(plan, todo, counts, advance, client=client, workers=workers,
+                                                      progress=progress)
                 else:
                     failed = _run_here(job.capture, writer, plan, counts, advance)
+            if damaged:  # the first in the capture: the tasks after a dropped packet are all out of sequence
+                raise CaptureDamaged(damaged[min(damaged)])
             if failed:
                 raise IngestIncomplete(dest, plan, failed)
         if not complete:
@@ -300,38 +336,56 @@ def _run_here(capture, writer: SpikeStoreWriter, plan: IngestPlan, counts: np.nd
         index = start // plan.task_frames
         counts[index] = count_spikes(packed)
         committed[index] = counts[index]
+        log.debug("task %d (frames %d-%d): %d spikes, committed", index, start, start + packed.shape[0] - 1,
+                  counts[index])
         advance(packed.shape[0])
     return {}
 
 
+@contextlib.contextmanager
+def _removed_if_damaged(dest: str):
+    """A capture found damaged (``stages.sps100.CaptureDamaged``) mid-ingest removes the new store, even a
+    parallel ingest's, which keeps its committed tasks for ``--resume`` on any other failure."""
+    try:
+        yield
+    except CaptureDamaged:
+        remove(dest)
+        raise
+
+
 class Outcome(NamedTuple):
-    """One finished task: its index, the spikes it counted, or its error."""
+    """One finished task: its index, the spikes it counted, or its error (``damaged``: the capture's own, in
+    its layout's words: :class:`stages.sps100.CaptureDamaged`)."""
 
     index: int
     spikes: int | None
     error: str | None
+    damaged: bool = False
 
 
 def _run_on_cluster(plan: IngestPlan, todo: list[int], counts: np.ndarray, advance, *, client, workers: int | None,
-                    progress: bool) -> dict[int, str]:
+                    progress: bool) -> tuple[dict[int, str], dict[int, str]]:
     """The tasks ``todo`` on ``client`` (else in segments, each on a fresh local cluster of ``workers``); their
-    counts into ``counts``; -> {task: error} of those that failed."""
+    counts into ``counts``; -> ({task: error} of those that failed, {task: error} of those that found the
+    capture damaged)."""
     work = functools.partial(run_tasks, plan=plan)
     if client is not None:
-        if progress and (link := dashboard_link(client)):
+        if progress and not is_quiet() and (link := dashboard_link(client)):
             print(f"dashboard: {link}", file=sys.stderr)  # never mixed with results on stdout
         outcomes = work(client, todo)
     else:
         outcomes = in_segments(work, todo, SEGMENT_TASKS, workers=workers, show_dashboard=progress)
-    failed = {}
+    failed, damaged = {}, {}
     for outcome in outcomes:
+        start, stop = plan.frames(outcome.index)
+        log.debug("task %d (frames %d-%d): %s", outcome.index, start, stop - 1, f"failed: {outcome.error}"
+                  if outcome.error is not None else f"{outcome.spikes} spikes, committed")
         if outcome.error is not None:
-            failed[outcome.index] = outcome.error
+            (damaged if outcome.damaged else failed)[outcome.index] = outcome.error
             continue
         counts[outcome.index] = outcome.spikes
-        start, stop = plan.frames(outcome.index)
         advance(stop - start)
-    return failed
+    return failed, damaged
 
 
 def run_tasks(client, tasks: Iterable[int], *, plan: IngestPlan) -> Iterator[Outcome]:
@@ -342,7 +396,11 @@ def run_tasks(client, tasks: Iterable[int], *, plan: IngestPlan) -> Iterator[Out
 
     for index, future in submitted(client, tasks, submit, idempotent=True):
         error = failure(future)
-        yield Outcome(index, None if error else int(future.result()), error)
+        result = None if error else future.result()
+        if isinstance(result, str):  # the capture is damaged: said, not raised (_ingest_task)
+            yield Outcome(index, None, result, damaged=True)
+        else:
+            yield Outcome(index, None if error else int(result), error)
 
 
 @functools.lru_cache(maxsize=4)
@@ -354,13 +412,17 @@ def _opened(plan: IngestPlan):
     return (capture, *ingest_task_arrays(plan.dest))
 
 
-def _ingest_task(plan: IngestPlan, index: int) -> int:
+def _ingest_task(plan: IngestPlan, index: int) -> int | str:
     """Task: read frames of task ``index`` by byte range, pack them, write their chunks, record the task
-    committed (its spike count); -> that count. Idempotent: run again, it writes the same bytes."""
+    committed (its spike count); -> that count, or the line saying how its frames are damaged (checked before
+    anything is written; the job then removes the store). Idempotent: run again, it writes the same bytes."""
     hold_point()  # inert unless a fault test asks (pipeline.hold)
     capture, spikes, committed = _opened(plan)
     start, stop = plan.frames(index)
-    packed = capture.read(start, stop)
+    try:
+        packed = capture.read(start, stop)
+    except CaptureDamaged as error:
+        return str(error)
     with zarr.config.set(WRITE_CONFIG):
         spikes[start:stop] = packed
     count = count_spikes(packed)
@@ -390,7 +452,7 @@ def plan_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *
     packed and compressed into memory here (the middle task; the first of a ``.npz``)."""
     check_workers(workers)
     check_text("--scheduler", scheduler, optional=True)
-    parallel = client is not None or workers is not None or scheduler is not None
+    parallel = on_dask(client, workers, scheduler)
     job = _prepare(src, dest, options, parallel=parallel, client=client)
     if parallel and client is None:
         check_scheduler(scheduler)

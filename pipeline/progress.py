@@ -1,5 +1,6 @@
 """Progress bars (rich) on standard error, for anything longer than a few seconds; none at all once
-:func:`set_quiet` (``cscsr --quiet``)."""
+:func:`set_quiet` (``cscsr --quiet``), and no other line that is neither a result nor a warning or error
+(a job's dashboard link: :func:`is_quiet`)."""
 
 import contextlib
 import sys
@@ -15,6 +16,11 @@ def set_quiet(quiet: bool) -> None:
     """Turn every progress bar of this process off (or back on)."""
     global _quiet
     _quiet = bool(quiet)
+
+
+def is_quiet() -> bool:
+    """Whether this process was asked for results, warnings and errors only (``cscsr --quiet``)."""
+    return _quiet
 
 
 @contextlib.contextmanager

@@ -36,6 +36,7 @@ import contextlib
 import dataclasses
 import functools
 import itertools
+import logging
 import sys
 import threading
 import time
@@ -45,12 +46,12 @@ from typing import NamedTuple
 
 import numpy as np
 
-from pipeline.cluster import (GPU, GPU_SHARE, check_scheduler, check_workers, dashboard_link, dask_client,
-                              scheduler_address, visible_gpus)
+from pipeline.cluster import (GPU, GPU_SHARE, check_in_memory, check_scheduler, check_workers, dashboard_link,
+                              dask_client, scheduler_address, visible_gpus)
 from pipeline.hold import hold_point
 from pipeline.estimate import hours, hours_table, output_bytes
 from pipeline.lease import check_free, claimed, held
-from pipeline.progress import progress_bar
+from pipeline.progress import is_quiet, progress_bar
 from pipeline.reconstruct_plan import (DEFAULT_TILE, DEFAULT_WEIGHTS, GPU_BATCH, MADE_FROM, Part, Plan,
                                       ReconstructOptions, job_part, made_from, task_count, task_groups, tile_blocks)
 from pipeline.executor import failure, in_segments, submitted
@@ -63,6 +64,8 @@ from stages.errors import InputError, exists_error
 from stages.methods import NETWORKS, Reconstructor, Window, classic, output_centres
 from stages.tfp import tfp_rate
 from stages.tiles import Tile, device_tile, tile_grid
+
+log = logging.getLogger("cscsr.reconstruct")  # DEBUG lines (cscsr --verbose): the job's plan, each task's outcome
 
 def reconstructor(method: str, weights: str | None, precision: str | None = "fp32", backend: str | None = "torch",
                   weights_sha256: str | None = None, *, fast_gpu: bool = False,
@@ -244,6 +247,7 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
     check_workers(workers)
     options.check()
     check_apart(out, store_url, options.weights)
+    check_in_memory((store_url, out, options.weights), client=client)  # workers read and write them
     store = open_spike_store(store_url)
     meta = store.meta
     checked_method(store, options)  # the options and the weights given, before any cluster
@@ -298,9 +302,15 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
         done = _prepare_output(plan, options.resume, centres, grid, hr_size, fps=meta.fps / options.every)
         groups = task_groups(len(centres), batch, blocks, done, part.first)
         work = functools.partial(run_groups, plan=plan, centres=centres, grid=grid, resources=resources)
+        log.debug("%s -> %s: %s%s, %d output frames x %d tiles of %d LR pixels (x%d), gain %.4g; %d of %d tiles "
+                  "committed already; on %s", store_url, out, options.method,
+                  f" (weights {method.weights})" if method.weights else "", len(centres), len(grid) * len(grid[0]),
+                  options.tile, scale, gain, int(done.sum()), done.size,
+                  f"the cluster at {client.scheduler.address}" if client else
+                  f"local clusters of {workers or 'a worker per core'} workers, {options.segment_tasks} tasks each")
         with held(out), progress_bar(f"reconstruct {options.method}", len(centres), enabled=progress) as advance:
             if client:
-                if progress and (link := dashboard_link(client)):
+                if progress and not is_quiet() and (link := dashboard_link(client)):
                     print(f"dashboard: {link}", file=sys.stderr)  # never mixed with results on stdout
                 outcomes = work(client, groups)
             else:  # our own local cluster: a fresh one per segment keeps memory bounded
@@ -428,6 +438,8 @@ def _tally(outcomes: Iterable[Outcome], done: np.ndarray, advance) -> dict[int, 
     advance(int((remaining == 0).sum()))
     for outcome in outcomes:
         frames = range(outcome.start, outcome.stop)
+        log.debug("output frames %d-%d, tile (%d, %d): %s", outcome.start, outcome.stop - 1, outcome.ty, outcome.tx,
+                  "committed" if outcome.error is None else f"failed: {outcome.error}")
         if outcome.error is not None:
             failed.update({index: f"tile ({outcome.ty}, {outcome.tx}): {outcome.error}" for index in frames})
             continue

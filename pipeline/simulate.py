@@ -14,12 +14,13 @@ number of workers.
 """
 
 import functools
+import logging
 from dataclasses import dataclass
 
 import numpy as np
 from distributed import Client
 
-from pipeline.cluster import check_scheduler, check_workers, dask_client
+from pipeline.cluster import check_in_memory, check_scheduler, check_workers, dask_client
 from pipeline.executor import submitted
 from pipeline.frame_sources import FrameSource, open_frame_source
 from pipeline.hold import hold_point
@@ -270,6 +271,7 @@ def simulate(src: str, dest: str, options: SimulateOptions = SimulateOptions(), 
     """Simulate ``options.frames`` spike frames from ``src`` into a new spike store at ``dest``."""
     check_workers(workers)
     check_apart(dest, src)
+    check_in_memory((src, dest))  # read and written by the tasks, in worker processes
     source = open_frame_source(src)
     height, width = check_options(options, source)
     model = options.sensor_model()
@@ -295,6 +297,10 @@ def simulate(src: str, dest: str, options: SimulateOptions = SimulateOptions(), 
         steps = simulation_steps(options.frames, chunk, truth_at, None if scene.is_still else source.n_frames,
                                  camera_moves=path is not None)
         tasks = _Tasks(client, scene, options, dest, height, width)
+        logging.getLogger("cscsr.simulate").debug(  # cscsr --verbose
+            "%s -> %s: %d frames of %dx%d LR (x%d HR), cfa %s, chunks of %d frames, truth at %d frames; on the "
+            "cluster at %s", src, dest, options.frames, height, width, options.scale, options.cfa, chunk,
+            len(truth_at), client.scheduler.address)
         spikes = 0
         with held(dest), progress_bar(f"simulate {src}", options.frames, enabled=progress) as advance:
             for _, future in submitted(client, steps, tasks.submit):

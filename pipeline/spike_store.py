@@ -39,7 +39,7 @@ from stages.cfa import check_cfa
 from stages.colour import MAX_GAIN
 from stages.dat import check_head_side
 from stages.errors import InputError, describe
-from stages.numbers import check_number
+from stages.numbers import as_float, check_number
 from stages.sensor import check_reset
 
 FORMAT_VERSION = 1
@@ -75,6 +75,7 @@ class SpikeMeta:
     def __post_init__(self):
         object.__setattr__(self, "cfa", check_cfa(self.cfa, self.height, self.width))
         check_number("fps", self.fps, above=0)
+        object.__setattr__(self, "fps", as_float(self.fps))  # an int fps records the bytes a float one does
         for name in ("gain", "threshold"):  # optional: simulated stores record them
             if getattr(self, name) is not None:
                 check_number(name, getattr(self, name), **_ATTRIBUTE_RANGES[name])

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cscsr.training_data import TEST_PICTURES as PICTURES
-from pipeline.cluster import check_workers, dask_client
+from pipeline.cluster import check_in_memory, check_scheduler, check_workers, dask_client
 from pipeline.evaluate import check_methods, checked_evaluation, evaluate
 from pipeline.images import write_image
 from pipeline.simulate import SimulateOptions, simulate
@@ -64,6 +64,7 @@ def make_testset(out: str, *, workers: int | None = None, overwrite: bool = Fals
     ``only``: item names (``astronaut_a0.6``, ...) to make, for tests; default all nine.
     """
     check_workers(workers)
+    check_in_memory((out,))  # simulated into by worker processes
     chosen = [item for item in items() if only is None or item.name in only]
     if not chosen:
         raise InputError(f"no test-set items named {', '.join(only)}")
@@ -100,6 +101,7 @@ def evaluate_testset(testset: str, methods: list[str], out: str, *, weights: str
     check_apart(out, testset, weights)
     check_methods(methods, weights)
     check_workers(workers)
+    check_in_memory((testset, out, weights))  # read and written by the reconstructions' worker processes
     fs, root = resolve(testset)
     if not fs.exists(f"{root}/manifest.json"):
         raise InputError(f"{testset} is not a test set (no manifest.json): make one with cscsr make-testset")
@@ -107,6 +109,7 @@ def evaluate_testset(testset: str, methods: list[str], out: str, *, weights: str
         chosen = [Item(i["picture"], i["alpha"], i["seed"]) for i in json.load(f)["items"]]
     for item in chosen:  # every store and method checked before OUT is replaced
         checked_evaluation(f"{testset.rstrip('/')}/{item.name}.zarr", methods, weights)
+    check_scheduler(scheduler)  # a named scheduler answers (within seconds) before OUT is claimed or replaced
     out_fs, out_root = resolve(out)
     # replaces only an earlier evaluation, with --overwrite (kept until this one is written), never a user's folder
     with claimed(out), new_output(out, overwrite=overwrite, kind=EVALUATION):

@@ -68,7 +68,7 @@ def video_array(url: str) -> zarr.Array:
     frames as ``video`` (T, H, W, 3) uint8, as the simulator takes them for a source."""
     group = open_group(url)
     if VIDEO not in group:
-        raise InputError(f"{url} is a Zarr group without a '{VIDEO}' array (t, y, x, c)")
+        raise InputError(f"{url} is a Zarr group without a '{VIDEO}' array (j, hr_y, hr_x, c: frames of 8-bit RGB)")
     return group[VIDEO]
 
 

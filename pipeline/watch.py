@@ -3,7 +3,10 @@
 Each pass lists INBOX (any fsspec URL): spike stores (``NAME.zarr``) and raw captures
 (``NAME.dat``, ``NAME.npz``, ``NAME.npy``) with an optional sidecar ``NAME.json`` (height,
 width, cfa, flip, fps, reset, head_columns, key, name; the watcher's defaults fill the
-rest). A recording is taken once it has not changed for ``settle`` seconds (a file still
+rest). A raw capture's CFA is never guessed: it comes from its sidecar or ``--cfa``, and a capture
+with neither is refused (:func:`unstated`): taken as the wrong one, a mono capture would be
+demosaicked into colour speckle, or a Bayer one shown grey with its mosaic, and no error said so.
+A recording is taken once it has not changed for ``settle`` seconds (a file still
 being copied is left for a later pass; ``settle`` must exceed the writer's longest pause), and
 one changed within the last second only if a second look a second later finds the same
 modification time, files and bytes (:func:`steady`). For each: ingest a raw capture into
@@ -40,7 +43,7 @@ from pathlib import Path
 
 from fsspec.implementations.local import LocalFileSystem
 
-from pipeline.cluster import dask_client
+from pipeline.cluster import check_in_memory, dask_client
 from pipeline.export import export_mp4
 from pipeline.ingest import IngestOptions, capture_fields, ingest
 from pipeline.ledger import Ledger
@@ -61,7 +64,7 @@ SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 SIDECAR_FIELDS = {"height": int, "width": int, "cfa": str, "flip": bool, "fps": (int, float), "reset": str,
                   "head_columns": int, "key": str, "name": str}
 SAMPLE = 1 << 20  # bytes read from each end of a file for its fingerprint
-WATCH_DEFAULTS = IngestOptions(cfa="rggb")  # an inbox's raw captures are colour unless a sidecar says otherwise
+WATCH_DEFAULTS = IngestOptions(cfa=None)  # no CFA guessed: a raw capture's comes from its sidecar or --cfa
 
 log = logging.getLogger("cscsr.watch")  # the package is ``pipeline``; the logger is named for the command
 
@@ -89,7 +92,8 @@ class WatchOptions:
             if getattr(self.defaults, name) is not None:
                 check_number(f"--{name}", getattr(self.defaults, name), at_least=1, integer=True)
         check_number("--fps", self.defaults.fps, above=0)
-        check_cfa(self.defaults.cfa)
+        if self.defaults.cfa is not None:
+            check_cfa(self.defaults.cfa)
         check_reset(self.defaults.reset)
 
 
@@ -258,6 +262,17 @@ def parameters(candidate: Candidate, options: WatchOptions) -> dict:
     return params
 
 
+def unstated(candidate: Candidate, params: dict) -> str | None:
+    """Why a raw capture cannot be taken as it is: its CFA given neither by its sidecar nor by ``--cfa``
+    (none is guessed: the wrong one is reconstructed without any error, into colour speckle or a grey
+    mosaic); None if it can."""
+    if candidate.kind not in RAW or params["capture"].get("cfa") is not None:
+        return None
+    base = str(candidate.url).rstrip("/").rsplit("/", 1)[-1]
+    return (f"no CFA for {base}: give its sidecar {base[: -len(candidate.kind) - 1]}.json a \"cfa\" (mono, rggb, "
+            f"bggr, grbg, gbrg), or start the watcher with --cfa; none is guessed")
+
+
 def key_of(fingerprint_: str, params: dict) -> str:
     return hashlib.sha256((fingerprint_ + json.dumps(params, sort_keys=True)).encode()).hexdigest()[:24]
 
@@ -336,15 +351,19 @@ def watch_once(inbox: str, outbox: str, options: WatchOptions, client) -> dict:
     ledger = Ledger(outbox)
     counts = {"processed": 0, "waiting": 0, "skipped": 0, "refused": 0}
     now = time.time()
+
+    def refuse(candidate: Candidate, problem: str) -> None:
+        refusal = hashlib.sha256(f"{candidate.url}|{problem}".encode()).hexdigest()[:24]  # once per problem
+        if ledger.get(refusal) is None:
+            ledger.record_refusal(refusal, candidate.name, candidate.url, problem)
+            log.error("%s: failed: %s (%s)", candidate.name, problem, candidate.url)
+        else:
+            log.debug("%s: skipped: refused before (%s)", candidate.name, candidate.url)
+        counts["refused"] += 1
+
     for candidate in discover(inbox):
         if candidate.problem:
-            refusal = hashlib.sha256(f"{candidate.url}|{candidate.problem}".encode()).hexdigest()[:24]  # once per problem
-            if ledger.get(refusal) is None:
-                ledger.record_refusal(refusal, candidate.name, candidate.url, candidate.problem)
-                log.error("%s: failed: %s (%s)", candidate.name, candidate.problem, candidate.url)
-            else:
-                log.debug("%s: skipped: refused before (%s)", candidate.name, candidate.url)
-            counts["refused"] += 1
+            refuse(candidate, candidate.problem)
             continue
         if now - candidate.modified < options.settle:
             log.debug("%s: skipped for now: changed %.1f s ago, still settling", candidate.name, now - candidate.modified)
@@ -360,6 +379,9 @@ def watch_once(inbox: str, outbox: str, options: WatchOptions, client) -> dict:
             log.debug("%s: skipped for now: changed between two looks a second apart, still being written",
                       candidate.name)
             counts["waiting"] += 1
+            continue
+        if problem := unstated(candidate, params):  # once settled: a sidecar may land after its capture
+            refuse(candidate, problem)
             continue
         if row is None:
             owner = ledger.owner_of(candidate.name)
@@ -406,6 +428,7 @@ def watch(inbox: str, outbox: str, options: WatchOptions, *, once: bool, interva
     options.check()
     if os.path.exists(outbox) and not os.path.isdir(outbox):
         raise InputError(f"OUTBOX {outbox} is a file, not a folder: give a folder for the outputs and the ledger")
+    check_in_memory((inbox,))  # its spike stores are read by the reconstructions' worker processes
     check_inbox(inbox)  # a missing INBOX is refused before OUTBOX is made
     os.makedirs(outbox, exist_ok=True)
     Ledger(outbox)  # someone else's file named like the ledger is refused before the lock file or a cluster

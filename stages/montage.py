@@ -23,3 +23,10 @@ def side_by_side(*images: np.ndarray) -> np.ndarray:
     gap = np.full((rgb[0].shape[0], 4, 3), 255, np.uint8)
     parts = [part for image in rgb for part in (image, gap)][:-1]
     return np.concatenate(parts, axis=1)
+
+
+def padded_to(image: np.ndarray, multiple: int) -> np.ndarray:
+    """``image`` (H, W, ...) grown at the bottom and right to sides that are multiples of ``multiple``, its last
+    row and column repeated (no resampling: every pixel keeps its place and value)."""
+    grow = [(0, -side % multiple) for side in image.shape[:2]] + [(0, 0)] * (image.ndim - 2)
+    return np.pad(image, grow, mode="edge") if any(after for _, after in grow) else image

@@ -15,6 +15,12 @@ from stages.errors import InputError, InputTypeError
 FLOAT32_MAX = 3.4028234663852886e38  # larger values are infinite in the float32 arithmetic of images
 
 
+def as_float(value):
+    """A real number (not a bool) as a Python float, anything else as it is, for the checks to name: so that
+    ``fps=20000`` and ``--fps 20000`` record the same bytes."""
+    return float(value) if isinstance(value, numbers.Real) and not isinstance(value, bool) else value
+
+
 def check_number(name: str, value, *, above: float | None = None, at_least: float | None = None,
                  at_most: float | None = None, integer: bool = False, why: str = "") -> None:
     """Refuse ``value`` unless it is a finite number (an integer if ``integer``) within the bounds.

@@ -65,3 +65,25 @@ def test_a_value_outside_the_choices_is_one_line(cli, tmp_path):
     result = cli("reconstruct", tmp_path / "s.zarr", tmp_path / "v.zarr", "--method", "magic")
     assert result.exit_code == 1 and result.stderr.count("\n") == 1 and "magic" in result.stderr
     assert not (tmp_path / "s.zarr").exists() and not (tmp_path / "v.zarr").exists()
+
+
+def test_help_shows_every_help_text_whole():
+    """--help is rich markup: a bare [word] is a tag and prints nothing (``pip install 'cscsr[onnx]'`` came out as
+    ``pip install 'cscsr'``). Every command's description and option help is shown whole, brackets escaped as ``\\[``."""
+    import typer.main
+    from typer.testing import CliRunner
+
+    from pipeline.cli import app
+
+    group = typer.main.get_command(app)
+    missing = []
+    for name, command in group.commands.items():
+        result = CliRunner().invoke(app, [name, "--help"], env={"COLUMNS": "2000"})  # no wrapping
+        assert result.exit_code == 0
+        shown = " ".join(result.stdout.replace("│", " ").split())
+        for text in [command.help or ""] + [p.help for p in command.params if getattr(p, "help", None)]:
+            if " ".join(text.replace("\\[", "[").split()) not in shown:
+                missing.append(f"{name}: {text}")
+    assert not missing, missing
+    result = CliRunner().invoke(app, ["reconstruct", "--help"], env={"COLUMNS": "2000"})
+    assert "pip install 'cscsr[onnx]'" in " ".join(result.stdout.replace("│", " ").split())

@@ -69,6 +69,27 @@ def test_parallel_ingest_equals_one_process(client, tmp_path, small_chunks, widt
     assert store_files(tmp_path / "one.zarr") == store_files(tmp_path / "two.zarr")
 
 
+def test_dask_scheduler_address_alone_runs_the_ingest_on_that_cluster(cli, client, tmp_path, small_chunks, monkeypatch):
+    """As every other job: a scheduler named only by ``DASK_SCHEDULER_ADDRESS`` (what ``deploy/slurm.py`` sets) runs
+    the ingest's tasks on its cluster, with the bytes of a one-process ingest."""
+    capture(tmp_path / "c.dat", 100, 16, 16, flip=False)
+    args = ["--height", "16", "--width", "16", "--task-frames", "12"]
+    monkeypatch.delenv("DASK_SCHEDULER_ADDRESS", raising=False)
+    assert cli("-q", "ingest", tmp_path / "c.dat", tmp_path / "one.zarr", *args).exit_code == 0
+
+    def ingest_tasks(dask_scheduler) -> float:  # the seconds its ingest tasks ran (a prefix outlives its tasks)
+        return sum(sum(prefix.all_durations.values()) for name, prefix in dask_scheduler.task_prefixes.items()
+                   if "ingest" in name)
+
+    before = client.run_on_scheduler(ingest_tasks)
+    monkeypatch.setenv("DASK_SCHEDULER_ADDRESS", client.scheduler.address)
+    plan = json.loads(cli("ingest", tmp_path / "c.dat", tmp_path / "two.zarr", *args, "--dry-run", "--json").stdout)
+    assert plan["runs_on"] == f"scheduler {client.scheduler.address}"
+    assert cli("-q", "ingest", tmp_path / "c.dat", tmp_path / "two.zarr", *args).exit_code == 0
+    assert client.run_on_scheduler(ingest_tasks) > before, "no ingest task ran on the cluster"
+    assert store_files(tmp_path / "one.zarr") == store_files(tmp_path / "two.zarr")
+
+
 def test_parallel_ingest_of_a_npy_on_a_local_cluster(cli, tmp_path, small_chunks):
     """``--workers 2`` (a local cluster of its own) on a ``.npy``: the one-process bytes."""
     bits = (np.random.default_rng(5).random((97, 16, 24)) < 0.2).astype(np.uint8)
@@ -79,6 +100,17 @@ def test_parallel_ingest_of_a_npy_on_a_local_cluster(cli, tmp_path, small_chunks
     assert result.exit_code == 0, result.stderr
     assert "(9 tasks run, 0 already committed)" in result.stdout  # chunks of 3 frames, tasks of 12
     assert store_files(tmp_path / "one.zarr") == store_files(tmp_path / "two.zarr")
+
+
+def test_the_api_and_the_cli_write_the_same_bytes(cli, tmp_path):
+    """``fps=20000`` from Python and ``--fps 20000`` on the command line record the same store, byte for byte
+    (the rehearsal found the integer recorded as 20000 and the CLI's float as 20000.0, and different identities)."""
+    src = tmp_path / "c.dat"
+    random_dat(src, 64, 16 * 16 // 8)
+    ingest(str(src), str(tmp_path / "api.zarr"), IngestOptions(16, 16, fps=20000, cfa="rggb"), progress=False)
+    assert cli("-q", "ingest", src, tmp_path / "cli.zarr", "--height", "16", "--width", "16", "--fps", "20000",
+               "--cfa", "rggb").exit_code == 0
+    assert store_files(tmp_path / "api.zarr") == store_files(tmp_path / "cli.zarr")
 
 
 def _committed(store) -> int:

@@ -81,3 +81,36 @@ def test_flip_records_the_upright_cfa(tmp_path):
     ingest(str(tmp_path / "in.dat"), str(tmp_path / "s.zarr"), IngestOptions(8, 16, cfa="rggb", flip=True), progress=False)
     meta = open_spike_store(str(tmp_path / "s.zarr")).meta
     assert (meta.cfa, meta.flipped) == ("gbrg", True)  # rows swap parity when turned over
+
+
+@pytest.mark.parametrize("height,width,note", [(100, 60, ""), (101, 61, "its last row and last column repeated"),
+                                               (100, 61, "its last column repeated")])
+def test_mp4_export_keeps_the_frame_size_and_says_when_it_pads(cli, tmp_path, height, width, note):
+    """Sides that are not multiples of 16 are not stretched (imageio's default, with its own warning); an odd side,
+    which H.264's yuv420p cannot hold, grows by one repeated row or column, said in one line of our own."""
+    import imageio.v3 as iio
+
+    from pipeline.video_store import COMMITTED, VIDEO, create_video_store
+
+    frames = np.stack([np.broadcast_to(np.linspace(0, 255, width, dtype=np.uint8)[None, :, None], (height, width, 3))
+                       for _ in range(2)])
+    store = str(tmp_path / "video.zarr")
+    group = create_video_store(store, centres=[20, 61], hr_size=(height, width), tile_hr=(height, width), tiles=(1, 1),
+                               attrs={"method": "tfp"})
+    group[VIDEO][:] = frames
+    group[COMMITTED][:] = 1
+    group.attrs["state"] = "complete"
+    result = cli("export", store, tmp_path / "video.mp4")
+    assert result.exit_code == 0 and result.stdout == f"wrote {tmp_path / 'video.mp4'}\n"
+    assert "IMAGEIO" not in result.stderr and "macro_block_size" not in result.stderr
+    padded = (height + height % 2, width + width % 2)
+    if note:
+        assert len(result.stderr.split("\n", 1)[0]) > 0 and result.stderr.strip().count("\n") == 0  # one line
+        assert "WARNING cscsr.export" in result.stderr
+        assert f"frames are {width}x{height}" in result.stderr and f"the video is {padded[1]}x{padded[0]}" in result.stderr
+        assert note in result.stderr
+    else:
+        assert result.stderr.strip() == ""  # (a progress bar leaves an empty line)
+    decoded = iio.imread(tmp_path / "video.mp4")
+    assert decoded.shape == (2, *padded, 3)
+    assert np.abs(decoded[:, :height, :width].astype(float) - frames).mean() < 4  # in place: not resampled

@@ -215,6 +215,13 @@ def test_bad_sources(cli, tmp_path):
     assert not out.exists()
 
 
+def test_a_zarr_source_without_video_names_the_video_stores_dimensions(cli, tmp_path):
+    zarr.open_group(tmp_path / "other.zarr", mode="w").create_array("pictures", shape=(2, 8, 8, 3), dtype=np.uint8)
+    result = cli("simulate", tmp_path / "other.zarr", tmp_path / "s.zarr", "--workers", 1)
+    assert_refused(result, "without a 'video' array (j, hr_y, hr_x, c")  # the video store's own dimension names
+    assert "t, y, x" not in result.stderr and not (tmp_path / "s.zarr").exists()
+
+
 def test_the_plan_is_frozen_steps_in_submission_order():
     from pipeline.simulate_plan import FlowField, SpikeChunk, TruthFrame, simulation_steps
 

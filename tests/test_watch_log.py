@@ -36,7 +36,7 @@ def watch_args(inbox, outbox, *more):
 def test_the_watcher_logs_one_timestamped_line_per_event(tmp_path, cli):
     inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
     inbox.mkdir()
-    drop(inbox, "good.npy", tiny_capture(), {"height": 16, "width": 16})
+    drop(inbox, "good.npy", tiny_capture(), {"height": 16, "width": 16, "cfa": "rggb"})
     drop(inbox, "nonsense.npy", tiny_capture(1), "{height: tall")
     settled(inbox)
 
@@ -72,7 +72,7 @@ def test_a_retry_is_a_warning_and_log_file_takes_the_lines(tmp_path, cli, monkey
     inbox, outbox, log = tmp_path / "inbox", tmp_path / "outbox", tmp_path / "logs" / "watch.log"
     inbox.mkdir()
     log.parent.mkdir()
-    drop(inbox, "flaky.npy", tiny_capture(), {"height": 16, "width": 16})
+    drop(inbox, "flaky.npy", tiny_capture(), {"height": 16, "width": 16, "cfa": "rggb"})
     settled(inbox)
     result = cli(*watch_args(inbox, outbox, "--log-file", log))
     assert result.exit_code == 0 and result.stdout == "" and result.stderr.strip() == ""  # all in the file

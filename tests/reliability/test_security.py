@@ -92,6 +92,7 @@ def test_inbox_links_that_leave_the_inbox_are_refused_and_nothing_is_read_throug
     (inbox / "own.json").symlink_to(elsewhere / "sidecar.json")
     (inbox / "dangling.dat").symlink_to(tmp_path / "gone" / "x.dat")
     (inbox / "inside.dat").symlink_to(inbox / "own.dat")  # a link that stays inside is not an escape...
+    (inbox / "inside.json").write_text('{"cfa": "mono"}')  # (its CFA stated: none is guessed)
     past = time.time() - 60
     os.utime(inbox / "own.dat", (past, past))
 

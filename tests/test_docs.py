@@ -1,0 +1,123 @@
+"""The pages say what the code does, and the package is what its metadata says: README's documented defaults
+are the command line's, the docs name modules that exist and no folder outside the repository, and the wheel
+carries its licence and weights, built without a warning."""
+
+import pathlib
+import re
+import subprocess
+import sys
+import tomllib
+import zipfile
+
+import pytest
+import yaml
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+README = (ROOT / "README.md").read_text()
+PAGES = {path.relative_to(ROOT).as_posix(): path.read_text()
+         for path in [ROOT / "README.md", ROOT / "benchmarks" / "README.md", *sorted((ROOT / "docs").glob("*.md"))]}
+PYPROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())
+
+
+def test_readme_shows_the_command_lines_defaults():
+    """``[--option value]`` in README's command table is the option's default (placeholders such as ``N`` or
+    ``FILE`` and choice lists aside); an option whose default is worked out says it in its help, ``(default: value``."""
+    import typer.main
+
+    from pipeline.cli import app
+
+    commands = typer.main.get_command(app).commands
+    checked, wrong = 0, []
+    for row in (line for line in README.splitlines() if line.startswith("| `cscsr ")):
+        for usage in re.findall(r"`cscsr ([^`]+)`", row.split(" | ")[0]):
+            name = usage.split()[0]
+            if name not in commands:
+                continue  # `cscsr -q|--quiet COMMAND`
+            for option, value in re.findall(r"\[(--[a-z-]+) ([^\s\[\]|\\]+)(?=\]| \\\|)", usage):
+                if re.fullmatch(r"[A-Z]+", value):
+                    continue
+                param = next(p for p in commands[name].params if option in p.opts)
+                default = param.default
+                same = (f"(default: {value}" in (param.help or "") if default is None
+                        else float(value) == default if isinstance(default, float) else str(default) == value)
+                checked += 1
+                if not same:
+                    wrong.append(f"cscsr {name} {option}: README {value}, --help {default!r}")
+    assert not wrong, wrong
+    assert checked > 10
+
+
+def test_the_docs_point_at_nothing_outside_the_repository():
+    """A user has the repository, not the developers' ``../shared`` folder (data and specs not distributed)."""
+    found = [f"{name}:{number}" for name, text in PAGES.items()
+             for number, line in enumerate(text.splitlines(), 1) if "../shared" in line or "/work/" in line]
+    assert not found, found
+
+
+def test_the_network_page_names_modules_that_exist():
+    named = set(re.findall(r"`([a-z_]+\.py)`", PAGES["docs/network.md"]))
+    assert "motion_estimation.py" in named
+    assert not {name for name in named if not (ROOT / "cscsr" / name).exists()}
+
+
+def test_formats_page_puts_the_head_columns_where_the_code_drops_them():
+    from stages.dat import DatLayout
+
+    assert DatLayout(4, 8, head_columns=8).head_at == "end" and DatLayout(4, 8, head_columns=8).first_column == 0
+    assert "`--head-columns N` drops N header columns at the end of each row" in PAGES["docs/formats.md"]
+
+
+def test_readme_and_reliability_page_give_the_same_suite_time():
+    times = re.findall(r"about (\d+) minutes on 2 cores", README)
+    assert times and re.search(rf"about 4 minutes of its ~{times[0]} on 2 cores", PAGES["docs/reliability.md"])
+
+
+def test_readme_shows_a_cpu_only_install_and_a_gpu_install():
+    assert "pip install torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu && pip install ." in README
+    assert re.search(r"^pip install \.\s+# with an NVIDIA GPU", README, re.MULTILINE)
+    assert "torch==2.13.0" in (ROOT / "constraints.txt").read_text().splitlines()  # the version the CPU line pins
+
+
+def test_licence_and_citation():
+    assert PYPROJECT["project"]["license"] == "MIT" and PYPROJECT["project"]["license-files"] == ["LICENSE"]
+    licence = (ROOT / "LICENSE").read_text()
+    assert licence.startswith("MIT License\n") and "Copyright (c) 2026 the cscsr authors" in licence
+    # setuptools takes an SPDX string for `license` (and reads `license-files`) from version 77
+    assert any(re.fullmatch(r"setuptools>=(\d+)", r) and int(r.split(">=")[1]) >= 77
+               for r in PYPROJECT["build-system"]["requires"])
+    citation = yaml.safe_load((ROOT / "CITATION.cff").read_text())
+    assert citation["cff-version"] == "1.2.0" and citation["license"] == "MIT"
+    assert citation["version"] == PYPROJECT["project"]["version"]
+    paper = citation["references"][0]
+    assert paper["title"] == "Super-Resolution Reconstruction from Bayer-Pattern Spike Streams" and paper["year"] == 2024
+    assert [a["family-names"] for a in paper["authors"]] == ["Dong", "Xiong", "Zhang", "Yu", "Fan", "Zhu", "Huang"]
+
+
+def test_package_data_globs_match_files_of_listed_packages():
+    setuptools = PYPROJECT["tool"]["setuptools"]
+    for package, globs in setuptools["package-data"].items():
+        assert package in setuptools["packages"], package
+        for glob in globs:
+            assert list((ROOT / package.replace(".", "/")).glob(glob)), f"{package}: {glob} matches no file"
+
+
+@pytest.mark.timeout(300)
+def test_the_wheel_builds_without_warnings_and_carries_weights_samples_and_licence(tmp_path):
+    """What ``pip wheel .`` does for a user (an isolated build with setuptools from the registry), on a copy of
+    what the wheel is built from, so that the build leaves nothing in the working tree."""
+    source = tmp_path / "source"
+    source.mkdir()
+    for name in ("pyproject.toml", "README.md", "LICENSE"):
+        (source / name).write_bytes((ROOT / name).read_bytes())
+    for package in ("cscsr", "stages", "pipeline"):
+        subprocess.run(["cp", "-r", ROOT / package, source / package], check=True)
+    build = subprocess.run([sys.executable, "-m", "pip", "wheel", "--disable-pip-version-check", "--no-deps", "-w",
+                            tmp_path / "wheel", source], capture_output=True, text=True, timeout=280)
+    assert build.returncode == 0, build.stderr[-2000:]
+    log = build.stdout + build.stderr
+    assert not re.findall(r"\w+Warning\b", log), log[-3000:]  # setuptools' BuildBackendWarning and the like
+    (wheel,) = (tmp_path / "wheel").glob("cscsr-*.whl")
+    names = set(zipfile.ZipFile(wheel).namelist())
+    assert {"cscsr/weights/cscsr-lite.safetensors", "cscsr/weights/cscsr-full.safetensors",
+            "cscsr/samples/README.md"} <= names
+    assert any(name.endswith(".dist-info/licenses/LICENSE") for name in names)
