@@ -36,13 +36,12 @@ import shutil
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from _common import ROOT, load_average, markdown_table, median, save_results
+from _common import ROOT, load_average, markdown_table, median, save_results, write_integrate_and_fire
 
 H = W = 1000
 FRAME_BYTES = H * W // 8
@@ -72,33 +71,13 @@ def scene_rates(first_frame: int) -> np.ndarray:
     return (0.02 + 0.33 * level).astype(np.float32)
 
 
-def make_capture(path: Path, frames: int) -> None:
-    """Integrate-and-fire (subtract reset) of :func:`scene_rates`, written block by block in bounded memory."""
-    acc = np.random.default_rng(0).random((H, W), dtype=np.float32)
-    fire = np.empty((H, W), bool)
-    packed = np.empty((BLOCK, H, W // 8), np.uint8)
-    partial = path.with_suffix(".partial")
-    start_time = time.perf_counter()
-    with open(partial, "wb") as out:
-        for start in range(0, frames, BLOCK):
-            rate, n = scene_rates(start), min(BLOCK, frames - start)
-            for i in range(n):
-                acc += rate
-                np.greater_equal(acc, 1, out=fire)
-                np.subtract(acc, fire, out=acc, casting="unsafe")
-                packed[i] = np.packbits(fire, axis=-1, bitorder="little")
-            packed[:n].tofile(out)
-            if start % (BLOCK * 40) == 0:
-                done = start + n
-                print(f"capture: {done}/{frames} frames, {time.perf_counter() - start_time:.0f} s", file=sys.stderr)
-    partial.replace(path)
-
-
 def capture(frames: int) -> Path:
     path = CACHE / f"rehearsal_{H}x{W}_{frames}.dat"
     if not (path.exists() and path.stat().st_size == frames * FRAME_BYTES):
         CACHE.mkdir(parents=True, exist_ok=True)
-        make_capture(path, frames)
+        began = time.perf_counter()
+        write_integrate_and_fire(path, frames, scene_rates, block=BLOCK)  # subtract reset, bounded memory
+        print(f"capture: {frames} frames in {time.perf_counter() - began:.0f} s", file=sys.stderr)
     return path
 
 
@@ -184,11 +163,6 @@ def killed(args: list, out: Path, fraction_of: int, fraction: float = 1 / 3) -> 
     os.killpg(process.pid, signal.SIGKILL)
     process.wait()
     return committed(out)
-
-
-def seconds_of(text: str) -> int:
-    """Spike frames of ``2.5s`` or ``1200``."""
-    return round(float(text[:-1]) * FPS) if text.endswith("s") else int(text)
 
 
 def main() -> None:

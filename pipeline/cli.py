@@ -235,10 +235,10 @@ def ingest(src: Annotated[str, typer.Argument(help="Capture: .dat, .npy or .npz,
                                                          "docs/formats.md) (default: by extension).")] = None,
            reset: Annotated[str, typer.Option(help="Integrator reset of the sensor: subtract or zero.")] = "subtract",
            workers: Annotated[Optional[int], typer.Option(help="Ingest in parallel on a local Dask cluster of this many "
-                                                               "worker processes (.dat and .npy; default: in this "
-                                                               "process, one stream).")] = None,
+                                                               "worker processes (.dat, .npy, sps100; default: in "
+                                                               "this process, one stream).")] = None,
            scheduler: Annotated[Optional[str], typer.Option(help="Ingest in parallel on the Dask scheduler at this "
-                                                                 "address (.dat and .npy).")] = None,
+                                                                 "address (.dat, .npy, sps100).")] = None,
            task_frames: Annotated[Optional[int], typer.Option(help="Frames per task, rounded up to whole chunks "
                                                                    "(default: about 64 MiB of spikes).")] = None,
            resume: Annotated[bool, typer.Option("--resume", help="Finish an interrupted ingest into STORE, from the "
