@@ -1,8 +1,10 @@
 """Shared fixtures: the bundled samples, a CLI runner, and small synthetic captures."""
 
 import os
+import signal
 import subprocess
 import sys
+import time
 from dataclasses import dataclass
 
 import fsspec
@@ -12,6 +14,29 @@ from typer.testing import CliRunner
 
 from cscsr import samples
 from pipeline.cli import app
+
+
+CSCSR = os.path.join(os.path.dirname(sys.executable), "cscsr")  # the installed command, as a user runs it
+
+
+def committed_tasks(url) -> int:
+    """Tasks a job has committed to the store at ``url`` so far (0 before it exists): each writes one chunk
+    file of ``committed`` (cheap to count). Zarr writes a chunk to a temporary file and renames it, so a
+    write cut off by a kill leaves such a file: only chunk names (digits) count."""
+    return sum(name.isdigit() for _, _, files in os.walk(os.path.join(url, "committed", "c")) for name in files)
+
+
+def kill_mid_job(command: list, ready, *, env: dict | None = None, timeout: float = 300) -> None:
+    """Run ``command`` in a process group of its own and SIGKILL the whole group (the job, its segment and
+    its cluster) once ``ready()`` holds; fails if the job ends first or ``timeout`` seconds pass."""
+    process = subprocess.Popen(command, start_new_session=True, stdout=subprocess.DEVNULL,
+                               stderr=subprocess.DEVNULL, env=env)
+    deadline = time.time() + timeout
+    while not ready():
+        assert time.time() < deadline and process.poll() is None, "the job never got going"
+        time.sleep(0.02)
+    os.killpg(process.pid, signal.SIGKILL)
+    process.wait()
 
 
 @dataclass

@@ -12,7 +12,6 @@
 import contextlib
 import logging
 import os
-import signal
 import subprocess
 import sys
 import threading
@@ -37,6 +36,7 @@ from stages.errors import InputError
 from stages.methods import Window
 from stages.tiles import device_tile, tile_grid
 from tests.test_gpu_workers import wide  # noqa: F401 - the module's recording fixture, LR 32x96 RGGB
+from tests.conftest import committed_tasks, kill_mid_job
 from tests.test_simulate import chunk_files
 
 LITE = ReconstructOptions(method="cscsr", weights="lite", every=10, tile=32)  # 6 frames x 3 tiles: 4 GPU tasks
@@ -247,28 +247,13 @@ def test_tasks_overlap_device_passes_do_not_and_a_failed_pass_is_named(wide, cle
     assert chunk_files(out) == clean_gpu_run
 
 
-def _committed_tiles(url: str) -> int:
-    import zarr
-
-    try:
-        return int(zarr.open_group(url, mode="r")["committed"][:].sum())
-    except Exception:  # noqa: BLE001 - not created yet
-        return 0
-
-
 def test_a_killed_job_on_a_gpu_worker_resumes_to_the_clean_bytes(wide, clean_gpu_run, tmp_path):  # noqa: F811
     release, out = tmp_path / "release", str(tmp_path / "killed.zarr")
     with gpu_worker(hold_environment(1, release)) as client:  # every task after the first holds
         address = client.scheduler.address
         command = [f"{BIN}/cscsr", "reconstruct", wide, out, "--method", "cscsr", "--weights", "lite", "--every", "10",
                    "--tile", "32", "--scheduler", address]
-        job = subprocess.Popen(command, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-        deadline = time.time() + 300
-        while _committed_tiles(out) < 1:
-            assert time.time() < deadline and job.poll() is None, "the job never got going"
-            time.sleep(0.05)
-        os.killpg(job.pid, signal.SIGKILL)  # the job, mid-way: its other tasks are held on the worker
-        job.wait()
+        kill_mid_job(command, lambda: committed_tasks(out) >= 1)  # mid-way: its other tasks are held on the worker
         release.touch()
         done = subprocess.run([*command, "--resume"], capture_output=True, text=True, timeout=600)
         assert done.returncode == 0, done.stderr

@@ -6,8 +6,6 @@ import json
 import os
 import shutil
 import signal
-import subprocess
-import sys
 import time
 
 import numpy as np
@@ -19,7 +17,7 @@ from pipeline.hold import hold_environment
 from pipeline.ingest import IngestOptions, ingest
 from pipeline.spike_store import open_spike_store
 from stages.errors import InputError, InputTypeError
-from tests.conftest import write_dat
+from tests.conftest import CSCSR, committed_tasks, kill_mid_job, write_dat
 
 
 def store_files(path) -> dict[str, bytes]:
@@ -113,25 +111,13 @@ def test_the_api_and_the_cli_write_the_same_bytes(cli, tmp_path):
     assert store_files(tmp_path / "api.zarr") == store_files(tmp_path / "cli.zarr")
 
 
-def _committed(store) -> int:
-    folder = store / "committed" / "c"
-    return len([n for n in os.listdir(folder) if not n.endswith(".partial")]) if folder.exists() else 0
-
-
 def killed_ingest(src, store, args, *, workers: bool, tmp_path) -> None:
     """``cscsr ingest`` (on a local cluster of one worker, or in its own process) killed outright once 3 tasks are
     committed: its tasks hold after the 3rd (pipeline.hold), so the kill lands mid-job on any machine."""
-    command = [os.path.join(os.path.dirname(sys.executable), "cscsr"), "-q", "ingest", str(src), str(store), *args,
-               *(["--workers", "1"] if workers else [])]
-    process = subprocess.Popen(command, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                               env={**os.environ, **hold_environment(3, tmp_path / "never")})
-    deadline = time.time() + 120
-    while _committed(store) < 3:
-        assert time.time() < deadline and process.poll() is None, "the job never got going"
-        time.sleep(0.02)
-    os.killpg(process.pid, signal.SIGKILL)  # the job, its segment and its cluster, mid-job
-    process.wait()
-    assert 3 <= _committed(store) < 8
+    command = [CSCSR, "-q", "ingest", str(src), str(store), *args, *(["--workers", "1"] if workers else [])]
+    kill_mid_job(command, lambda: committed_tasks(store) >= 3, timeout=120,
+                 env={**os.environ, **hold_environment(3, tmp_path / "never")})
+    assert 3 <= committed_tasks(store) < 8
     assert open_spike_store(str(store), allow_incomplete=True).attrs["state"] == "writing"  # not passing for complete
 
 
@@ -280,7 +266,7 @@ def test_a_lost_worker_does_not_fail_the_ingest(tmp_path, small_chunks):
             attrs=ingest(str(tmp_path / "c.dat"), str(store), options, progress=False, client=client)))
         job.start()
         deadline = time.time() + 60
-        while _committed(store) < 4:  # two tasks each, then both hold
+        while committed_tasks(store) < 4:  # two tasks each, then both hold
             assert time.time() < deadline and job.is_alive(), "the job never got going"
             time.sleep(0.02)
         pids = client.run(os.getpid)

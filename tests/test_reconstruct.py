@@ -1,9 +1,6 @@
 """Distributed reconstruction on a real LocalCluster(n_workers=2), real Zarr stores, real processes."""
 
 import os
-import signal
-import subprocess
-import sys
 import time
 
 import imageio.v3 as iio
@@ -15,7 +12,7 @@ from pipeline.hold import hold_environment
 from pipeline.reconstruct import ReconstructOptions, reconstruct
 from stages.methods import output_centres
 from pipeline.simulate import SimulateOptions, simulate
-from tests.conftest import with_random_heads
+from tests.conftest import CSCSR, committed_tasks, kill_mid_job, with_random_heads
 from tests.test_bad_input import assert_refused
 from tests.test_simulate import chunk_files, picture
 
@@ -78,31 +75,18 @@ def test_reconstruction_agrees_with_the_truth(recording, client, tmp_path):
     assert np.corrcoef(frames.ravel(), truth.ravel())[0, 1] > 0.85
 
 
-def _committed(url: str) -> int:
-    """Tasks committed so far: each writes one chunk file of ``committed`` (cheap to count). Zarr writes a
-    chunk to a hidden temporary file and renames it, so a write cut off by a kill leaves such a file:
-    only chunk names (digits) count."""
-    return sum(name.isdigit() for _, _, files in os.walk(os.path.join(url, "committed", "c")) for name in files)
-
-
 def test_resume_after_a_killed_run(recording, client, tmp_path):
     clean, killed = str(tmp_path / "clean.zarr"), str(tmp_path / "killed.zarr")
     options = ReconstructOptions(method="tfi", every=2, tile=16)  # 55 frames x 4 tiles
     reconstruct(recording, clean, options, client=client, progress=False)
     total = 55 * 4
 
-    command = [os.path.join(os.path.dirname(sys.executable), "cscsr"), "reconstruct", recording, killed,
-               "--method", "tfi", "--every", "2", "--tile", "16", "--workers", "1"]
+    command = [CSCSR, "reconstruct", recording, killed, "--method", "tfi", "--every", "2", "--tile", "16",
+               "--workers", "1"]
     # the job's tasks hold after the 30th (pipeline.hold): the kill lands mid-job on any machine, under any load
-    process = subprocess.Popen(command, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                               env={**os.environ, **hold_environment(30, tmp_path / "never")})
-    deadline = time.time() + 300
-    while _committed(killed) < 30:
-        assert time.time() < deadline and process.poll() is None, "the job never got going"
-        time.sleep(0.02)
-    os.killpg(process.pid, signal.SIGKILL)  # the client and its cluster, mid-job
-    process.wait()
-    done_before = _committed(killed)
+    kill_mid_job(command, lambda: committed_tasks(killed) >= 30,
+                 env={**os.environ, **hold_environment(30, tmp_path / "never")})
+    done_before = committed_tasks(killed)
     assert 30 <= done_before < total, done_before
     assert zarr.open_group(killed, mode="r").attrs["state"] == "writing"  # not passing for complete
 

@@ -2,10 +2,8 @@
 
 import json
 import os
-import signal
 import sqlite3
 import subprocess
-import sys
 import time
 
 import pytest
@@ -14,6 +12,7 @@ from cscsr import samples
 from pipeline.ledger import Ledger
 from pipeline.watch import WatchOptions, outbox_lock, parse_interval, watch_once
 from stages.errors import InputError
+from tests.conftest import CSCSR, committed_tasks, kill_mid_job
 from tests.test_simulate import chunk_files
 
 REDS = {"height": samples.REDS_HEIGHT, "width": samples.REDS_WIDTH, "cfa": "mono", "flip": True}
@@ -161,15 +160,6 @@ def _ledger_state(outbox, name):
     return row.state if row else None
 
 
-def _committed(url) -> int:
-    import zarr
-
-    try:
-        return int(zarr.open_group(url, mode="r")["committed"][:].sum())
-    except Exception:
-        return 0
-
-
 def test_killing_the_watcher_mid_job_loses_nothing_and_duplicates_nothing(tmp_path):
     """A real ``cscsr watch`` process group is SIGKILLed while it reconstructs; the next pass finishes the
     job: one ledger row (2 attempts), outputs byte-identical to an uninterrupted watcher's."""
@@ -184,26 +174,20 @@ def test_killing_the_watcher_mid_job_loses_nothing_and_duplicates_nothing(tmp_pa
     simulate(str(tmp_path / "scene.png"), str(inbox / "scene.zarr"),
              SimulateOptions(scale=4, frames=250, motion="random", speed=0.3), workers=1, progress=False)
     settled(inbox)
-    cscsr = os.path.join(os.path.dirname(sys.executable), "cscsr")
     args = ["watch", str(inbox), None, "--once", "--workers", "1", "--every", "5", "--tile", "8", "--settle", "0"]
 
     def command(outbox):
-        return [cscsr] + [str(outbox) if a is None else a for a in args]
+        return [CSCSR] + [str(outbox) if a is None else a for a in args]
 
     subprocess.run(command(tmp_path / "clean"), check=True, capture_output=True)
 
     killed = tmp_path / "killed"
     # the job's tasks hold after the 30th (pipeline.hold): the kill lands mid-job on any machine, under any load
-    process = subprocess.Popen(command(killed), start_new_session=True, stdout=subprocess.DEVNULL,
-                               stderr=subprocess.DEVNULL, env={**os.environ, **hold_environment(30, tmp_path / "never")})
-    deadline = time.time() + 300
-    while not (_ledger_state(killed, "scene") == "running" and _committed(str(killed / "scene.zarr")) >= 20):
-        assert time.time() < deadline and process.poll() is None, "the watcher's job never got going"
-        time.sleep(0.05)
-    os.killpg(process.pid, signal.SIGKILL)
-    process.wait()
+    kill_mid_job(command(killed), lambda: (_ledger_state(killed, "scene") == "running"
+                                           and committed_tasks(killed / "scene.zarr") >= 20),
+                 env={**os.environ, **hold_environment(30, tmp_path / "never")})
     total = len(range(20, 250 - 20, 5)) * 16
-    assert _ledger_state(killed, "scene") == "running" and 20 <= _committed(str(killed / "scene.zarr")) < total
+    assert _ledger_state(killed, "scene") == "running" and 20 <= committed_tasks(killed / "scene.zarr") < total
 
     subprocess.run(command(killed), check=True, capture_output=True)
     rows = Ledger(killed).rows()
