@@ -13,9 +13,9 @@ Where the work runs, for the jobs on Dask (``simulate``, ``reconstruct``, ``eval
    configuration (a file in ``~/.config/dask/``, ``DASK_CONFIG``, or ``dask.config.set``): that scheduler;
 3. else a local cluster of ``workers=`` processes (default one per core), started and stopped by the call.
 
-``ingest`` runs there only when given ``client=``, ``scheduler=`` or ``workers=`` (``DASK_SCHEDULER_ADDRESS`` alone
-is not enough); otherwise it reads the capture as one stream in bounded memory in the calling process (the
-same bytes). Bad input raises :class:`stages.errors.InputError` (a ``ValueError``) before any output
+``ingest`` runs there too by 1 and 2 (``DASK_SCHEDULER_ADDRESS`` included), but on a local cluster only when
+given ``workers=``: otherwise it reads the capture as one stream in bounded memory in the calling process
+(the same bytes). Bad input raises :class:`stages.errors.InputError` (a ``ValueError``) before any output
 exists, with the same one-line message the command prints. A wrong type (``out=None``, ``every="5"``,
 ``flip="no"``, ``client="..."``) raises :class:`stages.errors.InputTypeError`, a ``TypeError`` (and an
 ``InputError``) naming the argument; a closed client, an ``InputError``. Paths may be ``str`` or

@@ -30,7 +30,7 @@ import numpy as np
 from pipeline.storage import resolve, unreachable
 from stages.spike_arrays import binary_to_packed, check_spike_array_header
 from stages import sps100
-from stages.dat import DatLayout, dat_to_packed
+from stages.dat import DatLayout
 from stages.errors import InputError, describe
 
 KINDS = (".dat", ".npy", ".npz")
@@ -105,12 +105,10 @@ class RawCapture:
 
     @property
     def offset(self) -> int:
-        return getattr(self.layout, "offset", 0)
+        return self.layout.offset
 
     def _packed(self, data: bytes, count: int, first_frame: int) -> np.ndarray:
         raw = np.frombuffer(data, np.uint8).reshape(count, self.frame_bytes)
-        if isinstance(self.layout, DatLayout):
-            return dat_to_packed(raw, self.layout)
         try:
             return self.layout.to_packed(raw, first_frame)
         except InputError as error:  # the layout's own words, the same type (sps100.CaptureDamaged), and the URL
@@ -139,9 +137,6 @@ class RawCapture:
 
     def fingerprint(self) -> dict:
         return fingerprint(self.fs, self.path)
-
-
-DatCapture = RawCapture  # the name it had when .dat was the only raw layout
 
 
 class ArrayCapture:

@@ -28,7 +28,6 @@ what it committed for ``--resume``; a failed one-process ingest is removed, as b
 import contextlib
 import functools
 import logging
-import math
 import sys
 import time
 import uuid
@@ -42,17 +41,18 @@ import zarr
 from pipeline.captures import RANGED_KINDS, default_layout, open_capture
 from pipeline.cluster import (check_in_memory, check_scheduler, check_workers, dashboard_link, dask_client,
                               scheduler_address)
+from pipeline.estimate import hours_table
 from pipeline.executor import failure, in_segments, submitted
 from pipeline.hold import hold_point
 from pipeline.lease import check_free, claimed, held
-from pipeline.outputs import SPIKE_STORE, check_ours, new_output
+from pipeline.outputs import SPIKE_STORE, check_existing, new_output
 from pipeline.progress import is_quiet, progress_bar
-from pipeline.spike_store import (CODEC_LEVEL, COMMITTED, WRITE_CONFIG, SpikeMeta, SpikeStoreWriter, chunk_frames_for,
-                                  ingest_task_arrays, open_spike_store)
+from pipeline.spike_store import (CODEC_LEVEL, COMMITTED, WRITE_CONFIG, SpikeMeta, SpikeStore, SpikeStoreWriter,
+                                  chunk_frames_for, ingest_task_arrays, open_spike_store)
 from pipeline.storage import check_apart, exists, recorded, remove
 from stages.bits import count_spikes, packed_width
 from stages.cfa import check_cfa, flip_vertically
-from stages.errors import InputError, exists_error
+from stages.errors import InputError
 from stages.numbers import as_float, check_flag, check_number, check_text
 from stages.prefetch import prefetched
 from stages.sensor import check_reset
@@ -60,7 +60,6 @@ from stages.sps100 import CaptureDamaged, check_layout
 
 BLOCK_BYTES = 64 * 2**20  # packed bytes per task (and per block read): bounds memory, amortises I/O
 SEGMENT_TASKS = 10_000  # tasks per segment of a local cluster (a terabyte is ~16,000 tasks)
-PLANNED_WORKERS = (1, 8, 64)  # the dry run's table of hours
 COMMITTED_UNITS = "spikes in the task's frames, written once they are stored; -1 = not committed"
 log = logging.getLogger("cscsr.ingest")  # DEBUG lines (cscsr --verbose): the job's plan, each task's outcome
 
@@ -164,7 +163,7 @@ class _Job:
     chunk: int
     plan: IngestPlan
     record: dict  # the attributes of ``committed``: what --resume compares
-    parallel: bool
+    counts: np.ndarray  # the spike counts of its tasks, -1: not committed (of the store to resume, when checked)
 
 
 def task_frames_for(chunk: int, frame_bytes: int, asked: int | None = None) -> int:
@@ -197,7 +196,8 @@ def _prepare(src: str, dest: str, options: IngestOptions, *, parallel: bool, cli
         fps=options.fps, source=recorded(src), flipped=options.flip, head_columns=options.head_columns, reset=options.reset,
     )
     chunk = chunk_frames_for(meta, capture.n_frames)
-    found = _found_record(dest) if options.resume else {}
+    resumed = _resumed(dest) if options.resume else None
+    found = resumed[1] if resumed else {}
     asked = options.task_frames
     if asked is None and isinstance(found.get("task_frames"), int) and found["task_frames"] > 0:
         asked = found["task_frames"]  # resumed as it was cut
@@ -209,26 +209,26 @@ def _prepare(src: str, dest: str, options: IngestOptions, *, parallel: bool, cli
                           "layout": options.layout or default_layout(src)}}
     plan = IngestPlan(recorded(src), recorded(dest), options.height, options.width, options.flip, options.head_columns,
                       options.key, capture.n_frames, task_frames, uuid.uuid4().hex, options.layout)
-    job = _Job(capture, meta, chunk, plan, record, parallel)
+    job = _Job(capture, meta, chunk, plan, record, np.full(plan.n_tasks, -1, np.int64))
     if options.resume:
-        _check_resumable(dest, src, job)
+        job.counts = _check_resumable(dest, src, job, resumed)
     return job
 
 
-def _found_record(dest: str) -> dict:
-    """The attributes of the ``committed`` record of the store to resume; refuses a store that has none."""
+def _resumed(dest: str) -> tuple[SpikeStore, dict]:
+    """The store to resume and the attributes of its ``committed`` record; refuses a store that has none."""
     store = open_spike_store(dest, allow_incomplete=True)  # a video store, a folder, ...: refused by name
     if COMMITTED not in store.group or not isinstance(store.group[COMMITTED], zarr.Array):
         raise InputError(f"cannot resume {dest}: it holds no record of ingest tasks (a simulated store, or one "
                          f"ingested by cscsr before resumable ingest): ingest it again with --overwrite")
-    return dict(store.group[COMMITTED].attrs)
+    return store, dict(store.group[COMMITTED].attrs)
 
 
-def _check_resumable(dest: str, src: str, job: _Job) -> np.ndarray:
-    """Refuse to resume ``dest`` from another capture, with other options or another cut into tasks; -> the
-    spike counts of its tasks (-1: not committed). Reads, never writes."""
-    store = open_spike_store(dest, allow_incomplete=True)
-    found = _found_record(dest)
+def _check_resumable(dest: str, src: str, job: _Job, resumed: tuple[SpikeStore, dict] | None = None) -> np.ndarray:
+    """Refuse to resume ``dest`` (``resumed``: as :func:`_resumed` opened it, else opened now) from another
+    capture, with other options or another cut into tasks; -> the spike counts of its tasks (-1: not
+    committed). Reads, never writes."""
+    store, found = resumed or _resumed(dest)
     was, now = found.get("capture") or {}, job.record["capture"]
     if was != now:
         why = (f"{was.get('bytes')} bytes -> {now['bytes']} bytes" if was.get("bytes") != now["bytes"]
@@ -456,16 +456,11 @@ def plan_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *
     job = _prepare(src, dest, options, parallel=parallel, client=client)
     if parallel and client is None:
         check_scheduler(scheduler)
-    counts = np.full(job.plan.n_tasks, -1, np.int64)
-    if options.resume:
-        counts = _check_resumable(dest, src, job)
+    if options.resume:  # _prepare checked the store: as resumable
         check_free(dest)
-    elif exists(dest):  # what new_output would refuse, refused now
-        check_free(dest)
-        check_ours(dest, SPIKE_STORE)
-        if not options.overwrite:
-            raise exists_error(dest, "--resume or --overwrite")
-    plan, meta = job.plan, job.meta
+    else:  # what new_output would refuse, refused now
+        check_existing(dest, overwrite=options.overwrite, kind=SPIKE_STORE, flag="--resume or --overwrite")
+    plan, meta, counts = job.plan, job.meta, job.counts
     seconds, stored, measured = _measure(job)
     todo = int((counts < 0).sum())
     per_task = seconds * plan.task_frames / measured  # a whole task's worth
@@ -483,7 +478,7 @@ def plan_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *
         "tasks_to_run": todo,
         "store_bytes_estimate": int(round(estimate)), "bits_per_pixel_estimate": 8 * estimate / pixels,
         "measured_frames": measured, "seconds_per_task": per_task,
-        "hours": {str(n): math.ceil(todo / n) * per_task / 3600 for n in PLANNED_WORKERS},
+        "hours": hours_table(per_task, todo),
     }
 
 

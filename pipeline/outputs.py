@@ -152,7 +152,7 @@ def mark_folder(url: str, kind: str) -> None:
     fs.pipe_file(f"{path}/{MARKER}", json.dumps({"kind": kind, "cscsr_version": cscsr.__version__}).encode())
 
 
-def _check_existing(url: str, *, overwrite: bool, kind: str, flag: str) -> bool:
+def check_existing(url: str, *, overwrite: bool, kind: str, flag: str) -> bool:
     """For an output about to be written: True if one exists and may be replaced; refuses otherwise."""
     if not exists(url):
         return False
@@ -213,7 +213,7 @@ def new_output(url: str, *, overwrite: bool, kind: str, flag: str = "--overwrite
     that a killed or failed run left) is removed."""
     local = is_local(url)
     aside = None
-    if not resume and _check_existing(url, overwrite=overwrite, kind=kind, flag=flag):
+    if not resume and check_existing(url, overwrite=overwrite, kind=kind, flag=flag):
         if local:
             aside = _set_aside(url)
         else:

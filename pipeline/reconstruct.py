@@ -52,15 +52,16 @@ from pipeline.hold import hold_point
 from pipeline.estimate import hours, hours_table, output_bytes
 from pipeline.lease import check_free, claimed, held
 from pipeline.progress import is_quiet, progress_bar
-from pipeline.reconstruct_plan import (DEFAULT_TILE, DEFAULT_WEIGHTS, GPU_BATCH, MADE_FROM, Part, Plan,
-                                      ReconstructOptions, job_part, made_from, task_count, task_groups, tile_blocks)
+from pipeline.reconstruct_plan import (DEFAULT_TILE, DEFAULT_WEIGHTS, GPU_BATCH, MADE_FROM, SEGMENT_TASKS, Part,
+                                      Plan, ReconstructOptions, job_part, made_from, task_count, task_groups,
+                                      tile_blocks)
 from pipeline.executor import failure, in_segments, submitted
 from pipeline.spike_store import SpikeStore, open_spike_store, read_frames
-from pipeline.outputs import VIDEO_STORE, check_ours, new_output
+from pipeline.outputs import VIDEO_STORE, check_existing, new_output
 from pipeline.storage import check_apart, exists, recorded, remove, remove_partial_writes, resolve
 from pipeline.video_store import VIDEO, TileWriter, committed_mask, create_video_store, open_video_store
 from stages.colour import auto_gain
-from stages.errors import InputError, exists_error
+from stages.errors import InputError
 from stages.methods import NETWORKS, Reconstructor, Window, classic, output_centres
 from stages.tfp import tfp_rate
 from stages.tiles import Tile, device_tile, tile_grid
@@ -328,18 +329,15 @@ def _check_output(out: str, options: ReconstructOptions) -> None:
     """For a dry run: what a real run refuses about ``out`` once it has claimed it (another live job writing it;
     an output that exists and is not ours, or that we were not asked to resume or replace), creating nothing.
     (A job that has claimed ``out`` and not yet started writing it holds no lease yet: it is not seen.)"""
-    if not exists(out):
-        return
-    check_free(out)
-    if not options.resume:
-        check_ours(out, VIDEO_STORE)
-        if not options.overwrite:
-            raise exists_error(out, "--resume or --overwrite")
+    if options.resume:  # it exists: checked before
+        check_free(out)
+    else:
+        check_existing(out, overwrite=options.overwrite, kind=VIDEO_STORE, flag="--resume or --overwrite")
 
 
 def plan_job(plan: Plan, part: Part, grid: list[list[Tile]], blocks: list, batch: int, done: np.ndarray,
              hr_size: tuple[int, int], where: Placement, *, client=None, workers: int | None = None,
-             resources: dict | None = None, store: str | None = None, segment_tasks: int = 10_000) -> dict:
+             resources: dict | None = None, store: str | None = None, segment_tasks: int = SEGMENT_TASKS) -> dict:
     """The plan of a checked job, priced by some of its own tasks run for real on the workers that would run
     them, all busy at once, into a temporary store in each worker's memory (:func:`_measured`): on the job's
     cluster, or, for a job that would start its own local cluster, in a segment alike (its own process and

@@ -15,7 +15,7 @@ from stages.errors import InputError
 from stages.methods import METHODS, NETWORKS, WINDOW, output_centres
 from stages.colour import check_gain
 from stages.numbers import check_flag, check_number, check_text
-from stages.ranges import parse_region, parse_time, region, time_range
+from stages.ranges import first_at, parse_region, parse_time, region, time_range
 from stages.tiles import Tile
 
 SEGMENT_TASKS = 10_000  # minutes of work on any real frame size; a fresh process and cluster cost ~5 s
@@ -118,16 +118,9 @@ def job_part(options: ReconstructOptions, n_frames: int, fps: float, height: int
     W//2 to the recording's ends simply has no centre there (no window fits)."""
     every_centre = output_centres(n_frames, options.window, options.every)
     start, stop = time_range(options.start, options.stop, n_frames, fps, every_centre, options.window, options.every)
-    first = _first_at(every_centre, start, options.every)
-    last = _first_at(every_centre, stop, options.every)
+    first = first_at(every_centre, start, options.every)
+    last = first_at(every_centre, stop, options.every)
     return Part(start, stop, region(options.region, height, width, cfa), first, every_centre[first:last])
-
-
-def _first_at(centres: list[int], frame: int, every: int) -> int:
-    """The index of the first of ``centres`` (W//2 + j*every) at or after spike frame ``frame``."""
-    if not centres:
-        return 0
-    return min(len(centres), max(0, -(-(frame - centres[0]) // every)))
 
 
 @dataclass(frozen=True)

@@ -343,5 +343,5 @@ def write_region(url: str, name: str, start: int, data: np.ndarray) -> None:
 def ingest_task_arrays(url: str) -> tuple[zarr.Array, zarr.Array]:
     """The spike array and the task record (``committed``) of a store being ingested in parallel, opened for
     its tasks' writes (``write_empty_chunks``, a runtime setting: every chunk is written, empty or not)."""
-    group = zarr.open_group(zarr_store(url, read_only=False), mode="r+", use_consolidated=False)
-    return group[SPIKES].with_config({"write_empty_chunks": True}), group[COMMITTED]
+    writer = SpikeStoreWriter.reopened(url)
+    return writer.spikes, writer.group[COMMITTED]

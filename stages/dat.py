@@ -37,6 +37,7 @@ class DatLayout:
     head_columns: int = 0
     flip: bool = False
     head_at: str = "end"
+    offset = 0  # where frame 0 starts in the file (not a field: a .dat has no header)
 
     def __post_init__(self):
         for label, value in (("height", self.height), ("width", self.width)):
@@ -77,6 +78,11 @@ class DatLayout:
         if frames == 0:
             raise InputError("capture is empty: no complete frame")
         return frames
+
+    def to_packed(self, raw: np.ndarray, first_frame: int = 0) -> np.ndarray:
+        """(n, frame_bytes) uint8 frames -> (n, H, ceil(W/8)) packed, upright (:func:`dat_to_packed`): what a
+        layout of ``pipeline.captures.RawCapture`` offers."""
+        return dat_to_packed(raw, self)
 
 
 def dat_to_packed(raw: np.ndarray, layout: DatLayout) -> np.ndarray:

@@ -77,7 +77,7 @@ def time_range(start, stop, n_frames: int, fps: float, centres: list[int], windo
         raise InputError(f"{shown} is reversed: --stop must come after --start")
     if last == first:
         raise InputError(f"{shown} is empty: --stop must come after --start")
-    if not any(first <= c < last for c in _near(centres, first, every)):
+    if first_at(centres, first, every) >= first_at(centres, last, every):  # no centre in [first, last)
         where = (f"{centres[0]}, {centres[1]}, ... {centres[-1]} (every {every})" if len(centres) > 2
                  else ", ".join(map(str, centres)) or "none")
         raise InputError(f"spike frames [{first}, {last}) hold no output frame: output frames are centred at spike "
@@ -85,12 +85,12 @@ def time_range(start, stop, n_frames: int, fps: float, centres: list[int], windo
     return first, last
 
 
-def _near(centres: list[int], frame: int, every: int) -> list[int]:
-    """The centres at and just after ``frame`` (the list is arithmetic: no scan of millions)."""
+def first_at(centres: list[int], frame: int, every: int) -> int:
+    """The index of the first of ``centres`` (arithmetic: W//2 + j*every, no scan of millions) at or after spike
+    frame ``frame``; ``len(centres)`` if none is."""
     if not centres:
-        return []
-    index = max(0, -(-(frame - centres[0]) // every))
-    return centres[index : index + 1]
+        return 0
+    return min(len(centres), max(0, -(-(frame - centres[0]) // every)))
 
 
 def _shown(given, frame: int) -> str:
