@@ -7,6 +7,9 @@ what must come back into ``--out`` (``$OUT`` on the GPU machine):
     pack PICTURES... --sequences FRAMES --dest .gpu-data/pictures   (here, before the lease) natural training
         pictures and sequences of frames re-encoded to fit the lease's 64 MiB (JPEG q88, short side
         at most --short-side px)
+    prove   the GPU path proved in one command of at most --budget s (issue #46: benchmarks/gpu_prove.py):
+            the device path against the CPU's bytes, fp32 and bf16, eager and --fast-gpu; the Dask job
+            on one GPU worker beside the forward pass; peak GPU memory; prove.json after every step
     check   torch, CUDA, the GPU, bf16; torch clip synthesis (clips/s) beside numpy; a smoke
             training run of ``full`` (30 steps)
     bench   the inference benchmark (network_forward.py --device cuda): lite and full, fp32 and
@@ -19,7 +22,7 @@ what must come back into ``--out`` (``$OUT`` on the GPU machine):
 
 Every step also runs on the CPU with tiny settings (``--tiny``): tests/test_gpu_lease.py does.
 
-Run: ``python benchmarks/gpu_lease.py {pack,check,bench,train} [options]``.
+Run: ``python benchmarks/gpu_lease.py {pack,prove,check,bench,train} [options]``.
 """
 
 import argparse
@@ -153,6 +156,11 @@ def train_command(out: Path, run: Path, minutes: float, pictures: list[str], ini
 
 
 def main() -> None:
+    if sys.argv[1:2] == ["prove"]:  # its own options: benchmarks/gpu_prove.py
+        import gpu_prove
+
+        gpu_prove.main(sys.argv[1:])
+        return
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("step", choices=["pack", "check", "bench", "train"])
     parser.add_argument("sources", nargs="*", help="pack: folders of pictures")

@@ -659,7 +659,10 @@ def measure_network(args, store: str, work: Path, config: str, precision: str, d
     print(f"{config} {precision}: the warm job ...", file=sys.stderr, flush=True)
     with gpu_worker_client() as (client, cluster):
         runs = timed_jobs(client, store, out, options, args.repeats)
+        worker_peak = max((mib for mib in client.run(gpu_peak_mib).values() if mib is not None), default=None)
     output = check_output(out, args.frames, args.side)
+    if device == "cuda":
+        torch.cuda.reset_peak_memory_stats()
     method = load_reconstructor(weights, device, precision=precision, fast_gpu=args.fast_gpu) \
         if "fast_gpu" in inspect.signature(load_reconstructor).parameters \
         else load_reconstructor(weights, device, precision=precision)
@@ -675,6 +678,7 @@ def measure_network(args, store: str, work: Path, config: str, precision: str, d
                 raise
             batch //= 2  # this process's passes do not fit beside what it holds: fewer windows a pass
             torch.cuda.empty_cache()
+    forward_peak = gpu_peak_mib()
     del method
     if device == "cuda":
         torch.cuda.empty_cache()
@@ -695,7 +699,18 @@ def measure_network(args, store: str, work: Path, config: str, precision: str, d
         "forward_share_of_bf16_peak": tflops / peak if peak else None,
         "gpu_hours_per_terabyte": OUTPUT_FRAMES_PER_TB / pipeline_fps / 3600,
         "forward_gpu_hours_per_terabyte": OUTPUT_FRAMES_PER_TB / forward_fps / 3600,
+        "worker_gpu_peak_mib": worker_peak, "forward_gpu_peak_mib": forward_peak,
     }
+
+
+def gpu_peak_mib() -> float | None:
+    """This process's high-water mark of GPU memory allocated by torch (MiB) since its start or the last
+    reset; None where it has not used CUDA (run in the worker too, through ``client.run``)."""
+    import torch
+
+    if not (torch.cuda.is_available() and torch.cuda.is_initialized()):
+        return None
+    return torch.cuda.max_memory_allocated() / 2**20
 
 
 def run_cli(store: str, out: Path, weights: str, device: str) -> float:

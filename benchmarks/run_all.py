@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-GPU_ONLY = {"gpu_lease.py", "gpu_pipeline.py"}  # run on a lent GPU (docs/gpu.md), skipped where there is none
+GPU_ONLY = {"gpu_lease.py", "gpu_pipeline.py", "gpu_prove.py"}  # run on a lent GPU (docs/gpu.md), skipped where there is none
 
 
 def main() -> int:

@@ -55,7 +55,8 @@ class NetworkReconstructor:
         from cscsr.onnx_runtime import OnnxNetwork
 
         self._onnx = OnnxNetwork(self.model) if self.backend == "onnx" else None
-        self.forward = self.forward or self.model
+        if self.forward is None:  # not `or`: a torch.compile'd module has a __len__ that nn.Module refuses
+            self.forward = self.model
 
     @property
     def name(self) -> str:
