@@ -20,7 +20,8 @@ what must come back into ``--out`` (``$OUT`` on the GPU machine):
             a portable checkpoint (parts of at most 16 MiB: fp16 weights, bf16 Adam moments)
             into --out
 
-Every step also runs on the CPU with tiny settings (``--tiny``): tests/test_gpu_lease.py does.
+Every step also runs on the CPU with tiny settings (``--tiny``, in fp32: bf16 on a CPU without native
+bfloat16 is emulated, slowly): tests/test_gpu_lease.py does.
 
 Run: ``python benchmarks/gpu_lease.py {pack,prove,check,bench,train} [options]``.
 """
@@ -108,7 +109,7 @@ def check(out: Path, tiny: bool) -> None:
     smoke = Path("/tmp/cscsr-smoke")
     shutil.rmtree(smoke, ignore_errors=True)
     options = (TINY if tiny else {**RECIPE, "steps": 30, "checkpoint_every": 30, "validate_every": 30}) | {
-        "device": device, "precision": "bf16"}
+        "device": device, "precision": "fp32" if tiny else "bf16"}  # bf16 on a CPU may be emulated: slow
     started = time.perf_counter()
     train_slice(options, smoke, resume=False)
     log = [json.loads(line) for line in (smoke / "log.jsonl").read_text().splitlines()]
@@ -134,7 +135,8 @@ def train_command(out: Path, run: Path, minutes: float, pictures: list[str], ini
 
     device = "cuda" if torch.cuda.is_available() and not tiny else "cpu"
     resume = (run / "checkpoint.safetensors").exists() or bool(portable_parts(run, complete=False))
-    options = {**(TINY if tiny else RECIPE), "device": device, "precision": "bf16", "time_budget": minutes * 60,
+    options = {**(TINY if tiny else RECIPE), "device": device, "precision": "fp32" if tiny else "bf16",
+               "time_budget": minutes * 60,
                "pictures": os.pathsep.join(pictures)}
     if decay_every:
         options["decay_every"] = decay_every

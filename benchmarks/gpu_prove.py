@@ -28,11 +28,13 @@ the background (CPU only) while the first smoke step runs.
 On the CPU (``--device cpu --tiny``: tests/test_gpu_lease.py) the same steps run on tiny sizes, so the
 command cannot rot; there the device path and the CPU path are one and the bytes must be equal.
 
-Run: ``python benchmarks/gpu_lease.py prove --out $OUT [--budget 420] [--only STEP,...]``.
+Run: ``python benchmarks/gpu_lease.py prove --out $OUT [--budget 420] [--only STEP,...] [--configs lite,full]
+[--precisions fp32,bf16]``.
 """
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import os
 import platform
@@ -283,13 +285,26 @@ def goals(report: dict) -> dict:
     return out
 
 
+def chosen_steps(args) -> list[Step]:
+    """The steps named by ``--only`` (default all), each cut to ``--configs`` and ``--precisions`` where given;
+    a step left with no configuration or precision is dropped."""
+    steps = [s for s in STEPS if not args.only or s.name in args.only.split(",")]
+    if args.configs:
+        steps = [dataclasses.replace(s, configs=tuple(c for c in s.configs if c in args.configs.split(",")))
+                 for s in steps]
+    if args.precisions:
+        steps = [dataclasses.replace(s, precisions=tuple(p for p in s.precisions if p in args.precisions.split(",")))
+                 for s in steps]
+    return [s for s in steps if s.configs and s.precisions]
+
+
 def prove(args) -> dict:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
     deadline = started + args.budget
     size = sizes(args)
-    chosen = [s for s in STEPS if not args.only or s.name in args.only.split(",")]
+    chosen = chosen_steps(args)
     report = {"issue": 46, "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "budget_seconds": args.budget,
               "sizes": size, "machine": device_description(args.device), "steps": {}}
     report_path, log_path = out / "prove.json", out / "prove.log"
@@ -373,10 +388,10 @@ def main(argv=None) -> None:
     parser.add_argument("--repeats", type=int, default=2, help="the pipeline's timed runs (default 2)")
     parser.add_argument("--smoke-side", type=int, default=64, help="the smoke windows' LR side (default 64)")
     parser.add_argument("--tiny", action="store_true", help="tiny sizes (a CPU dry run)")
+    parser.add_argument("--configs", default="", help="only these configurations (lite,full; default both)")
+    parser.add_argument("--precisions", default="", help="only these precisions (fp32,bf16; default both)")
     # the smoke step's own options (run by the orchestrator in a process of its own)
     parser.add_argument("--result", default="")
-    parser.add_argument("--configs", default="lite,full")
-    parser.add_argument("--precisions", default="fp32,bf16")
     parser.add_argument("--fast-gpu", action="store_true")
     args = parser.parse_args(argv)
     import torch
@@ -387,7 +402,11 @@ def main(argv=None) -> None:
     unknown = set(filter(None, args.only.split(","))) - {s.name for s in STEPS}
     if unknown:
         parser.error(f"--only: no step named {', '.join(sorted(unknown))}")
+    for option, allowed in (("configs", {"lite", "full"}), ("precisions", {"fp32", "bf16"})):
+        if set(filter(None, getattr(args, option).split(","))) - allowed:
+            parser.error(f"--{option}: one or more of {', '.join(sorted(allowed))}")
     if args.mode == "_smoke":
+        args.configs, args.precisions = args.configs or "lite,full", args.precisions or "fp32,bf16"
         smoke(args)
         return
     report = prove(args)

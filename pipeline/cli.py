@@ -69,8 +69,10 @@ class OneLineUsageErrors(typer.core.TyperGroup):
 
 app = typer.Typer(cls=OneLineUsageErrors, no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False,
                   help="Reconstruction pipeline for colour spike cameras: ingest, inspect, export, reconstruct.")
-err = Console(stderr=True)
-stdout = Console()
+# soft_wrap: a printed line is never broken at the terminal's width (a path in a result stays one line that
+# a script can read, whatever the width or the path's length); tables still fit the width
+err = Console(stderr=True, soft_wrap=True)
+stdout = Console(soft_wrap=True)
 
 
 def choices(names) -> str:

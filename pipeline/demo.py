@@ -121,4 +121,4 @@ def run(out_dir: str, *, console: Console, workers: int = 2) -> dict:
     console.print(f"pictures: {out_dir}/comparison.png (truth | {' | '.join(row['method'] for row in rows)}), "
                   f"{out_dir}/video_cscsr.mp4 (cscsr lite, {frames} frames, {frames / VIDEO_FPS:.1f} s), "
                   f"{out_dir}/reds_tfp_vs_truth.png, {out_dir}/helicopter_tfp.png")
-    return {"methods": rows, **figures}
+    return {"methods": rows, **figures, "video_frames": frames}

@@ -23,7 +23,7 @@ PANEL = 256  # HR pixels of the demo's scene
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
     out = str(tmp_path_factory.mktemp("demo") / "demo-output")
-    console = Console(record=True, width=200)
+    console = Console(record=True, width=100_000)  # no line is wrapped, however long the temporary path
     figures = run(out, console=console)
     return out, figures, console.export_text()
 
@@ -43,11 +43,13 @@ def test_the_table_shows_both_networks(demo):
 
 
 def test_the_video_lasts_seconds(demo):
-    out, _, printed = demo
+    out, figures, printed = demo
     video = iio.imread(os.path.join(out, "video_cscsr.mp4"))
     assert video.shape[0] >= 3 * VIDEO_FPS and video.shape[1:] == (PANEL, PANEL, 3)
     assert np.abs(video[0].astype(float) - video[-1]).mean() > 5  # the camera moves
-    assert f"{video.shape[0]} frames, {video.shape[0] / VIDEO_FPS:.1f} s" in printed.replace("\n", " ")
+    assert figures["video_frames"] == video.shape[0]
+    (line,) = [line for line in printed.splitlines() if line.startswith("pictures: ")]  # one logical line
+    assert f"video_cscsr.mp4 (cscsr lite, {video.shape[0]} frames, {video.shape[0] / VIDEO_FPS:.1f} s)" in line
 
 
 def _has_text(band: np.ndarray) -> bool:

@@ -72,38 +72,37 @@ def test_check_and_two_training_slices_fit_what_a_lease_brings_back(tmp_path):
 
 
 def test_prove_runs_every_step_on_the_cpu_and_keeps_what_each_measured(tmp_path):
-    """The lease's one command (issue #46), tiny and on the CPU: there the device path is the CPU path, so
-    fp32 gives the CPU path's bytes exactly and bf16 stays within the stated tolerance; the pipeline step's
-    figures land in prove.json and gpu_pipeline.json; a step that would not fit the budget is skipped."""
+    """The lease's one command (issue #46), tiny and on the CPU, `lite` in fp32 (bf16 on a CPU without native
+    bfloat16 is emulated, slowly; its device path is tested in test_gpu_path.py): there the device path is the
+    CPU path, so it gives the CPU path's bytes exactly; the pipeline step's figures land in prove.json and
+    gpu_pipeline.json; a step that would not fit the budget is skipped."""
     out = tmp_path / "out"
-    lease("prove", "--device", "cpu", "--tiny", "--out", out, "--only", "smoke,pipeline-full-bf16,smoke-fast-gpu")
+    lease("prove", "--device", "cpu", "--tiny", "--out", out, "--configs", "lite", "--precisions", "fp32")
     report = json.loads((out / "prove.json").read_text())
     assert {name: step["status"] for name, step in report["steps"].items()} == {
-        "smoke": "ok", "pipeline-full-bf16": "ok", "smoke-fast-gpu": "ok"}
-    runs = report["steps"]["smoke"]["result"]["runs"]
-    assert [(r["config"], r["precision"]) for r in runs] == [("lite", "fp32"), ("lite", "bf16"), ("full", "fp32"),
-                                                             ("full", "bf16")]
-    for run in runs:
-        assert run["ok"] and run["repeatable"] and run["against_host_path"]["equal_bytes"], run
-        assert run["against_cpu_path"]["equal_bytes"] == (run["precision"] == "fp32"), run
-        assert run["against_cpu_path"]["psnr_db"] is None or run["against_cpu_path"]["psnr_db"] >= 35, run
-    fast = report["steps"]["smoke-fast-gpu"]["result"]["runs"]
-    assert len(fast) == 4 and all(r["ok"] and r["against_eager_device_path"]["equal_bytes"] for r in fast)  # CPU: eager
-    (pipeline,) = report["steps"]["pipeline-full-bf16"]["result"]
-    assert (pipeline["config"], pipeline["precision"], pipeline["tile"]) == ("full", "bf16", DEFAULT_TILE)  # CPU
+        "smoke": "ok", "smoke-fast-gpu": "ok", "pipeline-lite-fp32": "ok"}  # the steps with lite in fp32
+    (run,) = report["steps"]["smoke"]["result"]["runs"]
+    assert (run["config"], run["precision"]) == ("lite", "fp32")
+    assert run["ok"] and run["repeatable"] and run["against_host_path"]["equal_bytes"], run
+    assert run["against_cpu_path"]["equal_bytes"] and run["within_tolerance_of_cpu"], run
+    (fast,) = report["steps"]["smoke-fast-gpu"]["result"]["runs"]
+    assert fast["ok"] and fast["against_eager_device_path"]["equal_bytes"]  # a CPU ignores --fast-gpu
+    (pipeline,) = report["steps"]["pipeline-lite-fp32"]["result"]
+    assert (pipeline["config"], pipeline["precision"], pipeline["tile"]) == ("lite", "fp32", DEFAULT_TILE)  # CPU
     assert pipeline["pipeline_frames_per_second"] > 0 and pipeline["forward_frames_per_second"] > 0
     assert pipeline["worker_gpu_peak_mib"] is None  # no CUDA in the worker
-    (run,) = json.loads((out / "gpu_pipeline.json").read_text())["runs"]
-    assert run["pipeline_frames_per_second"] == pipeline["pipeline_frames_per_second"]
-    assert "full-bf16: pipeline >= 6.0 frames/s" in report["goals"]
+    (measured,) = json.loads((out / "gpu_pipeline.json").read_text())["runs"]
+    assert measured["pipeline_frames_per_second"] == pipeline["pipeline_frames_per_second"]
+    assert list(report["goals"]) == ["lite-fp32: pipeline / forward >= 0.85"]
     files = [f for f in out.rglob("*") if f.is_file()]
     assert len(files) <= LEASE_FILES and all(f.stat().st_size <= LEASE_FILE_BYTES for f in files)
 
     skipped = tmp_path / "skipped"
-    lease("prove", "--device", "cpu", "--tiny", "--out", skipped, "--only", "smoke,pipeline-full-bf16", "--budget", 60)
+    lease("prove", "--device", "cpu", "--tiny", "--out", skipped, "--configs", "lite", "--precisions", "fp32",
+          "--only", "smoke,pipeline-lite-fp32", "--budget", 60)
     report = json.loads((skipped / "prove.json").read_text())
     assert report["steps"]["smoke"]["status"] == "ok"
-    assert report["steps"]["pipeline-full-bf16"]["status"] == "skipped"  # needs 90 s or more of the 60
+    assert report["steps"]["pipeline-lite-fp32"]["status"] == "skipped"  # needs 80 s or more of the 60
     assert not (skipped / "gpu_pipeline.json").exists()
 
 
