@@ -148,7 +148,7 @@ class Ledger:
                     (state, error, int(final), time.time(), next_try, key))
 
     def record_refusal(self, key: str, name: str, source: str, error: str) -> None:
-        """A candidate refused before any work (bad name, unknown kind, bad sidecar): failed, final."""
+        """A candidate refused before any work (bad name, unknown kind, bad sidecar, odd entry): failed, final."""
         now = time.time()
         self._write("INSERT OR IGNORE INTO recordings (key, name, source, fingerprint, params, state, attempts, final, "
                     "error, queued_at, finished_at) VALUES (?, ?, ?, '', '{}', 'failed', 1, 1, ?, ?, ?)",

@@ -19,7 +19,8 @@ Killing the watcher at any moment loses nothing and duplicates nothing: the ledg
 left ``running`` is taken up by the next pass, whose reconstruction resumes from the
 committed tiles, and outputs are named by the recording, so there is never a second copy.
 Bad input (unknown extension, unsafe name, nonsense sidecar, truncated capture, a symbolic link
-anywhere in a recording or its sidecar whose real path leaves INBOX) is recorded
+anywhere in a recording or its sidecar whose real path leaves INBOX, an entry that is not what its name
+says, such as a folder, named pipe, socket or device where a regular file belongs, :func:`_odd`) is recorded
 as failed with its reason and never stops the other recordings; other errors are retried
 with exponential back-off, then quarantined. Names are checked so no output can land
 outside OUTBOX. One watcher per OUTBOX at a time (a lock file).
@@ -36,6 +37,7 @@ import json
 import logging
 import os
 import re
+import stat
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -114,8 +116,8 @@ def discover(inbox: str) -> list[Candidate]:
     base_url = str(inbox).rstrip("/")
     local = isinstance(fs, LocalFileSystem)  # only local folders have symbolic links
     found = []
-    for entry in sorted(fs.ls(root, detail=True), key=lambda e: e["name"]):
-        base = entry["name"].rstrip("/").rsplit("/", 1)[-1]
+    listed = {_base(entry): entry for entry in fs.ls(root, detail=True)}
+    for base, entry in sorted(listed.items()):
         suffix = base.rsplit(".", 1)[-1].lower() if "." in base else ""
         if base.startswith(".") or suffix in SKIPPED_SUFFIXES:
             continue
@@ -125,6 +127,10 @@ def discover(inbox: str) -> list[Candidate]:
         if escape:  # refused before anything (even a modification time) is read through the link
             found.append(Candidate(stem, url, suffix, {}, 0.0, f"{escape} leads outside the inbox: refused "
                                                                f"(a link out of INBOX is never followed)"))
+            continue
+        odd = _odd(fs, root, entry, store=suffix == "zarr") or _odd(fs, root, listed.get(f"{stem}.json"), store=False)
+        if odd:  # refused before anything is read: a named pipe blocks its reader, a folder fails every read
+            found.append(Candidate(stem, url, suffix, {}, 0.0, odd))
             continue
         look = _look(fs, entry)
         modified = look[0]
@@ -149,6 +155,55 @@ def check_inbox(inbox: str):
         what = "is a file, not a folder" if fs.exists(root) else "does not exist"
         raise InputError(f"inbox {inbox} {what}: give the folder where recordings land")
     return fs, root
+
+
+def _base(entry: dict) -> str:
+    """The name of a listed entry within its folder."""
+    return entry["name"].rstrip("/").rsplit("/", 1)[-1]
+
+
+FILE_TYPES = ((stat.S_ISREG, "a regular file"), (stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a named pipe (FIFO)"),
+              (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"))
+
+
+def _odd(fs, root: str, entry: dict | None, *, store: bool) -> str | None:
+    """Why an INBOX entry as listed (a recording, or the sidecar beside one) is not what its name says it is, in
+    one line; None if it is, or if nothing is there. A ``NAME.zarr`` recording (``store``) is a folder of folders
+    and regular files; every other entry read (a raw capture, a sidecar) is a regular file. Told without opening
+    anything (``os.stat``, through a link that stays in INBOX: links out are refused before this), since a named
+    pipe's reader waits forever for a writer and a folder read as a file fails every pass. An object store holds
+    files and folders (prefixes) only, as listed."""
+    if entry is None:
+        return None
+    local = isinstance(fs, LocalFileSystem)
+    path = entry["name"].rstrip("/")
+    name = os.path.relpath(path, root) if local else path[len(root.rstrip("/")) + 1 :]
+    what = _type_of(path) if local else ("a folder" if entry.get("type") == "directory" else "a regular file")
+    if what is None:
+        return None  # gone since the listing
+    if store and what != "a folder":
+        return f"{name} is {what}, not a folder: refused (a NAME.zarr recording is the folder of a Zarr store)"
+    if not store and what != "a regular file":
+        return f"{name} is {what}, not a regular file: refused (only regular files and NAME.zarr folders are read)"
+    if store and local:
+        for folder, dirs, files in os.walk(path):  # as _leaves walks: a link to a folder is not followed
+            for inner in files:
+                inside = os.path.join(folder, inner)
+                if (what := _type_of(inside)) not in ("a regular file", None):
+                    return (f"{os.path.relpath(inside, root)} is {what}, not a regular file: refused (a Zarr "
+                            f"store holds folders and regular files only)")
+    return None
+
+
+def _type_of(path: str) -> str | None:
+    """What a local path is (:data:`FILE_TYPES`; a link is what it leads to), in words; None if nothing is there."""
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return "a link to nothing" if os.path.lexists(path) else None
+    except OSError as error:  # a loop of links, a path too long, ...
+        return f"unreadable ({describe(error)})"
+    return next((what for is_type, what in FILE_TYPES if is_type(mode)), "neither a file nor a folder")
 
 
 def _leaves(root: str, path: str) -> str | None:
@@ -207,7 +262,7 @@ def steady(candidate: Candidate) -> bool:
     parent, base = str(path).rstrip("/").rsplit("/", 1)
     fs.invalidate_cache()  # an object store's listing cache would show the first look again
     for entry in fs.ls(parent, detail=True):  # as the first look saw it (a link's own time, not its target's)
-        if entry["name"].rstrip("/").rsplit("/", 1)[-1] == base:
+        if _base(entry) == base:
             return _look(fs, entry) == candidate.look
     return False  # moved away between the two looks
 
