@@ -38,8 +38,10 @@ import dataclasses
 import json
 import os
 import platform
+import shutil
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass
@@ -308,8 +310,7 @@ def prove(args) -> dict:
     report = {"issue": 46, "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "budget_seconds": args.budget,
               "sizes": size, "machine": device_description(args.device), "steps": {}}
     report_path, log_path = out / "prove.json", out / "prove.log"
-    work = Path(os.environ.get("TMPDIR", "/tmp")) / f"cscsr-prove-{os.getpid()}"
-    work.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix="cscsr-prove-"))  # the smoke steps' result files, read back into the report
 
     def save():
         report["seconds_so_far"] = round(time.monotonic() - started, 1)
@@ -372,6 +373,7 @@ def prove(args) -> dict:
             save()
         if recording is not None and recording.poll() is None:
             recording.kill()
+    shutil.rmtree(work, ignore_errors=True)
     return report
 
 
