@@ -8,13 +8,17 @@ A capture that is frames of a fixed size at a fixed offset (``.dat``, ``.npy``) 
 ``read(start, stop)`` reads frames ``[start, stop)`` by one byte-range request, which is what a
 parallel ingest's tasks do, each on its own worker (``pipeline.ingest``). What a capture offers:
 ``n_frames``, ``height``, ``width``, ``frame_bytes`` and ``offset`` (where frame 0 starts), ``ranged``,
-``read``, ``blocks`` and ``fingerprint``. Another raw layout plugs in as a :class:`RawCapture` with a
+``read``, ``blocks``, ``fingerprint`` and ``unread_bytes`` (bytes at its end that are not read: 0 but for a
+layout that reads a trailing partial frame). Another raw layout plugs in as a :class:`RawCapture` with a
 layout object of its own: its ``frame_bytes``, ``offset``, ``frame_count(nbytes)`` and
 ``to_packed(raw, first_frame)`` ((n, frame_bytes) uint8 frames ``first_frame``.. -> (n, H, ceil(W/8)) packed,
-upright), as :class:`stages.dat.DatLayout` has; ``open_capture`` chooses it. The megapixel camera's
-(``--layout sps100``, :class:`stages.sps100.Sps100Layout`) is one: frames of a fixed size from the first frame
-start, which is found in the capture's first bytes (:func:`stages.sps100.find_layout`) by every process that
-opens it, each task checking its own frames' tags.
+upright), as :class:`stages.dat.DatLayout` has, and ``check_tail(tail, first_frame)`` if its ``frame_count``
+leaves a trailing partial frame (its bytes checked, an error if they are damaged); ``open_capture`` chooses it.
+The megapixel camera's (``--layout sps100``, :class:`stages.sps100.Sps100Layout`) is one: frames of a fixed
+size from the first frame start, which is found in the capture's first bytes
+(:func:`stages.sps100.find_layout`) by every process that opens it, each task checking its own frames' tags,
+the last task the trailing partial frame's as well (:meth:`RawCapture._packed`: the one place, for a stream
+and for byte ranges alike).
 """
 
 import hashlib
@@ -89,7 +93,9 @@ class RawCapture:
 
     def __post_init__(self):
         self.fs, self.path = _open(self.url)
-        self.n_frames = self.layout.frame_count(self.fs.size(self.path) - self.offset)
+        nbytes = self.fs.size(self.path) - self.offset
+        self.n_frames = self.layout.frame_count(nbytes)
+        self.unread_bytes = nbytes - self.n_frames * self.frame_bytes  # a trailing partial frame, checked when read
 
     @property
     def height(self) -> int:
@@ -107,18 +113,30 @@ class RawCapture:
     def offset(self) -> int:
         return self.layout.offset
 
+    def _span(self, start: int, stop: int) -> int:
+        """Bytes that reading frames ``[start, stop)`` reads: theirs, and with the last frames the trailing partial
+        frame's (:attr:`unread_bytes`), whose packets :meth:`_packed` checks."""
+        return (stop - start) * self.frame_bytes + (self.unread_bytes if stop == self.n_frames else 0)
+
     def _packed(self, data: bytes, count: int, first_frame: int) -> np.ndarray:
-        raw = np.frombuffer(data, np.uint8).reshape(count, self.frame_bytes)
+        """``count`` frames from ``first_frame`` packed, and the bytes after them, in ``data`` only with the last
+        frames (:meth:`_span`), checked by the layout as a frame cut short: in the stream of one process and in
+        a parallel ingest's last task alike, after the frames before them (so the first damage is named)."""
+        whole_bytes = count * self.frame_bytes
+        raw = np.frombuffer(data, np.uint8, count=whole_bytes).reshape(count, self.frame_bytes)
         try:
-            return self.layout.to_packed(raw, first_frame)
+            packed = self.layout.to_packed(raw, first_frame)
+            if len(data) > whole_bytes:
+                self.layout.check_tail(data[whole_bytes:], first_frame + count)
+            return packed
         except InputError as error:  # the layout's own words, the same type (sps100.CaptureDamaged), and the URL
             raise type(error)(f"{self.url}: {error}") from None
 
     def read(self, start: int, stop: int) -> np.ndarray:
         """Packed frames ``[start, stop)``, upright: one byte-range read."""
         begin = self.offset + start * self.frame_bytes
-        return self._packed(_read_range(self.fs, self.path, self.url, begin, begin + (stop - start) * self.frame_bytes,
-                                        start), stop - start, start)
+        return self._packed(_read_range(self.fs, self.path, self.url, begin, begin + self._span(start, stop), start),
+                            stop - start, start)
 
     def blocks(self, frames_per_block: int, skip=()) -> Iterator[tuple[int, np.ndarray]]:
         """``(first_frame, packed)`` of each block of ``frames_per_block`` frames in order, one stream; the
@@ -130,8 +148,8 @@ class RawCapture:
                     continue
                 count = min(frames_per_block, self.n_frames - start)
                 stream.seek(self.offset + start * frame_bytes)
-                data = stream.read(count * frame_bytes)
-                if len(data) != count * frame_bytes:
+                data = stream.read(self._span(start, start + count))
+                if len(data) != self._span(start, start + count):
                     raise InputError(f"{self.url} ended early at frame {start}: it changed while being read")
                 yield start, self._packed(data, count, start)
 
@@ -141,6 +159,8 @@ class RawCapture:
 
 class ArrayCapture:
     """A (T, H, W) array of 0/1 in ``.npy`` or inside ``.npz``, streamed without loading it."""
+
+    unread_bytes = 0  # no trailing partial frame: its header says how many frames it holds
 
     def __init__(self, url: str, *, key: str | None = None, flip: bool = False):
         self.url, self.flip = url, flip

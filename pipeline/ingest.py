@@ -322,6 +322,9 @@ def run_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *,
                 raise IngestIncomplete(dest, plan, failed)
         if not complete:
             writer.finish(spike_count=int(counts.sum()))
+    if unread := job.capture.unread_bytes:  # checked with the last frames (captures.RawCapture._packed): cut short
+        log.warning("%s: its last %d bytes, after frame %d, are a frame cut short (its packets in sequence): not read",
+                    src, unread, plan.n_frames - 1)
     return {"attrs": dict(writer.group.attrs), "frames": plan.n_frames, "tasks": plan.n_tasks,
             "tasks_run": len(todo), "tasks_skipped": plan.n_tasks - len(todo)}
 

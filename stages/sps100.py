@@ -28,8 +28,10 @@ The geometry (what this module assumes, in the public reader's terms):
   ``.dat``.
 
 Every half-line's tag is checked: the first whole frame's must be a valid sequence (:func:`find_layout`)
-and every later frame must repeat it (:meth:`Sps100Layout.to_packed`), so a dropped or corrupted packet
-is refused with the byte offset of the first packet whose tag does not fit (:class:`CaptureDamaged`).
+and every later frame must repeat it (:meth:`Sps100Layout.to_packed`), the trailing partial frame's whole
+half-lines too (:meth:`Sps100Layout.check_tail`, read with the last frames), so a dropped or corrupted packet
+is refused with the byte offset of the first packet whose tag does not fit (:class:`CaptureDamaged`); a
+trailing partial frame whose packets are in sequence is a capture cut short, its bytes not read.
 All of it vectorised: no Python loop per half-line.
 """
 
@@ -104,7 +106,8 @@ class Sps100Layout:
         return np.frombuffer(self.sequence, "<u2")
 
     def frame_count(self, nbytes: int) -> int:
-        """Whole frames in the ``nbytes`` from :attr:`offset` on (a trailing partial frame is not read)."""
+        """Whole frames in the ``nbytes`` from :attr:`offset` on (a trailing partial frame is not read, its
+        packets checked: :meth:`check_tail`)."""
         frames = nbytes // FRAME_BYTES
         if frames == 0:
             raise InputError(f"capture holds no whole sps100 frame ({FRAME_BYTES} bytes) after its first frame "
@@ -116,16 +119,35 @@ class Sps100Layout:
         tag checked against :attr:`sequence` first (:class:`CaptureDamaged` names the first that differs)."""
         n = raw.shape[0]
         halves = raw.reshape(n, HALVES, HALF_BYTES)
+        self._check_tags(halves, first_frame)
+        return halves_to_packed(halves, flip=self.flip)
+
+    def check_tail(self, tail: bytes, first_frame: int) -> None:
+        """The bytes after the last whole frame (frame ``first_frame``, cut short), checked as any frame's: each
+        whole half-line's tag against :attr:`sequence`, so a packet dropped or corrupted in the last frame is
+        refused naming its byte offset as in any other (:class:`CaptureDamaged`); if they pass, they are a
+        frame cut short, not read. (Bytes after the last whole half-line carry no tag: a packet dropped there
+        cannot be told from a capture that ends there.)"""
+        data = np.frombuffer(tail, np.uint8)
+        if data.size >= FRAME_BYTES:
+            raise ValueError(f"a tail is less than a frame ({FRAME_BYTES} bytes), got {data.size}")
+        whole = data.size // HALF_BYTES
+        self._check_tags(data[:whole * HALF_BYTES].reshape(1, whole, HALF_BYTES), first_frame)
+
+    def _check_tags(self, halves: np.ndarray, first_frame: int) -> None:
+        """Every tag of ``halves`` ((n, k, 64) uint8: frames ``first_frame``.., each its first k half-lines, all
+        2000 but in a frame cut short) against the first k of :attr:`sequence`; :class:`CaptureDamaged` names
+        the first that differs, by the byte offset of the packet that carries it."""
+        count = halves.shape[1]
         tags = _tag_words(halves[:, :, TAG_AT:])
-        bad = tags != self.tags
+        bad = tags != self.tags[:count]
         if bad.any():
-            frame, k = divmod(int(np.argmax(bad.ravel())), HALVES)
+            frame, k = divmod(int(np.argmax(bad.ravel())), count)
             start = self.offset + (first_frame + frame) * FRAME_BYTES + k * HALF_BYTES
             raise CaptureDamaged(
                 f"sps100 packets out of sequence at byte {_tag_packet(start)}: half-line {k} of frame "
                 f"{first_frame + frame} is tagged {describe_tag(int(tags[frame, k]))}, where every frame repeats "
                 f"the first whole frame's {describe_tag(int(self.tags[k]))} (a packet dropped or corrupted)")
-        return halves_to_packed(halves, flip=self.flip)
 
 
 def halves_to_packed(halves: np.ndarray, *, flip: bool = False) -> np.ndarray:

@@ -4,7 +4,8 @@ Captures are made here from known spike arrays by the layout of ``stages.sps100`
 public reader, not from a real capture): 64-byte half-lines of 500 pixel bits (LSB first) and a 12-bit tag
 (line, channel), 2000 a frame, row ``k // 2`` and columns ``500 * (k % 2)``.. from half-line ``k``. Round trips in
 one process and in parallel, a capture begun mid-frame (mid-packet, even), and damage (a dropped packet, a
-corrupted tag) refused in one line naming the byte offset, with nothing left behind."""
+corrupted tag) refused in one line naming the byte offset, with nothing left behind, in the last frame too (#48),
+whose packets are checked as any frame's; a capture cut short in its last frame said in one warning line."""
 
 import os
 
@@ -146,6 +147,53 @@ def test_a_corrupted_tag_is_refused_naming_its_offset(cli, tmp_path, frame, half
     data[start + bit // 8] ^= 1 << (bit % 8)
     (tmp_path / "c.dat").write_bytes(bytes(data))
     _refused_leaving_nothing(cli, tmp_path, tmp_path / "c.dat", f"at byte {start + 48}:", f"half-line {half_line}")
+
+
+@pytest.mark.parametrize("half_line,packet", [(700, 1), (0, 0), (1998, 3)])
+def test_a_packet_dropped_in_the_last_frame_is_refused_naming_its_offset(cli, client, tmp_path, small_chunks,
+                                                                           half_line, packet):
+    """A packet missing from the last frame leaves it a partial frame at the capture's end, whose packets are
+    checked as any frame's (#48): refused where the half-line that holds the drop has its tag, not read as 3
+    whole frames and a frame cut short, in one process (after its first task is written) and in parallel (the
+    last task), leaving no store."""
+    lead = 100
+    data = write_capture(tmp_path / "ok.dat", spikes(4, seed=5), lead=lead)
+    start = lead + 3 * FB + half_line * 64
+    damaged = tmp_path / "c.dat"
+    damaged.write_bytes(data[:start + 16 * packet] + data[start + 16 * (packet + 1):])
+    refused = cli("ingest", damaged, tmp_path / "s.zarr", "--layout", "sps100", "--task-frames", "2")
+    assert_refused(refused, f"at byte {start + 48}: half-line {half_line} of frame 3", "dropped or corrupted")
+    assert not (tmp_path / "s.zarr").exists()
+    options = IngestOptions(layout="sps100", task_frames=2)  # 2 tasks: frames 0-1, and 2 with the partial frame
+    with pytest.raises(InputError, match=f"at byte {start + 48}: half-line {half_line} of frame 3"):
+        ingest(str(damaged), str(tmp_path / "p.zarr"), options, progress=False, client=client)
+    assert not (tmp_path / "p.zarr").exists()
+
+
+@pytest.mark.parametrize("tail", [64 * 700 + 32, 48, 0])
+def test_a_capture_cut_short_in_its_last_frame_is_read_and_said_in_one_line(cli, client, tmp_path, small_chunks,
+                                                                            caplog, tail):
+    """Cut at a packet boundary in a frame (its packets in sequence): its whole frames, and one warning line
+    naming the bytes not read, in one process and in parallel; none when it ends with a whole frame."""
+    bits = spikes(3, seed=6)
+    write_capture(tmp_path / "c.dat", bits, lead=64 * 5, tail=tail)
+    one = cli("-q", "ingest", tmp_path / "c.dat", tmp_path / "one.zarr", "--layout", "sps100", "--task-frames", "2")
+    assert one.exit_code == 0 and one.stdout.startswith(f"{tmp_path / 'one.zarr'}: "), one.stderr
+    assert np.array_equal(stored(tmp_path / "one.zarr"), bits)
+    if tail:
+        assert one.stderr.strip().count("\n") == 0 and "WARNING cscsr.ingest" in one.stderr
+        assert f"c.dat: its last {tail} bytes, after frame 2, are a frame cut short" in one.stderr
+        assert "not read" in one.stderr
+    else:
+        assert one.stderr == ""
+    caplog.clear()  # (the command's line, which it also logged)
+    with caplog.at_level("WARNING", logger="cscsr.ingest"):
+        ingest(str(tmp_path / "c.dat"), str(tmp_path / "two.zarr"), IngestOptions(layout="sps100", task_frames=2),
+               progress=False, client=client)
+    assert store_files(tmp_path / "one.zarr") == store_files(tmp_path / "two.zarr")
+    said = [record.getMessage() for record in caplog.records if record.name == "cscsr.ingest"]
+    assert said == ([f"{tmp_path / 'c.dat'}: its last {tail} bytes, after frame 2, are a frame cut short (its "
+                     f"packets in sequence): not read"] if tail else [])
 
 
 def test_options_and_captures_that_do_not_fit_the_layout_are_refused(cli, tmp_path):
