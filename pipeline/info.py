@@ -4,7 +4,7 @@ import contextlib
 
 from pipeline.spike_store import open_spike_store
 from pipeline.storage import missing_chunks, open_group, size_of
-from pipeline.video_store import COMMITTED, FRAMES, VIDEO, is_video_store, lost_frames
+from pipeline.video_store import COMMITTED, FRAMES, VIDEO, check_video_store, is_video_store, lost_frames
 from stages.errors import InputError
 
 SHOWN = 4  # missing frame ranges named in full
@@ -71,6 +71,7 @@ def summarize_video(url: str, group) -> dict:
     """Frames, size, frame rate, method, state and the part of its recording (spike frames ``start``..``stop``,
     LR ``region``) of an HR video store; a store whose written tiles are not all there is never called complete,
     and the frames they belong to are named."""
+    check_video_store(url, group)  # a format_version it does not know, arrays that disagree: refused by name
     attrs = dict(group.attrs)
     video, frames = group[VIDEO], group[FRAMES][:]
     n, height, width = video.shape[:3]

@@ -8,7 +8,9 @@ Every chunk is written, empty or not. Writing follows xarray's habit: the group,
 written first with ``state = "writing"``; regions are filled next (each a whole number of
 chunks, so parallel writers never share a chunk); ``state`` becomes ``"complete"`` last.
 Readers refuse a store that is not complete, so an interrupted ingest never passes for
-a finished one.
+a finished one, and one whose ``format_version`` they do not know or whose metadata contradicts
+itself (the length of ``spikes`` against its ``frames`` attribute, ``spike_count``, the consolidated
+copy or the ingest tasks: :meth:`SpikeStore._contradiction`), so an edited store never passes either.
 
 Every store gets an ``identity`` when it is finished: a SHA-256 of what it records and of the bits
 of its first and last frames (:func:`recording_identity`), so the same capture ingested again (or the
@@ -33,7 +35,7 @@ from zarr.codecs import ZstdCodec
 
 import cscsr
 from pipeline.storage import consolidate, open_group, remove_partial_writes, zarr_store
-from pipeline.video_store import describe_video_store, is_video_store
+from pipeline.video_store import check_format_version, consolidated_shapes, describe_video_store, is_video_store
 from stages.bits import packed_width
 from stages.cfa import check_cfa
 from stages.colour import MAX_GAIN
@@ -97,13 +99,13 @@ class SpikeMeta:
             attrs = {**attrs, "head_at": "start"}
         known = {f for f in cls.__dataclass_fields__ if f != "extra"}
         extra = {k: v for k, v in attrs.items()
-                 if k not in known | {"format_version", "cscsr_version", "state", "spike_count", "identity"}}
+                 if k not in known | {"format_version", "cscsr_version", "state", "spike_count", "identity", "frames"}}
         return cls(**{k: attrs[k] for k in known if k in attrs}, extra=extra)
 
 
 # What each attribute must be: a store written by hand or damaged is refused by name, never misread
 # (a string "no" for flipped would otherwise read as true and export frames upside down).
-_ATTRIBUTE_TYPES = {"height": int, "width": int, "head_columns": int, "spike_count": int, "scale": int,
+_ATTRIBUTE_TYPES = {"height": int, "width": int, "head_columns": int, "spike_count": int, "frames": int, "scale": int,
                     "fps": float, "gain": float, "threshold": float, "flipped": bool, "cfa": str, "reset": str,
                     "head_at": str, "identity": str}
 
@@ -111,7 +113,7 @@ _ATTRIBUTE_TYPES = {"height": int, "width": int, "head_columns": int, "spike_cou
 # The range of each number a store records: finite, and one that its readers can use (a negative
 # gain or a scale of 0 would otherwise fail inside every task, an infinite fps print as invalid JSON).
 _ATTRIBUTE_RANGES = {"fps": {"above": 0}, "gain": {"above": 0, "at_most": MAX_GAIN}, "threshold": {"above": 0},
-                     "spike_count": {"at_least": 0}, "scale": {"at_least": 1},
+                     "spike_count": {"at_least": 0}, "frames": {"at_least": 0}, "scale": {"at_least": 1},
                      "truth_every": {"at_least": 1, "integer": True}, "brightness": {"above": 0}}
 
 
@@ -147,6 +149,7 @@ class SpikeStore:
         self.url = url
         self.group = group
         self.attrs = dict(group.attrs)
+        check_format_version(self.attrs, f"spike store {url}", FORMAT_VERSION)
         try:
             self.meta = SpikeMeta.from_attrs(self.attrs)
         except InputError as error:
@@ -161,6 +164,35 @@ class SpikeStore:
             raise InputError(
                 f"{url}: '{SPIKES}' is {self.spikes.dtype} {self.spikes.shape}, expected uint8 (T, {expected[0]}, {expected[1]})"
             )
+        if problem := self._contradiction():
+            raise InputError(f"spike store {url}: metadata inconsistent: {problem}: the store was altered or damaged; "
+                             f"make it again from its source")
+
+    def _contradiction(self) -> str | None:
+        """What the store's own records say against the frame count of ``spikes`` (its shape), or None. Metadata
+        only, no chunk read: the ``frames`` attribute (written with the array's metadata), ``spike_count`` (at most
+        every pixel of every frame), the consolidated copy of the arrays' metadata in the root ``zarr.json``, and an
+        ingested store's task record (``committed``: one element per ``task_frames`` frames). Each is compared where
+        it is recorded: an unfinished store has neither a count nor a consolidated copy yet, and a store from before
+        them is read as before."""
+        n, height, width = self.shape
+        if (recorded := self.attrs.get("frames")) is not None and recorded != n:
+            return f"'{SPIKES}' has {n} frames, but the store records {recorded} (attribute frames)"
+        count = self.attrs.get("spike_count")
+        if isinstance(count, int) and not isinstance(count, bool) and count > n * height * width:
+            return (f"spike_count {count} is more than its {n} frames of {height}x{width} pixels can hold "
+                    f"({n * height * width})")
+        for name, shape in consolidated_shapes(self.group).items():
+            if name in self.group and isinstance(own := self.group[name], zarr.Array) and tuple(own.shape) != shape:
+                return (f"'{name}' is {tuple(own.shape)} in {name}/zarr.json but {shape} in the consolidated copy in "
+                        f"zarr.json")
+        if COMMITTED in self.group and isinstance(committed := self.group[COMMITTED], zarr.Array):
+            task_frames = committed.attrs.get("task_frames")
+            if (isinstance(task_frames, int) and not isinstance(task_frames, bool) and task_frames > 0
+                    and committed.ndim == 1 and committed.shape[0] != -(-n // task_frames)):
+                return (f"'{SPIKES}' has {n} frames, but '{COMMITTED}' records {committed.shape[0]} ingest tasks of "
+                        f"{task_frames} frames ({-(-n // task_frames)} for {n} frames)")
+        return None
 
     @property
     def n_frames(self) -> int:
@@ -185,7 +217,8 @@ class SpikeStore:
 
 
 IDENTITY_FRAMES = 64  # frames read at each end of a recording for its identity: milliseconds of work
-NOT_IDENTITY = ("state", "identity", "source", "cscsr_version", "format_version")  # where and by what, not what
+NOT_IDENTITY = ("state", "identity", "source", "cscsr_version", "format_version",  # where and by what, not what
+                "frames")  # the shape's, hashed as such: identities stay those of stores from before it
 
 
 def recording_identity(attrs: dict, spikes: zarr.Array) -> str:
@@ -270,7 +303,7 @@ class SpikeStoreWriter:
         self.url = url
         self.chunk_frames = chunk_frames or chunk_frames_for(meta, n_frames)
         self.group = zarr.open_group(zarr_store(url, read_only=False), mode="w",
-                                     attributes={**meta.attrs(), "state": "writing"})
+                                     attributes={**meta.attrs(), "frames": n_frames, "state": "writing"})
         self.spikes = self.group.create_array(
             SPIKES,
             shape=(n_frames, meta.height, packed_width(meta.width)),

@@ -12,6 +12,7 @@ as the coordinate of ``video``); only the group's attributes change after, which
 """
 
 import asyncio
+import json
 from collections.abc import Sequence
 
 import numpy as np
@@ -60,7 +61,61 @@ def open_video_store(url: str, *, writable: bool = False) -> zarr.Group:
         raise InputError(f"cannot read video store {url}: no Zarr group there") from None
     if VIDEO not in group or FRAMES not in group:
         raise InputError(f"{url} is not an HR video store: it needs '{VIDEO}' and '{FRAMES}'")
+    check_video_store(url, group)
     return group
+
+
+def check_video_store(url: str, group: zarr.Group) -> None:
+    """Refuse a video store of a ``format_version`` this release does not read, or whose arrays disagree on the
+    number of output frames (``video``, ``frames`` and ``committed``, as the group reads them: the consolidated
+    copy where there is one): shapes only, no chunk read. A store being written has every array declared already:
+    it passes."""
+    check_format_version(dict(group.attrs), f"video store {url}", FORMAT_VERSION)
+    arrays = {name: group[name] for name in (VIDEO, FRAMES, COMMITTED) if name in group}
+    if not all(isinstance(array, zarr.Array) and array.ndim >= 1 for array in arrays.values()):
+        raise InputError(f"video store {url}: its '{VIDEO}', '{FRAMES}' and '{COMMITTED}' must be arrays")
+    counts = {name: array.shape[0] for name, array in arrays.items()}
+    if len(set(counts.values())) > 1:
+        disagree = ", ".join(f"'{name}' {count}" for name, count in counts.items())
+        raise InputError(f"video store {url}: metadata inconsistent: its arrays disagree on the number of output "
+                         f"frames ({disagree}): the store was altered or damaged; make it again with cscsr "
+                         f"reconstruct --overwrite")
+
+
+def check_format_version(attrs: dict, what: str, known: int) -> None:
+    """Refuse a ``format_version`` this release does not read (a newer one, or not a version at all) in one
+    line naming ``what``; a store without one (written before versions were recorded) is read as version 1."""
+    version = attrs.get("format_version")
+    if version is None:
+        return
+    if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+        raise InputError(f"{what}: metadata inconsistent: format_version {version!r} is not a format version "
+                         f"(1..{known})")
+    if version > known:
+        writer = attrs.get("cscsr_version")
+        why = (f"metadata inconsistent: it records cscsr {writer}, which writes {known}" if writer == cscsr.__version__
+               else f"read it with the release that wrote it (cscsr {writer}) or a newer one" if writer
+               else "read it with the release that wrote it")
+        raise InputError(f"{what}: format_version {version} is not one this cscsr ({cscsr.__version__}) reads "
+                         f"(1..{known}): {why}")
+
+
+def consolidated_shapes(group: zarr.Group) -> dict[str, tuple]:
+    """The shape of each array as the consolidated copy in the group's ``zarr.json`` records it (one small metadata
+    read; the group is opened from the arrays' own metadata, :func:`pipeline.storage.open_group`); empty where there
+    is no copy or it cannot be read (xarray's concern, not ours)."""
+    from zarr.core.buffer import default_buffer_prototype
+    from zarr.core.sync import sync
+
+    prefix = f"{group.store_path.path}/" if group.store_path.path else ""
+    try:
+        raw = sync(group.store.get(prefix + "zarr.json", prototype=default_buffer_prototype()))
+        entries = json.loads(raw.to_bytes())["consolidated_metadata"]["metadata"]
+        return {name: tuple(entry["shape"]) for name, entry in entries.items()
+                if isinstance(entry, dict) and entry.get("node_type") == "array"
+                and isinstance(entry.get("shape"), list)}
+    except (TypeError, KeyError, ValueError, AttributeError, OSError):
+        return {}
 
 
 def video_array(url: str) -> zarr.Array:
