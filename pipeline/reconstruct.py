@@ -28,7 +28,8 @@ window reaches past it); tiles cut inside the region, their halo read from outsi
 has pixels. The output records the part (``start``, ``stop``, ``region``), and ``--resume`` checks it.
 
 ``--dry-run`` (:func:`plan_job`): every check of a real run, nothing created; a few of the job's tasks run
-for real on its workers, all busy at once, into a temporary store in each worker's memory, price the job
+for real on its workers, all busy at once, into a temporary store that is not OUT's (in a new folder under this
+machine's temporary folder where every worker reaches it, else in each worker's memory), price the job
 (``pipeline.estimate``).
 """
 
@@ -37,7 +38,10 @@ import dataclasses
 import functools
 import itertools
 import logging
+import os
+import shutil
 import sys
+import tempfile
 import threading
 import time
 import uuid
@@ -339,9 +343,9 @@ def plan_job(plan: Plan, part: Part, grid: list[list[Tile]], blocks: list, batch
              hr_size: tuple[int, int], where: Placement, *, client=None, workers: int | None = None,
              resources: dict | None = None, store: str | None = None, segment_tasks: int = SEGMENT_TASKS) -> dict:
     """The plan of a checked job, priced by some of its own tasks run for real on the workers that would run
-    them, all busy at once, into a temporary store in each worker's memory (:func:`_measured`): on the job's
-    cluster, or, for a job that would start its own local cluster, in a segment alike (its own process and
-    local cluster), whose fixed cost each of the job's segments pays too.
+    them, all busy at once, into a temporary store that is not ``out``'s (:func:`_measured`, :func:`_scratch`): on
+    the job's cluster, or, for a job that would start its own local cluster, in a segment alike (its own process
+    and local cluster), whose fixed cost each of the job's segments pays too.
     Their time and compressed bytes give the hours on 1, 8 and 64 such workers, this job's time on its
     workers, and the output's size (``pipeline.estimate``)."""
     centres = part.centres
@@ -489,9 +493,9 @@ def _check_resumable(plan: Plan, group, centres: list[int], *, adopt: bool = Fal
 
 
 def _sampled(plan: Plan, frames: tuple[tuple[int, int], ...], tiles: tuple[tuple[int, int, Tile], ...]) -> dict:
-    """Task of a dry run: a task of the job, written into the temporary store in this process's memory
-    (:func:`_trial_store`) -> the compressed bytes and HR pixels of video it wrote, which it then drops (a
-    sample holds one task's output at a time)."""
+    """Task of a dry run: a task of the job, written into the dry run's temporary store (:func:`_scratch`) -> the
+    compressed bytes and HR pixels of video it wrote, which it then drops (a sample holds one task's output at a
+    time)."""
     _reconstruct_tiles(plan, frames, tiles)
     video = _opened(plan.spikes, plan.out, plan.run)[1].video
     fs, root = resolve(f"{plan.out}/{VIDEO}")
@@ -519,13 +523,35 @@ def _trial_store(url: str, attrs: dict | None = None, layout: dict | None = None
     _opened.cache_clear()  # the writer of a store that is gone
 
 
-def _scratch(out: str) -> str:
-    """Where a dry run writes its tasks: beside ``out`` (a hidden sibling, removed after), so that they pay what the
-    job's writes pay; in the workers' memory where ``out`` is there too (``memory://``)."""
-    if str(out).startswith("memory://"):
-        return f"memory://cscsr-dry-run-{uuid.uuid4().hex}/out.zarr"
-    parent, _, name = str(out).rstrip("/").rpartition("/")
-    return f"{parent + '/' if parent else ''}.{name}.dry-run-{uuid.uuid4().hex[:12]}"
+@contextlib.contextmanager
+def _scratch(client, workers: list[str]) -> Iterator[str]:
+    """Where a dry run's tasks write, never at or beside OUT (a dry run creates nothing there, nor a folder above
+    it, nor a key in its bucket): a store in a new folder under this machine's temporary folder where every one of
+    ``workers`` can write it (a local cluster's: they pay a write to disk, as the job's tasks do), else (a
+    cluster's workers that share no folder with us) a ``memory://`` store in each worker process's memory
+    (:func:`_measured` creates and removes it there); the folder is removed after either way. Each chunk is
+    encoded as the job's is: the bytes per pixel are the job's."""
+    folder = tempfile.mkdtemp(prefix="cscsr-dry-run-")
+    try:
+        if all(client.run(_writable, folder, workers=workers).values()):
+            yield os.path.join(folder, "out.zarr")
+        else:
+            yield f"memory://cscsr-dry-run-{uuid.uuid4().hex}/out.zarr"
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+_TOKEN = uuid.uuid4().hex  # this process's, drawn once (a process forked later has a pid of its own)
+
+
+def _process() -> tuple[int, str]:
+    """This process, unlike any other on any machine (pids repeat across machines and containers)."""
+    return os.getpid(), _TOKEN
+
+
+def _writable(folder: str) -> bool:
+    """Whether this process (a worker) can write in ``folder``."""
+    return os.path.isdir(folder) and os.access(folder, os.W_OK | os.X_OK)
 
 
 TRIAL_WORKERS = 64  # the most workers a dry run measures on
@@ -538,9 +564,10 @@ def _measured(client, plan: Plan, part: Part, grid: list[list[Tile]], blocks: li
     """Run tasks of the job (from its middle on) on every worker that would run them (at most
     ``TRIAL_WORKERS``), all at once as the job keeps them busy (workers that share a machine share its
     cores, caches and memory bandwidth: one worker measured alone runs up to twice as fast as in the job),
-    into a temporary store (:func:`_scratch`), removed after: one task per worker to warm them (the method
-    built, the stores opened, code compiled, as a worker's first task does once), then tasks submitted as
-    the job submits them (a bounded window, ``pipeline.executor.submitted``) for about ``seconds``.
+    into a temporary store (:func:`_scratch`: a folder of this machine that they all reach, else each worker's
+    memory), removed after: one task per worker to warm them (the method built, the stores opened, code compiled, as a
+    worker's first task does once), then tasks submitted as the job submits them (a bounded window,
+    ``pipeline.executor.submitted``) for about ``seconds``.
     -> {"workers" measured on, "of" how many would run the job's tasks, "tasks" timed, "seconds" until the
     last workers went idle, "seconds_per_task" on one worker (that time over the tasks each ran: the
     client's and scheduler's work included, and the workers' waits for it), "bytes" and "hr_pixels" of video
@@ -551,8 +578,17 @@ def _measured(client, plan: Plan, part: Part, grid: list[list[Tile]], blocks: li
     if not able:
         raise InputError("the cluster has no worker that would run this job's tasks: add workers, then plan again")
     of, able = len(able), able[:TRIAL_WORKERS]
-    url = _scratch(plan.out)
-    shared = not url.startswith("memory://")  # one store that every worker reaches, else one in each worker
+    with _scratch(client, able) as url:
+        return _measured_into(client, url, able, of, plan, part, grid, blocks, batch, hr_size, resources, seconds)
+
+
+def _measured_into(client, url: str, able: list[str], of: int, plan: Plan, part: Part, grid: list[list[Tile]],
+                   blocks: list, batch: int, hr_size: tuple[int, int], resources: dict | None,
+                   seconds: float) -> dict:
+    """:func:`_measured` on the workers ``able`` (of ``of``), its tasks writing into the store at ``url``."""
+    shared = not url.startswith("memory://")  # one store that every worker reaches, else one in each worker process
+    # workers that share a process (a client's in-process workers) share its memory: the store made once there
+    owners = list({process: address for address, process in client.run(_process, workers=able).items()}.values())
     trial = dataclasses.replace(plan, out=url, run=uuid.uuid4().hex)
     first = grid[0][0]
     layout = {"centres": part.centres, "hr_size": hr_size, "tiles": (len(grid), len(grid[0])),
@@ -574,7 +610,7 @@ def _measured(client, plan: Plan, part: Part, grid: list[list[Tile]], blocks: li
     if shared:
         _trial_store(url, trial.attrs(), layout)
     else:
-        client.run(_trial_store, url, trial.attrs(), layout, workers=able)
+        client.run(_trial_store, url, trial.attrs(), layout, workers=owners)
     try:
         client.gather([submit(group, [address]) for address, group in zip(able, groups)])  # warm
         began, finished, results = time.perf_counter(), [], []
@@ -582,7 +618,7 @@ def _measured(client, plan: Plan, part: Part, grid: list[list[Tile]], blocks: li
             results.append(future.result())
             finished.append(time.perf_counter())
     finally:
-        client.run(_trial_store, url, None, None, shared, workers=able)
+        client.run(_trial_store, url, None, None, shared, workers=owners)
         if shared:
             _trial_store(url)
     # until the last workers go idle: the time of the task that leaves one task a worker to finish

@@ -6,7 +6,8 @@ LocalCluster(n_workers=2) and real Zarr stores.
 - A region gives exactly the matching part of a whole run cut into the same tiles (TFP and TFI).
 - The output records its part, ``info`` shows it, ``--resume`` refuses another part.
 - Bad ranges and regions are one line, exit 1, and nothing created (the Python API refuses them too).
-- ``--dry-run`` creates nothing (no output, no claim, no temporary store left) and prints the plan.
+- ``--dry-run`` creates nothing (no output, no claim, no folder above OUT, nothing beside it, no key in its bucket
+  or memory, no temporary store left) and prints the plan.
 """
 
 import fsspec
@@ -352,3 +353,107 @@ def test_a_network_dry_run_measures_on_the_gpu_workers(recording, tmp_path, quic
     assert plan["measured_on"] == "1 GPU worker of the cluster" and plan["workers"] == 1
     assert plan["frames"] == 4 and plan["frames_per_task"] == 4 and plan["measured"]["bytes"] > 0
     nothing_made(tmp_path)
+
+
+def test_a_dry_run_writes_nowhere_near_its_output(recording, cli, tmp_path, monkeypatch, quick):
+    """OUT in folders that do not exist: none is made, nothing appears beside them; the sample tasks wrote into a
+    folder under this machine's temporary folder (the segment's local cluster shares it), gone after."""
+    temporary = tmp_path / "tmp"
+    temporary.mkdir()
+    monkeypatch.setenv("TMPDIR", str(temporary))  # the segment's fresh process and its workers: theirs too
+    outputs = tmp_path / "outputs"
+    outputs.mkdir()
+    out = outputs / "missing" / "deeper" / "out.zarr"
+    result = cli("reconstruct", recording, out, "--every", 7, "--tile", 16, "--workers", 1, "--dry-run", "--json")
+    assert result.exit_code == 0, result.stderr
+    plan = json.loads(result.stdout)
+    assert plan["measured"]["bytes"] > 0 and plan["output_bytes"] > 0
+    nothing_made(outputs)
+    assert not [name for name in os.listdir(temporary) if name.startswith("cscsr-dry-run")]
+
+
+def test_the_dry_run_scratch_is_a_temporary_folder_or_each_workers_memory(client, tmp_path, monkeypatch):
+    """A folder under this machine's temporary folder where every worker can write it (the local cluster's), else
+    each worker's memory (workers of another machine: they cannot); the folder removed after either way."""
+    import tempfile
+
+    from pipeline.reconstruct import _scratch
+
+    class Elsewhere:  # a cluster whose workers see none of this machine's folders
+        def run(self, function, *args, workers):
+            return {address: False for address in workers}
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    able = list(client.scheduler_info()["workers"])
+    with _scratch(client, able) as url:
+        folder = os.path.dirname(url)
+        assert os.path.dirname(folder) == str(tmp_path) and os.path.basename(folder).startswith("cscsr-dry-run-")
+    assert os.listdir(tmp_path) == []
+    with _scratch(Elsewhere(), able) as url:
+        assert url.startswith("memory://cscsr-dry-run-")
+    assert os.listdir(tmp_path) == []
+
+
+def test_a_dry_run_of_an_s3_output_writes_no_key(recording, client, s3_endpoint, quick):
+    """On the cluster, OUT in a versioned bucket (a key written and deleted leaves a version and a delete marker):
+    no key was ever written there (the tasks wrote under this machine's temporary folder, removed after); the plan
+    is priced all the same."""
+    import boto3
+
+    from cscsr import reconstruct as api_reconstruct
+
+    s3 = boto3.client("s3")
+    s3.create_bucket(Bucket="dry-run-bucket")
+    s3.put_bucket_versioning(Bucket="dry-run-bucket", VersioningConfiguration={"Status": "Enabled"})
+    planned = api_reconstruct(recording, "s3://dry-run-bucket/plans/out.zarr", every=7, tile=16, client=client,
+                              dry_run=True)
+    assert planned.counts["measured"]["bytes"] > 0 and planned.counts["output_bytes"] > 0
+    versions = s3.list_object_versions(Bucket="dry-run-bucket")
+    assert not versions.get("Versions") and not versions.get("DeleteMarkers"), versions
+    leftovers = client.run(lambda: [str(p) for p in fsspec.filesystem("memory").ls("/") if "cscsr-dry-run" in str(p)])
+    assert all(found == [] for found in leftovers.values())
+
+
+class Recorded(dict):
+    """The memory file system's store, recording every key ever set."""
+
+    def __init__(self, *args):
+        super().__init__(*args)
+        self.set = []
+
+    def __setitem__(self, key, value):
+        self.set.append(key)
+        super().__setitem__(key, value)
+
+
+def test_a_dry_run_of_a_memory_output_writes_no_key(recording, monkeypatch, quick):
+    """A client of two workers in this process (so that ``memory://`` is allowed) that cannot reach this machine's
+    temporary folder (as a remote cluster's): the sample's store is made once in the memory they share, and removed
+    after; no key of OUT was ever set."""
+    from distributed import Client, LocalCluster
+    from fsspec.implementations.memory import MemoryFileSystem
+
+    store = Recorded(MemoryFileSystem.store)
+    monkeypatch.setattr(MemoryFileSystem, "store", store)
+    monkeypatch.setattr("pipeline.reconstruct._writable", lambda folder: False)
+    out = "memory://dry-run-plans/out.zarr"
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as local, \
+            Client(local) as client:
+        plan = reconstruct(recording, out, ReconstructOptions(every=7, tile=16), client=client, dry_run=True)
+    assert plan["workers"] == 2 and plan["measured"]["bytes"] > 0
+    assert not [key for key in store.set if "dry-run-plans" in key], store.set
+    assert [key for key in store.set if key.startswith("/cscsr-dry-run-")]  # the sample's store, in this process
+    assert not [key for key in store if "cscsr-dry-run" in key or "dry-run-plans" in key]
+
+
+def test_a_dry_run_on_workers_that_share_no_folder_measures_in_their_memory(recording, client, tmp_path,
+                                                                           monkeypatch, quick):
+    """Worker processes that cannot reach this machine's temporary folder (as a remote cluster's): the sample's store
+    is made in each one's memory, priced the same, and removed after; nothing beside OUT."""
+    monkeypatch.setattr("pipeline.reconstruct._writable", lambda folder: False)  # sent by value to the workers
+    plan = reconstruct(recording, str(tmp_path / "out.zarr"), ReconstructOptions(every=7, tile=16), client=client,
+                       dry_run=True)
+    assert plan["workers"] == 2 and plan["measured"]["bytes"] > 0 and plan["measured"]["tasks"] >= 6
+    nothing_made(tmp_path)
+    leftovers = client.run(lambda: [str(p) for p in fsspec.filesystem("memory").ls("/") if "cscsr-dry-run" in str(p)])
+    assert all(found == [] for found in leftovers.values())
