@@ -19,6 +19,7 @@ import pytest
 import zarr
 
 from pipeline import spike_store
+from tests.reliability.test_fuzz_readers import run_on_store as run
 
 FRAMES, HEIGHT, WIDTH, TASK_FRAMES = 205, 16, 16, 40  # 5 frames a chunk (small_chunks), 6 tasks
 COMMANDS = ("info", "export", "reconstruct")
@@ -63,17 +64,6 @@ def cut(store, frames: int, *, consolidated: bool = True) -> None:
     if consolidated:
         edit(store / "zarr.json", lambda metadata: metadata["consolidated_metadata"]["metadata"]["spikes"].update(
             shape=shape))
-
-
-def run(cli, command, store, tmp_path):
-    """Run ``command`` on ``store``; return (result, the output it must not leave)."""
-    if command == "info":
-        return cli("info", store), None
-    if command == "export":
-        out = tmp_path / "out.dat"
-        return cli("export", store, out), out
-    out = tmp_path / "out.zarr"
-    return cli("reconstruct", store, out, "--workers", 1), out
 
 
 def assert_refused(result, out, *fragments) -> None:
