@@ -148,8 +148,9 @@ class RawCapture:
                     continue
                 count = min(frames_per_block, self.n_frames - start)
                 stream.seek(self.offset + start * frame_bytes)
-                data = stream.read(self._span(start, start + count))
-                if len(data) != self._span(start, start + count):
+                span = self._span(start, start + count)
+                data = stream.read(span)
+                if len(data) != span:
                     raise InputError(f"{self.url} ended early at frame {start}: it changed while being read")
                 yield start, self._packed(data, count, start)
 
