@@ -9,13 +9,15 @@ The main jobs are also functions (``docs/python.md``)::
     from cscsr import ingest, simulate, reconstruct, evaluate
 
 They live in :mod:`pipeline.api` and are loaded on first use: ``import cscsr`` alone imports
-neither the pipeline nor Dask.
+neither the pipeline nor Dask. So is ``cscsr.lazy`` (:mod:`pipeline.lazy`), the stages as lazy Dask graphs on
+xarray: ``from cscsr import lazy``.
 """
 
 __version__ = "0.1.0"
 
 API = ("ingest", "simulate", "reconstruct", "evaluate", "Written")
-__all__ = [*API, "__version__"]
+MODULES = {"lazy": "pipeline.lazy"}  # submodules of the pipeline offered here
+__all__ = [*API, *MODULES, "__version__"]
 
 
 def __getattr__(name: str):
@@ -25,8 +27,13 @@ def __getattr__(name: str):
         value = getattr(import_module("pipeline.api"), name)
         globals()[name] = value  # the next look-up is an ordinary attribute
         return value
+    if name in MODULES:
+        from importlib import import_module
+
+        globals()[name] = module = import_module(MODULES[name])
+        return module
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def __dir__() -> list[str]:
-    return sorted({*globals(), *API})
+    return sorted({*globals(), *API, *MODULES})

@@ -378,14 +378,15 @@ def to_video(hr: xr.DataArray, url: str, *, overwrite: bool = False, resume: boo
         starts = np.cumsum((0, *data.chunks[0]))
         blocks = [(b, ty, tx) for b in range(len(data.chunks[0])) for ty in range(tiles[0]) for tx in range(tiles[1])
                   if data.chunks[0][b] and not done[starts[b]:starts[b + 1], ty, tx].all()]
-        run = uuid.uuid4().hex
+        # one task per block of ``hr``: write its frames' chunks of its tile, then commit them
+        written = data.map_blocks(_write_block, url, uuid.uuid4().hex, tuple(int(s) for s in starts), tile_hr,
+                                  chunks=tuple((1,) * len(c) for c in data.chunks), dtype=np.int64,
+                                  meta=np.empty((0, 0, 0, 0), np.int64))
         with held(url), progress_bar(f"to_video {url}", len(blocks), unit="blocks", enabled=progress) as advance:
             for at in range(0, len(blocks), BLOCKS_AT_ONCE):
                 chosen = blocks[at : at + BLOCKS_AT_ONCE]
-                writes = [dask.delayed(_write_block)(data.blocks[b, ty, tx], url, run, int(starts[b]), (ty, tx),
-                                                     (ty * tile_hr[0], tx * tile_hr[1]))
-                          for b, ty, tx in chosen]
-                dask.compute(*writes, optimize_graph=not _annotated(data))
+                dask.compute(*(written.blocks[b, ty, tx, 0] for b, ty, tx in chosen),
+                             optimize_graph=not _annotated(data))
                 advance(len(chosen))
         remove_partial_writes(url)
         open_video_store(url, writable=True).attrs["state"] = "complete"
@@ -437,8 +438,10 @@ def _writer(url: str, run: str) -> TileWriter:
     return TileWriter(url)
 
 
-def _write_block(block: np.ndarray, url: str, run: str, first: int, tile: tuple[int, int],
-                 origin: tuple[int, int]) -> int:
-    """Task: write the frames ``first, first + 1, ...`` of one tile (a chunk each), then commit them."""
-    _writer(url, run).write_frames(first, tile, origin, list(block))
-    return len(block)
+def _write_block(block: np.ndarray, url: str, run: str, starts: tuple[int, ...], tile_hr: tuple[int, int],
+                 block_id: tuple[int, int, int, int]) -> np.ndarray:
+    """Task: write the frames of one block (its tile of output frames ``starts[b]``, ...; a chunk each), then commit
+    them. -> (1, 1, 1, 1): how many frames."""
+    b, ty, tx, _ = block_id
+    _writer(url, run).write_frames(starts[b], (ty, tx), (ty * tile_hr[0], tx * tile_hr[1]), list(block))
+    return np.full((1, 1, 1, 1), len(block), np.int64)

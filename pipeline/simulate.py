@@ -137,6 +137,16 @@ def check_options(options: SimulateOptions, source: FrameSource) -> tuple[int, i
     return source.height // options.scale, source.width // options.scale
 
 
+def simulated_meta(options: SimulateOptions, height: int, width: int, source: str) -> SpikeMeta:
+    """What a simulated spike store records (its attributes): the LR size, the sensor's settings, how the scene
+    was made (``motion`` "video" for a video-like source) and ``source``."""
+    return SpikeMeta(height=height, width=width, cfa=options.cfa, fps=options.fps, source=source,
+                     reset=options.reset, gain=options.sensor_model().gain, threshold=options.threshold,
+                     extra={"brightness": options.brightness, "scale": options.scale, "seed": options.seed,
+                            "noise": options.noise, "interp": options.interp, "motion": options.motion or "video",
+                            "truth_every": options.truth_every, "simulated": True})
+
+
 # ---- tasks (run on workers; module-level so they pickle by reference) ----
 
 def _lr_frame(source: FrameSource, index: int, scale: int) -> np.ndarray:
@@ -274,18 +284,13 @@ def simulate(src: str, dest: str, options: SimulateOptions = SimulateOptions(), 
     check_in_memory((src, dest))  # read and written by the tasks, in worker processes
     source = open_frame_source(src)
     height, width = check_options(options, source)
-    model = options.sensor_model()
     path = None
     if options.motion == "random":
         path = CameraPath.random(options.frames, source.height, source.width, seed=options.seed,
                                  speed=options.speed, deform=options.deform)
     scene = Scene(source, path)
     truth_at = output_centres(options.frames, WINDOW, options.truth_every)  # window centres with a full window
-    meta = SpikeMeta(height=height, width=width, cfa=options.cfa, fps=options.fps, source=recorded(src),
-                     reset=options.reset, gain=model.gain, threshold=options.threshold,
-                     extra={"brightness": options.brightness, "scale": options.scale, "seed": options.seed,
-                            "noise": options.noise, "interp": options.interp, "motion": options.motion or "video",
-                            "truth_every": options.truth_every, "simulated": True})
+    meta = simulated_meta(options, height, width, recorded(src))
     chunk = options.chunk_frames or chunk_frames_for(meta, options.frames)
     check_scheduler(scheduler)  # a named scheduler answers (within seconds) before DEST is claimed or replaced
 

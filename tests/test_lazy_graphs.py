@@ -1,0 +1,249 @@
+"""``cscsr.lazy``: the reconstruction's stages as lazy Dask graphs on xarray, on real Zarr stores and real clusters.
+
+- ``to_video(reconstruct(windows(open_spikes(...))))`` writes the bytes (and attributes) ``cscsr reconstruct``
+  writes with the same options: TFP, TFI and the shipped lite network, whole and with ``--start/--stop/--region``.
+- Nothing is read before something computes: a million-frame recording whose chunks are all gone still builds
+  its graph (a few hundred tasks), and names the lost frames when computed.
+- The threaded scheduler, a ``LocalCluster`` of processes and a worker killed mid-``to_video`` give one result;
+  a failed ``to_video`` is resumed to the bytes of an uninterrupted one.
+- A user's function runs between stages (``map_blocks``) and as a method of its own (``apply``, tiles and halo).
+- On a cluster with GPU workers the network's tasks carry the ``GPU`` resource and run there only.
+- Bad input is the jobs' one line, before anything is written.
+"""
+
+import os
+import shutil
+
+import dask
+import numpy as np
+import pytest
+import xarray as xr
+import zarr
+from distributed import Client, LocalCluster, get_task_stream
+
+from cscsr import lazy
+from pipeline.cluster import GPU, GPU_SHARE
+from pipeline.ingest import IngestOptions, ingest
+from pipeline.lazy_video import MARGIN
+from pipeline.reconstruct import ReconstructOptions, reconstruct
+from pipeline.spike_store import SPIKES, SpikeMeta, SpikeStoreWriter
+from stages.errors import InputError, InputTypeError
+from tests.test_gpu_workers import cluster, names
+from tests.test_ranges_and_regions import FPS, moving_scene
+
+HEIGHT, WIDTH, FRAMES = 48, 64, 200  # LR, RGGB, 1000 fps; automatic exposure (no gain recorded)
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory) -> str:
+    folder = tmp_path_factory.mktemp("lazy")
+    np.save(folder / "scene.npy", moving_scene(HEIGHT, WIDTH, FRAMES))
+    store = str(folder / "scene.zarr")
+    ingest(str(folder / "scene.npy"), store, IngestOptions(cfa="rggb", fps=FPS), progress=False)
+    return store
+
+
+def threaded():
+    """Dask's threaded scheduler, whatever client a test module has made the default."""
+    return dask.config.set(scheduler="threads")
+
+
+def stored(url: str) -> tuple[np.ndarray, np.ndarray, dict]:
+    group = zarr.open_group(url, mode="r")
+    return group["video"][:], group["frames"][:], dict(group.attrs)
+
+
+CASES = {  # the job's options -> (windows' arguments, the stage)
+    "tfp": dict(method="tfp", every=7, tile=16),
+    "tfp-part": dict(method="tfp", every=7, tile=16, start=30, stop="0.15s", region="8:40,16:48"),
+    "tfi": dict(method="tfi", every=20, tile=24),
+    "lite-part": dict(method="cscsr", weights="lite", every=20, tile=16, start=40, stop=120, region="8:40,16:48"),
+}
+
+
+def lazily(store: str, method: str, every: int, tile: int, weights=None, **part) -> xr.DataArray:
+    win = lazy.windows(lazy.open_spikes(store), every=every, **part)
+    if method == "tfp":
+        return lazy.tfp(win, tile=tile)
+    if method == "tfi":
+        return lazy.tfi(win, tile=tile)
+    return lazy.reconstruct(win, method=method, weights=weights, tile=tile)
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_to_video_writes_what_the_job_writes(recording, case, tmp_path):
+    options = CASES[case]
+    reconstruct(recording, str(tmp_path / "job.zarr"), ReconstructOptions(**options), workers=1, progress=False)
+    hr = lazily(recording, **options)
+    with threaded():
+        counts = lazy.to_video(hr, str(tmp_path / "lazy.zarr"))
+    job, made = stored(str(tmp_path / "job.zarr")), stored(str(tmp_path / "lazy.zarr"))
+    assert np.array_equal(job[0], made[0]) and np.array_equal(job[1], made[1])
+    assert job[2] == made[2]  # the same record: method, weights and their hash, gain, part, source, state ...
+    assert counts["frames"] == len(job[1]) and counts["tasks_skipped"] == 0
+    assert hr.shape == job[0].shape and list(hr.coords["frame"].values) == list(job[1])
+    assert np.array_equal(hr.coords["t"].values, job[1] / FPS)  # centre times in seconds
+
+
+def test_the_stages_are_lazy_and_say_what_they_hold(recording):
+    spikes = lazy.open_spikes(recording)
+    assert spikes.dims == ("t", "y", "x") and spikes.dtype == bool and spikes.shape == (FRAMES, HEIGHT, WIDTH)
+    assert spikes.attrs["cfa"] == "rggb" and spikes.attrs["fps"] == FPS and spikes.coords["t"].values[2] == 2 / FPS
+    stored_bits = np.unpackbits(zarr.open_group(recording, mode="r")[SPIKES][:], axis=-1, count=WIDTH,
+                                bitorder="little")
+    with threaded():
+        assert np.array_equal(spikes.values, stored_bits.astype(bool))
+    win = lazy.windows(spikes, every=20)
+    assert win.dims == ("t", "dt", "y", "x") and win.shape == (8, 41, HEIGHT, WIDTH)
+    with threaded():
+        assert np.array_equal(win[3].values, spikes.values[60:101])  # centred on 20 + 3 * 20
+    assert list(win.coords["dt"].values) == list(range(-20, 21))
+    # the time overlap is dask's: one task per chunk of the recording, no copy of it in the graph
+    assert win.data.npartitions == spikes.data.npartitions
+    hr = lazy.tfp(win)
+    assert hr.dims == ("t", "y", "x", "rgb") and hr.dtype == np.uint8 and hr.shape == (8, 4 * HEIGHT, 4 * WIDTH, 3)
+    assert isinstance(hr.coords["gain"].data, dask.array.Array)  # the automatic exposure, not yet computed
+
+
+def test_a_million_frames_build_a_small_graph_without_reading_a_chunk(tmp_path):
+    """Every chunk of the recording deleted: the graph builds (it reads metadata only), and computing it names
+    the frames that are lost."""
+    frames, meta = 10**6, SpikeMeta(height=8, width=16, cfa="rggb", fps=20000.0)
+    url = str(tmp_path / "long.zarr")
+    writer = SpikeStoreWriter(url, meta, frames)
+    rows = np.random.default_rng(0).integers(0, 256, (writer.chunk_frames, 8, 2), dtype=np.uint8)
+    for start in range(0, frames, writer.chunk_frames):
+        writer.write(start, rows[: min(writer.chunk_frames, frames - start)])
+    writer.finish(spike_count=0)
+    shutil.rmtree(tmp_path / "long.zarr" / SPIKES / "c")
+    hr = lazy.tfp(lazy.windows(lazy.open_spikes(url), every=41, start="10s", stop="40s"))
+    assert hr.shape == (14634, 32, 64, 3)  # the centres in [200000, 800000), every 41 frames
+    assert len(hr.data.__dask_graph__()) < 200  # tasks per chunk of the recording, not per window
+    with threaded(), pytest.raises(InputError, match=r"the chunk of frames \d+\.\.\d+ is missing \(lost data\)"):
+        hr[0].compute()
+
+
+def test_threads_processes_and_a_killed_worker_give_one_result(recording, tmp_path):
+    """The threaded scheduler, a LocalCluster of two worker processes, and the same cluster losing the worker that
+    runs one of the tasks (``os._exit``, as a crash): the same bytes."""
+    flag = tmp_path / "killed-once"
+
+    def crashing_tfp_like(window):  # a worker dies the first time any worker runs this block
+        if window.shape[1] == 20 and not flag.exists():
+            flag.touch()
+            os._exit(1)
+        return np.repeat(np.repeat(np.uint8(window.sum(axis=0) * 6), 4, 0), 4, 1)[..., None].repeat(3, -1)
+
+    def hr():
+        return lazy.apply(lazy.windows(lazy.open_spikes(recording), every=7), crashing_tfp_like, scale=4, halo=2,
+                          tile=16)
+
+    flag.touch()  # no crash in the reference run
+    with threaded():
+        lazy.to_video(hr(), str(tmp_path / "threads.zarr"))
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as local, \
+            Client(local):
+        lazy.to_video(hr(), str(tmp_path / "processes.zarr"))
+        flag.unlink()
+        lazy.to_video(hr(), str(tmp_path / "killed.zarr"))
+    assert flag.exists()  # a worker did die
+    reference = stored(str(tmp_path / "threads.zarr"))
+    for other in ("processes", "killed"):
+        video, frames, attrs = stored(str(tmp_path / f"{other}.zarr"))
+        assert np.array_equal(video, reference[0]) and attrs["state"] == "complete"
+
+
+def test_a_failed_to_video_resumes_to_the_bytes_of_one_run(recording, tmp_path):
+    failing = tmp_path / "fail"
+
+    def grey(window):  # refuses the windows of the frame's second tile row (32 rows with its halo) while flagged
+        if failing.exists() and window.shape[1] == 32:
+            raise RuntimeError("disk full")
+        return np.repeat(np.repeat(np.uint8(window.mean(axis=0) * 255), 4, 0), 4, 1)[..., None].repeat(3, -1)
+
+    hr = lazy.apply(lazy.windows(lazy.open_spikes(recording), every=7), grey, scale=4, halo=8, tile=16)
+    with threaded():
+        lazy.to_video(hr, str(tmp_path / "whole.zarr"))
+        failing.touch()
+        with pytest.raises(RuntimeError, match="disk full"):
+            lazy.to_video(hr, str(tmp_path / "resumed.zarr"))
+        assert zarr.open_group(str(tmp_path / "resumed.zarr"), mode="r").attrs["state"] == "writing"
+        failing.unlink()
+        counts = lazy.to_video(hr, str(tmp_path / "resumed.zarr"), resume=True)
+    assert counts["tasks_skipped"] > 0
+    assert np.array_equal(stored(str(tmp_path / "resumed.zarr"))[0], stored(str(tmp_path / "whole.zarr"))[0])
+    with pytest.raises(InputError, match="other parameters"):  # another method's output is not resumed
+        lazy.to_video(lazy.tfp(lazy.windows(lazy.open_spikes(recording), every=7), tile=16),
+                      str(tmp_path / "resumed.zarr"), resume=True)
+
+
+def test_a_users_function_between_stages_and_as_a_method_with_a_halo(recording, tmp_path):
+    win = lazy.windows(lazy.open_spikes(recording), every=20)
+    hr = lazy.tfp(win, tile=16)
+    inverted = hr.copy(data=hr.data.map_blocks(lambda block: 255 - block))
+    with threaded():
+        lazy.to_video(inverted, str(tmp_path / "inverted.zarr"))
+        assert np.array_equal(stored(str(tmp_path / "inverted.zarr"))[0], 255 - hr.values)
+
+    def box_rate(window):  # a 5x5 box mean of the firing rate: needs 2 pixels of context on every side
+        rate = np.pad(window.mean(axis=0), 2, mode="edge")
+        box = sum(rate[dy : dy + rate.shape[0] - 4, dx : dx + rate.shape[1] - 4] for dy in range(5) for dx in range(5))
+        return np.repeat(np.repeat(np.uint8(np.round(box / 25 * 255)), 4, 0), 4, 1)[..., None].repeat(3, -1)
+
+    with threaded():
+        tiled = lazy.apply(win, box_rate, scale=4, halo=2, tile=16).values
+        whole = np.stack([box_rate(w) for w in win.values])
+    assert np.array_equal(tiled, whole)  # the halo makes tiles agree with the whole frame
+    with threaded():
+        no_halo = lazy.apply(win, box_rate, scale=4, halo=0, tile=16).values
+    assert not np.array_equal(no_halo, whole)  # without it, tile edges differ: the halo is what was tested
+
+
+def test_the_network_runs_on_gpu_workers_only(recording, tmp_path):
+    with cluster(cpu=None, gpu={GPU: 1}) as client:
+        hr = lazy.reconstruct(lazy.windows(lazy.open_spikes(recording), every=50), method="cscsr", weights="lite",
+                              tile=32)
+        layers = [layer for layer in hr.data.__dask_graph__().layers.values() if layer.annotations]
+        assert layers and all(layer.annotations == {"resources": {GPU: GPU_SHARE}} for layer in layers)
+        with get_task_stream(client) as stream:
+            lazy.to_video(hr, str(tmp_path / "gpu.zarr"))
+        workers = names(client)
+        ran = [workers[r["worker"]] for r in stream.data if "_reconstruct_block" in str(r["key"])]
+    assert len(ran) == 4 and set(ran) == {"gpu"}  # 4 output frames, one tile
+    assert zarr.open_group(str(tmp_path / "gpu.zarr"), mode="r").attrs["weights"].endswith("cscsr-lite.safetensors")
+
+
+def test_bad_input_is_the_jobs_one_line_before_anything_is_written(recording, tmp_path):
+    spikes = lazy.open_spikes(recording)
+    refusals = {
+        "must have dims": lambda: lazy.windows(spikes.transpose("y", "t", "x")),
+        "--window 301 is longer than the recording": lambda: lazy.windows(spikes, length=301),
+        "--window must be a positive odd number": lambda: lazy.windows(spikes, length=40),
+        r"--region 0:48,0:72 is outside the recording \(48x64": lambda: lazy.windows(spikes, region="0:48,0:72"),
+        "--start 300 is outside the recording": lambda: lazy.windows(spikes, start=300),
+        "unknown method 'tfx'": lambda: lazy.reconstruct(lazy.windows(spikes), method="tfx"),
+        "more than the windows keep": lambda: lazy.apply(lazy.windows(spikes, region="16:32,16:32", margin=0),
+                                                          lambda w: w, scale=4, halo=8),
+        "hr must be": lambda: lazy.to_video(spikes, str(tmp_path / "out.zarr")),
+    }
+    for message, call in refusals.items():
+        with pytest.raises(InputError, match=message) as refused:
+            call()
+        assert "\n" not in str(refused.value)
+    with pytest.raises(InputTypeError, match="url must be"):
+        lazy.open_spikes(None)
+    group = zarr.open_group(recording, mode="r+")
+    group.attrs["state"] = "writing"
+    try:
+        with pytest.raises(InputError, match="is incomplete"):
+            lazy.open_spikes(recording)
+    finally:
+        group.attrs["state"] = "complete"
+    assert not (tmp_path / "out.zarr").exists()
+
+
+def test_the_margin_holds_every_built_in_halo():
+    from cscsr.reconstructor import HALO
+    from stages.methods import CLASSIC
+
+    assert MARGIN >= max(HALO, *(method.halo for method in CLASSIC.values()))

@@ -1,0 +1,222 @@
+"""Lazy simulation (#45): ``lazy.simulate`` gives the ``simulate`` job's spikes whatever the chunking and computes
+nothing until asked; ``lazy.to_spikes`` writes the job's store (its identity), resumes a failed run to the bytes of
+an uninterrupted one, gives the same bytes on a two-process cluster, and refuses bad input in one line before
+anything is written."""
+
+import os
+
+import dask
+import dask.array as da
+import imageio.v3 as iio
+import numpy as np
+import pytest
+import xarray as xr
+
+from pipeline.lazy_simulate import SpikesIncomplete, simulate, to_spikes
+from pipeline.lazy_spikes import open_spikes
+from pipeline.simulate import SimulateOptions, simulate as simulate_job
+from pipeline.spike_store import COMMITTED, open_spike_store, store_identity
+from stages.bits import pack_rows
+from stages.errors import InputError, InputTypeError
+from tests.test_parallel_ingest import store_files
+
+N_FRAMES = 70  # spike frames, one per scene frame: the job's video source positions are then the frames themselves
+HR_HEIGHT, HR_WIDTH = 32, 48  # x4 -> 8x12 LR: a packed row of 2 bytes, the second half empty
+SETTINGS = [dict(cfa="rggb", reset="zero", noise="none", seed=0),
+            dict(cfa="gbrg", reset="subtract", noise="realistic", seed=5, brightness=0.4)]
+JOB_ONLY = ("source", "frames", "state", "spike_count", "identity")  # what only a finished store records
+
+
+def scene(n_frames: int = N_FRAMES, height: int = HR_HEIGHT, width: int = HR_WIDTH) -> np.ndarray:
+    """(t, y, x, 3) uint8: a smooth random picture panning right a pixel a frame, flickering: every pixel changes."""
+    rng = np.random.default_rng(1)
+    coarse = rng.random((height // 8 + 1, (width + n_frames) // 8 + 1, 3))
+    picture = np.kron(coarse, np.ones((8, 8, 1)))[:height]  # (y, x + t, 3)
+    flicker = 0.75 + 0.25 * np.sin(np.arange(n_frames) / 3)
+    return np.stack([np.round(255 * flicker[t] * picture[:, t:t + width]) for t in range(n_frames)]).astype(np.uint8)
+
+
+def frames_array(frames: np.ndarray, chunk: int) -> xr.DataArray:
+    return xr.DataArray(da.from_array(frames, chunks=(chunk, -1, -1, -1)), dims=("t", "y", "x", "rgb"))
+
+
+@pytest.fixture(scope="module", params=SETTINGS, ids=lambda settings: f"{settings['reset']}-{settings['noise']}")
+def job(request, client, tmp_path_factory):
+    """(scene frames, settings, the store the ``simulate`` job made of them): a folder of as many PNG frames as
+    spike frames, ``--interp linear``, on the shared two-worker cluster."""
+    folder = tmp_path_factory.mktemp("scene")
+    frames = scene()
+    for t, frame in enumerate(frames):
+        iio.imwrite(folder / f"{t:03d}.png", frame)
+    store = str(tmp_path_factory.mktemp("job") / "job.zarr")
+    simulate_job(str(folder), store, SimulateOptions(scale=4, frames=N_FRAMES, interp="linear", **request.param),
+                 scheduler=client.scheduler.address, progress=False)
+    return frames, request.param, store
+
+
+@pytest.mark.parametrize("chunk", [7, 41, N_FRAMES])
+def test_equals_the_simulate_job_whatever_the_chunking(job, chunk):
+    frames, settings, store = job
+    spikes = simulate(frames_array(frames, chunk), **settings)
+    assert spikes.dims == ("t", "y", "x") and spikes.dtype == bool and spikes.shape == (N_FRAMES, 8, 12)
+    assert spikes.chunks[0] == frames_array(frames, chunk).chunks[0]  # the frames' chunks along t
+    stored = open_spike_store(store)
+    np.testing.assert_array_equal(pack_rows(spikes.values), stored.spikes[:])
+    assert 0.05 < spikes.values.mean() < 0.6  # spikes to compare, not a blank
+    assert {k: v for k, v in spikes.attrs.items() if k != "source"} == \
+        {k: v for k, v in stored.attrs.items() if k not in JOB_ONLY}
+    np.testing.assert_allclose(spikes.t.values, np.arange(N_FRAMES) / 20000.0)
+    other_seed = simulate(frames_array(frames, chunk), **{**settings, "seed": settings["seed"] + 1})
+    assert not np.array_equal(other_seed.values, spikes.values)  # the comparison above can fail
+
+
+def test_to_spikes_writes_the_job_s_recording(job, tmp_path):
+    """Another chunking and cut into tasks than the job's, the same recording: its identity, its spike count."""
+    frames, settings, store = job
+    out = str(tmp_path / "lazy.zarr")
+    result = to_spikes(simulate(frames_array(frames, 9), **settings), out, chunk_frames=8, task_frames=16)
+    written, made = open_spike_store(out), open_spike_store(store)
+    assert written.complete and written.spikes.chunks[0] == 8 != made.spikes.chunks[0]
+    assert store_identity(written) == store_identity(made)
+    assert written.spike_count == made.spike_count == result["spikes"] > 0
+    assert result["tasks"] == result["tasks_run"] == 5 and result["tasks_skipped"] == 0
+    committed = written.group[COMMITTED]
+    assert committed.attrs["task_frames"] == 16 and committed[:].min() >= 0 and committed[:].sum() == result["spikes"]
+    copy = str(tmp_path / "copy.zarr")  # a store read lazily and written again: the same recording
+    to_spikes(open_spikes(out), copy)
+    assert store_identity(open_spike_store(copy)) == store_identity(made)
+
+
+def test_simulate_computes_nothing_until_asked():
+    def unreadable(block):
+        raise RuntimeError("a frame was read")
+
+    frames = da.zeros((N_FRAMES, HR_HEIGHT, HR_WIDTH, 3), np.uint8, chunks=(10, -1, -1, -1))
+    frames = frames.map_blocks(unreadable, dtype=np.uint8)
+    spikes = simulate(xr.DataArray(frames, dims=("t", "y", "x", "rgb")), noise="realistic")  # builds the graph only
+    assert spikes.chunks[0] == (10,) * 7
+    with pytest.raises(RuntimeError, match="a frame was read"):
+        spikes[:1].values
+
+
+def _fails_until(block: np.ndarray, flag: str, frame: int, block_info=None) -> np.ndarray:
+    """``block`` as it is, but the block holding spike frame ``frame`` fails while ``flag`` does not exist."""
+    start, stop = block_info[0]["array-location"][0]
+    if start <= frame < stop and not os.path.exists(flag):
+        raise OSError("disk full")
+    return block
+
+
+def test_a_failed_to_spikes_resumes_to_the_bytes_of_an_uninterrupted_one(tmp_path):
+    frames = frames_array(scene(), 10)
+    spikes = simulate(frames, reset="subtract", noise="realistic", seed=2)
+    flag = str(tmp_path / "fixed")
+    failing = spikes.copy(data=spikes.data.map_blocks(_fails_until, flag, 55, dtype=bool))
+    whole, resumed = str(tmp_path / "whole.zarr"), str(tmp_path / "resumed.zarr")
+    with dask.config.set(scheduler="synchronous"):  # the tasks before the failure run first
+        to_spikes(spikes, whole, chunk_frames=8)
+        with pytest.raises(SpikesIncomplete, match="disk full"):
+            to_spikes(failing, resumed, chunk_frames=8)
+        committed = open_spike_store(resumed, allow_incomplete=True).group[COMMITTED][:]
+        assert 0 < (committed >= 0).sum() < len(committed)  # kept what it committed, and not all
+        with pytest.raises(InputError, match="incomplete"):
+            open_spike_store(resumed)
+        with pytest.raises(InputError, match="other attributes .*seed 2 -> 3"):
+            to_spikes(simulate(frames, reset="subtract", noise="realistic", seed=3), resumed, resume=True)
+        with pytest.raises(InputError, match="chunks of 8"):
+            to_spikes(failing, resumed, chunk_frames=16, resume=True)
+        open(flag, "w").close()
+        result = to_spikes(failing, resumed, resume=True)
+    assert result["tasks_skipped"] == (committed >= 0).sum() and result["tasks_run"] == (committed < 0).sum()
+    assert store_files(resumed) == store_files(whole)  # every byte: chunks, commit record, attributes, identity
+
+
+def _noting_process(block: np.ndarray, folder: str) -> np.ndarray:
+    open(os.path.join(folder, str(os.getpid())), "w").close()
+    return block
+
+
+def test_to_spikes_on_a_cluster_of_processes_gives_the_same_bytes(client, tmp_path):
+    """The active ``distributed.Client`` (two worker processes) runs the tasks; the bytes are the threads'."""
+    spikes = simulate(frames_array(scene(), 13), cfa="grbg", noise="realistic", seed=4)
+    threads, cluster = str(tmp_path / "threads.zarr"), str(tmp_path / "cluster.zarr")
+    with dask.config.set(scheduler="threads"):
+        to_spikes(spikes, threads, chunk_frames=8, task_frames=24)
+    processes = tmp_path / "processes"
+    processes.mkdir()
+    noted = spikes.data.map_blocks(_noting_process, str(processes), meta=np.empty((0, 0, 0), bool))  # no call here
+    to_spikes(spikes.copy(data=noted), cluster, chunk_frames=8, task_frames=24)
+    assert os.listdir(processes) and str(os.getpid()) not in os.listdir(processes)  # run by the workers
+    assert store_files(cluster) == store_files(threads)
+    with pytest.raises(InputError, match="memory://"):  # each worker process would write its own
+        to_spikes(spikes, "memory://lazy.zarr")
+
+
+def _bad_simulate_calls():
+    good = frames_array(scene(), 10)
+    return [
+        (lambda: simulate(good.values), InputTypeError, "must be an xarray.DataArray"),
+        (lambda: simulate(good.isel(rgb=0)), InputError, "must have dims"),
+        (lambda: simulate(good.rename(rgb="c")), InputError, "must have dims"),
+        (lambda: simulate(good.astype(np.int16)), InputError, "got int16"),
+        (lambda: simulate(good.astype(bool)), InputError, "got bool"),
+        (lambda: simulate(good.isel(rgb=[0, 1])), InputError, "rgb of size 1, 3 or 4"),
+        (lambda: simulate(good, scale=3), InputError, "scale must be one of"),
+        (lambda: simulate(good, scale=4.0), InputTypeError, "--scale"),
+        (lambda: simulate(good, cfa="xyz"), InputError, "xyz"),
+        (lambda: simulate(good, noise="loud"), InputError, "unknown noise 'loud'"),
+        (lambda: simulate(good, reset="half"), InputError, "unknown reset mode 'half'"),
+        (lambda: simulate(good, brightness=0), InputError, "brightness"),
+        (lambda: simulate(good, seed=-1), InputError, "seed"),
+        (lambda: simulate(good, fps=0), InputError, "fps"),
+        (lambda: simulate(good.isel(t=slice(0, 20))), InputError, "--frames 20 is too few"),
+        (lambda: simulate(good.isel(y=slice(0, 28))), InputError, "not divisible by 2*scale = 8"),
+    ]
+
+
+@pytest.mark.parametrize("index", range(len(_bad_simulate_calls())))
+def test_simulate_refuses_bad_input_in_one_line(index):
+    call, kind, fragment = _bad_simulate_calls()[index]
+    with pytest.raises(kind) as raised:
+        call()
+    assert fragment in str(raised.value) and "\n" not in str(raised.value)
+
+
+def on_processes(call):
+    """``call()`` with Dask's multiprocessing scheduler active: where each process would write its own memory://."""
+    with dask.config.set(scheduler="processes"):
+        return call()
+
+
+def test_to_spikes_refuses_bad_input_in_one_line_before_anything_is_written(tmp_path):
+    spikes = simulate(frames_array(scene(), 10))
+    existing = str(tmp_path / "existing.zarr")
+    to_spikes(spikes, existing)
+    out = str(tmp_path / "out.zarr")
+    lacking = spikes.copy()
+    del lacking.attrs["height"]
+    calls = [
+        (lambda: to_spikes(spikes.values, out), InputTypeError, "must be an xarray.DataArray"),
+        (lambda: to_spikes(spikes.transpose("t", "x", "y"), out), InputError, "must have dims"),
+        (lambda: to_spikes(spikes.astype(np.uint8), out), InputError, "must be bool"),
+        (lambda: to_spikes(spikes.compute(), out), InputError, "dask-backed"),
+        (lambda: to_spikes(spikes[:, :4], out), InputError, "record 8x12"),
+        (lambda: to_spikes(spikes[:0], out), InputError, "no frames"),
+        (lambda: to_spikes(lacking, out), InputError, "lack height"),
+        (lambda: to_spikes(spikes, tmp_path / "out.zarr"), InputTypeError, "url must be a string"),
+        (lambda: to_spikes(spikes, out, overwrite="yes"), InputTypeError, "overwrite"),
+        (lambda: to_spikes(spikes, out, task_frames=0), InputError, "task_frames"),
+        (lambda: to_spikes(spikes, out, resume=True), InputError, "cannot resume"),
+        (lambda: to_spikes(spikes, existing, resume=True, overwrite=True), InputError, "contradict"),
+        (lambda: to_spikes(spikes, existing), InputError, "already exists"),
+        (lambda: to_spikes(open_spikes(existing), existing, overwrite=True), InputError, existing),
+        (lambda: on_processes(lambda: to_spikes(spikes, "memory://lazy.zarr")), InputError, "memory://"),
+    ]
+    before = store_files(tmp_path)
+    for call, kind, fragment in calls:
+        with pytest.raises(kind) as raised:
+            call()
+        assert fragment in str(raised.value) and "\n" not in str(raised.value), str(raised.value)
+        assert store_files(tmp_path) == before and not os.path.exists(out)
+    with dask.config.set(scheduler="threads"):  # this process's own memory:// store
+        assert to_spikes(spikes, f"memory://{tmp_path.name}.zarr")["spikes"] == open_spike_store(existing).spike_count
