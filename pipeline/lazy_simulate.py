@@ -33,10 +33,10 @@ from pipeline.cluster import check_in_memory
 from pipeline.frame_sources import FrameSource
 from pipeline.hold import hold_point
 from pipeline.ingest import COMMITTED_UNITS, task_frames_for
-from pipeline.lazy_spikes import _unpacked, as_spikes, check_spikes
+from pipeline.lazy_spikes import as_spikes, check_spikes, unpacked_bits
 from pipeline.lease import check_free, claimed, held
 from pipeline.outputs import SPIKE_STORE, check_existing, new_output
-from pipeline.simulate import SimulateOptions, _fire, _state, check_options, simulated_meta
+from pipeline.simulate import SimulateOptions, check_options, fire_chunk, simulated_meta, state_after
 from pipeline.spike_store import (COMMITTED, SPIKES, SpikeMeta, SpikeStoreWriter, chunk_frames_for,
                                   open_spike_store, write_region)
 from pipeline.storage import check_apart, exists
@@ -109,10 +109,10 @@ def _fired_spikes(scene: da.Array, options: SimulateOptions, height: int, width:
     for k, n_frames in enumerate(scene.chunks[0]):
         increments, fired = (f"{name}-increments", k), (f"{name}-fired", k)
         layer[increments] = (_increments, (scene.name, k, 0, 0, 0), first_frame, options, dark)
-        layer[fired] = (_fire, increments, state, options.reset, thresholds)
+        layer[fired] = (fire_chunk, increments, state, options.reset, thresholds)
         state = (f"{name}-state", k)  # what block k + 1 fires on
-        layer[state] = (_state, fired)
-        layer[(name, k, 0, 0)] = (_unpacked, (operator.attrgetter("packed"), fired), width)
+        layer[state] = (state_after, fired)
+        layer[(name, k, 0, 0)] = (unpacked_bits, (operator.attrgetter("packed"), fired), width)
         first_frame += n_frames
     graph = HighLevelGraph.from_collections(name, layer, dependencies=[scene])
     return da.Array(graph, name, chunks=(scene.chunks[0], (height,), (width,)), meta=np.empty((0, 0, 0), bool))

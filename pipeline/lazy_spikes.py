@@ -34,7 +34,7 @@ def open_spikes(url: str) -> xr.DataArray:
     packed = da.from_array(_PackedFrames(url, store_identity(store), (frames, height, packed_width(width))),
                            chunks=store.spikes.chunks, asarray=False, fancy=False, meta=np.empty((0, 0, 0), np.uint8),
                            name=f"packed-spikes-{store_identity(store)}")
-    bits = packed.map_blocks(_unpacked, width, chunks=(packed.chunks[0], (height,), (width,)), dtype=bool,
+    bits = packed.map_blocks(unpacked_bits, width, chunks=(packed.chunks[0], (height,), (width,)), dtype=bool,
                              name=f"spikes-{store_identity(store)}")
     # where it was read from and what it is: what an output made from it records (source, source_identity)
     return as_spikes(bits, {**store.attrs, "store": recorded(url), "identity": store_identity(store)})
@@ -97,6 +97,6 @@ def _spike_array(url: str, identity: str):
     return store.spikes
 
 
-def _unpacked(packed: np.ndarray, width: int) -> np.ndarray:
+def unpacked_bits(packed: np.ndarray, width: int) -> np.ndarray:
     """(n, h, ceil(w/8)) packed -> (n, h, w) bool."""
     return unpack_rows(packed, width).view(bool)

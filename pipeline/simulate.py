@@ -176,11 +176,13 @@ def _increments(scene: Scene, pairs: dict | None, frames: range, options: Simula
     return sensor.increments(options.sensor_model(), np.ascontiguousarray(mosaics), frames.start, dark=dark)
 
 
-def _fire(increments: np.ndarray, state: np.ndarray, reset: str, thresholds) -> sensor.Fired:
+def fire_chunk(increments: np.ndarray, state: np.ndarray, reset: str, thresholds) -> sensor.Fired:
+    """Task (the job's and ``pipeline.lazy_simulate``'s): a chunk's increments fired on from ``state``."""
     return sensor.fire(increments, state, reset=reset, thresholds=thresholds)
 
 
-def _state(fired: sensor.Fired) -> np.ndarray:
+def state_after(fired: sensor.Fired) -> np.ndarray:
+    """Task: the integrator's state a chunk leaves, which the next chunk fires on."""
     return fired.state
 
 
@@ -264,8 +266,8 @@ class _Tasks:
         if isinstance(step, SpikeChunk):
             pairs = self.pairs and self.pairs.for_pairs(step.source_frames)
             increments = submit(_increments, scene, pairs, step.frames, options, self.dark)
-            fired = submit(_fire, increments, self.state, options.reset, self.thresholds)
-            self.state = submit(_state, fired)
+            fired = submit(fire_chunk, increments, self.state, options.reset, self.thresholds)
+            self.state = submit(state_after, fired)
             return submit(_write_spikes, self.dest, step.frames.start, fired)
         if isinstance(step, TruthFrame):
             motion = None

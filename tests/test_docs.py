@@ -121,3 +121,23 @@ def test_the_wheel_builds_without_warnings_and_carries_weights_samples_and_licen
     assert {"cscsr/weights/cscsr-lite.safetensors", "cscsr/weights/cscsr-full.safetensors",
             "cscsr/samples/README.md"} <= names
     assert any(name.endswith(".dist-info/licenses/LICENSE") for name in names)
+
+
+def documented_outputs(code: str) -> list[str]:
+    """The comment line right below each ``print(...)`` of an example: what it prints (``...``: what varies)."""
+    lines = code.splitlines()
+    return [after.strip()[2:] for line, after in zip(lines, lines[1:])
+            if line.lstrip().startswith("print(") and after.strip().startswith("# ")]
+
+
+def test_the_lazy_graphs_example_prints_what_the_page_says(tmp_path):
+    """docs/python.md's lazy example, run as a script in an empty folder: every line it prints as its comment says."""
+    code = re.search(r"## Lazy graphs.*?```python\n(.*?)```", PAGES["docs/python.md"], re.S)[1]
+    (tmp_path / "example.py").write_text(code)
+    done = subprocess.run([sys.executable, "example.py"], cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    printed, expected = done.stdout.splitlines(), documented_outputs(code)
+    assert len(expected) == 7 and len(printed) == len(expected), done.stdout
+    for line, documented in zip(printed, expected):
+        assert re.fullmatch(".*".join(map(re.escape, documented.split("..."))), line), (line, documented)
+    assert (tmp_path / "hr.zarr" / "zarr.json").exists() and (tmp_path / "mine.zarr" / "zarr.json").exists()

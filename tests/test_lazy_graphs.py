@@ -13,6 +13,8 @@
 
 import os
 import shutil
+import subprocess
+import sys
 
 import dask
 import numpy as np
@@ -24,6 +26,7 @@ from distributed import Client, LocalCluster, get_task_stream
 from cscsr import lazy
 from pipeline.cluster import GPU, GPU_SHARE
 from pipeline.ingest import IngestOptions, ingest
+from pipeline import lazy_video
 from pipeline.lazy_video import MARGIN
 from pipeline.reconstruct import ReconstructOptions, reconstruct
 from pipeline.spike_store import SPIKES, SpikeMeta, SpikeStoreWriter
@@ -123,6 +126,39 @@ def test_a_million_frames_build_a_small_graph_without_reading_a_chunk(tmp_path):
         hr[0].compute()
 
 
+LONG_RUN = """
+import resource, sys
+import dask, numpy as np
+from cscsr import lazy
+from pipeline.spike_store import SpikeMeta, SpikeStoreWriter
+frames, url, out = int(sys.argv[1]), sys.argv[2], sys.argv[3]
+writer = SpikeStoreWriter(url, SpikeMeta(height=8, width=16, cfa="rggb", fps=20000.0, gain=1.0), frames,
+                          chunk_frames=50_000)
+rows = np.random.default_rng(0).integers(0, 256, (50_000, 8, 2), dtype=np.uint8)
+for start in range(0, frames, 50_000):
+    writer.write(start, rows[: min(50_000, frames - start)])
+writer.finish(spike_count=0)
+with dask.config.set(scheduler="threads"):
+    counts = lazy.to_video(lazy.tfp(lazy.windows(lazy.open_spikes(url), every=410)), out)
+print(counts["frames"], resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024)
+"""
+
+
+def test_to_video_over_a_million_frames_runs_in_the_memory_of_a_tenth_of_them(tmp_path, record_property):
+    """TFP of every 410th frame of a recording of 10^5 and of 10^6 spike frames (8x16 LR, chunks of 50,000 frames),
+    each in a fresh process: the longer one's peak resident memory is about the shorter one's."""
+    peaks = {}
+    for frames in (100_000, 1_000_000):
+        done = subprocess.run([sys.executable, "-c", LONG_RUN, str(frames), str(tmp_path / f"{frames}.zarr"),
+                               str(tmp_path / f"{frames}-hr.zarr")], capture_output=True, text=True, timeout=600)
+        assert done.returncode == 0, done.stderr[-2000:]
+        written, peaks[frames] = map(int, done.stdout.split())
+        assert written == len(range(20, frames - 20, 410))  # centres 20, 430, ... (stages.methods.output_centres)
+    record_property("peak_rss_mib", peaks)
+    print(f"peak RSS: {peaks[100_000]} MiB for 10^5 frames, {peaks[1_000_000]} MiB for 10^6")
+    assert peaks[1_000_000] < 1.25 * peaks[100_000], peaks
+
+
 def test_threads_processes_and_a_killed_worker_give_one_result(recording, tmp_path):
     """The threaded scheduler, a LocalCluster of two worker processes, and the same cluster losing the worker that
     runs one of the tasks (``os._exit``, as a crash): the same bytes."""
@@ -153,7 +189,9 @@ def test_threads_processes_and_a_killed_worker_give_one_result(recording, tmp_pa
         assert np.array_equal(video, reference[0]) and attrs["state"] == "complete"
 
 
-def test_a_failed_to_video_resumes_to_the_bytes_of_one_run(recording, tmp_path):
+def test_a_failed_to_video_resumes_to_the_bytes_of_one_run(recording, tmp_path, monkeypatch):
+    """Written 4 blocks a round (12 blocks: 3 rows of 4 tiles): the first row's round is committed, the second's fails."""
+    monkeypatch.setattr(lazy_video, "BLOCKS_AT_ONCE", 4)
     failing = tmp_path / "fail"
 
     def grey(window):  # refuses the windows of the frame's second tile row (32 rows with its halo) while flagged
@@ -170,7 +208,7 @@ def test_a_failed_to_video_resumes_to_the_bytes_of_one_run(recording, tmp_path):
         assert zarr.open_group(str(tmp_path / "resumed.zarr"), mode="r").attrs["state"] == "writing"
         failing.unlink()
         counts = lazy.to_video(hr, str(tmp_path / "resumed.zarr"), resume=True)
-    assert counts["tasks_skipped"] > 0
+    assert counts["tasks_skipped"] == 23 * 4  # the first row's 4 tiles of the 23 output frames
     assert np.array_equal(stored(str(tmp_path / "resumed.zarr"))[0], stored(str(tmp_path / "whole.zarr"))[0])
     with pytest.raises(InputError, match="other parameters"):  # another method's output is not resumed
         lazy.to_video(lazy.tfp(lazy.windows(lazy.open_spikes(recording), every=7), tile=16),
