@@ -9,6 +9,7 @@ import functools
 import json
 import logging
 import os
+import signal
 import sys
 from typing import Annotated, Optional
 
@@ -16,6 +17,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from pipeline import stopping
 from stages.cfa import PATTERNS
 from stages.methods import METHODS, WINDOW
 from stages.sps100 import LAYOUTS
@@ -164,8 +166,12 @@ def debugging() -> bool:
     return os.environ.get("CSCSR_DEBUG", "").strip().lower() in ("1", "true", "yes")
 
 
+INTERRUPTED_STATUS, TERMINATED_STATUS = 128 + signal.SIGINT, 128 + signal.SIGTERM  # the shells' convention
+
+
 def one_line_errors(command):
-    """Turn any exception into ``error: <one line>`` and exit status 1."""
+    """Turn any exception into ``error: <one line>`` and exit status 1; Ctrl-C and SIGTERM (``pipeline.stopping``)
+    into ``error: interrupted`` / ``error: terminated (SIGTERM)`` and 130 / 143, once the clean-up has run."""
 
     @functools.wraps(command)
     def wrapper(*args, **kwargs):
@@ -173,9 +179,11 @@ def one_line_errors(command):
             return command(*args, **kwargs)
         except (typer.Exit, typer.Abort):
             raise
-        except KeyboardInterrupt:
-            err.print("error: interrupted", markup=False)
-            raise typer.Exit(130) from None
+        except KeyboardInterrupt as interrupt:
+            stopping.quiet_finalizers()
+            terminated = isinstance(interrupt, stopping.Terminated)
+            err.print(f"error: {'terminated (SIGTERM)' if terminated else 'interrupted'}", markup=False)
+            raise typer.Exit(TERMINATED_STATUS if terminated else INTERRUPTED_STATUS) from None
         except Exception as error:
             if debugging():
                 raise
@@ -197,6 +205,11 @@ def one_line_errors(command):
 
 def command(*args, **kwargs):
     return lambda fn: app.command(*args, **kwargs)(one_line_errors(fn))
+
+
+def counted(number: int, noun: str) -> str:
+    """``1 task``, ``0 tasks``, ``2 tasks``: a count with its noun, singular for one."""
+    return f"{number} {noun}{'' if number == 1 else 's'}"
 
 
 def show_table(title: str, rows: dict) -> None:
@@ -268,7 +281,7 @@ def ingest(src: Annotated[str, typer.Argument(help="Capture: .dat, .npy or .npz,
         return
     done = run_ingest(src, store, options, workers=workers, scheduler=scheduler)
     attrs = done["attrs"]
-    tasks = (f" ({done['tasks_run']} tasks run, {done['tasks_skipped']} already committed)"
+    tasks = (f" ({counted(done['tasks_run'], 'task')} run, {done['tasks_skipped']} already committed)"
              if resume or workers is not None or scheduler is not None else "")
     stdout.print(f"{store}: {attrs['spike_count']} spikes, {attrs['height']}x{attrs['width']}, cfa {attrs['cfa']}{tasks}")
 
@@ -402,7 +415,8 @@ def reconstruct(store: Annotated[str, typer.Argument(help="Spike store URL.")],
     if dry_run:
         show_plan(counts, as_json)
         return
-    stdout.print(f"{out}: {counts['frames']} frames ({counts['tasks_run']} tasks run, {counts['tasks_skipped']} already committed)")
+    stdout.print(f"{out}: {counted(counts['frames'], 'frame')} ({counted(counts['tasks_run'], 'task')} run, "
+                 f"{counts['tasks_skipped']} already committed)")
 
 
 def in_units(size: float) -> str:
@@ -435,7 +449,7 @@ def show_plan(plan: dict, as_json: bool) -> None:
             "tile": f"{plan['tile_lr']} LR ({plan['tiles_per_frame']} per frame)",
             "tasks": f"{plan['tasks']} ({plan['tasks_to_run']} to run), {plan['frames_per_task']} frame(s) each",
             "gain": plan["gain"],
-            "measured": f"{measured['tasks']} tasks run on {plan['measured_on']} at once: "
+            "measured": f"{counted(measured['tasks'], 'task')} run on {plan['measured_on']} at once: "
                         f"{measured['seconds_per_task']:.3g} s each, {in_units(measured['bytes'])} written",
             "output size": f"~{in_units(plan['output_bytes'])} (the measured tasks' bytes per pixel)",
             "this job": f"~{duration(plan['job_seconds'])} on {plan['workers']} worker(s)"
@@ -715,6 +729,7 @@ def worker(scheduler: Annotated[Optional[str], typer.Argument(
 
 
 def main() -> None:
+    stopping.interrupt_on(signal.SIGTERM)  # this process only: the Python API leaves its caller's signals alone
     app(prog_name="cscsr")
 
 

@@ -407,7 +407,10 @@ class QuietExpectedErrors(logging.Filter):
 
 
 class _QuietWorkerLogs(WorkerPlugin):
-    """Installs :class:`QuietExpectedErrors` in each worker process of a local cluster."""
+    """Installs :class:`QuietExpectedErrors` in each worker process of a local cluster, and leaves Ctrl-C to the
+    cluster: the terminal sends SIGINT to every process of the job, and a worker that took it printed a traceback of
+    its own (``KeyboardInterrupt`` from its event loop) while the job was already closing the cluster, which closes
+    the worker too."""
 
     name = "cscsr-quiet-expected-errors"
 
@@ -415,6 +418,8 @@ class _QuietWorkerLogs(WorkerPlugin):
         log = logging.getLogger("distributed.worker")
         if not any(isinstance(f, QuietExpectedErrors) for f in log.filters):
             log.addFilter(QuietExpectedErrors())
+        if threading.current_thread() is threading.main_thread():  # a worker process's event loop: its main thread
+            signal.signal(signal.SIGINT, lambda signum, frame: None)  # Python's: processes it starts get the default
 
 
 def gpu_workers(client: Client) -> int:

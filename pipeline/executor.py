@@ -36,6 +36,7 @@ from typing import TypeVar
 from distributed import Future, as_completed
 from distributed.scheduler import KilledWorker
 
+from pipeline.stopping import interrupt_on, quiet_finalizers
 from stages.errors import InputError, describe
 
 T = TypeVar("T")
@@ -147,10 +148,26 @@ def in_segments(run: Callable[..., Iterator[T]], items: Iterable, size: int, *, 
         child.start()
         try:
             yield from _relay(messages, child)
-        finally:
-            if child.is_alive():  # the parent stops early (an error, Ctrl-C): the segment stops too
-                child.terminate()
-            child.join()
+        except BaseException:  # the job stops early (an error, Ctrl-C, SIGTERM, its caller stops reading)
+            _stop(child)
+            raise
+        child.join()  # its outcomes are all in: it is exiting on its own
+
+
+SEGMENT_STOP_SECONDS = 15  # for a segment asked to stop to close its cluster (workers, their folders)
+
+
+def _stop(child) -> None:
+    """Stop the segment process of a job that stops early: SIGTERM, on which it closes its cluster, then SIGKILL if it
+    has not ended within :data:`SEGMENT_STOP_SECONDS`."""
+    if child.is_alive():
+        child.terminate()
+        child.join(SEGMENT_STOP_SECONDS)
+        if child.is_alive():
+            log.warning("the segment process %s did not stop within %d s of SIGTERM: killed", child.name,
+                        SEGMENT_STOP_SECONDS)
+            child.kill()
+    child.join()
 
 
 def _relay(messages, child) -> Iterator:
@@ -174,25 +191,31 @@ def _relay(messages, child) -> Iterator:
 
 
 def _segment(run, items, workers, show_dashboard, messages, verbose=False) -> None:
-    """Child: start a cluster, run the segment, send each outcome, exit (and all its memory with it)."""
+    """Child: start a cluster, run the segment, send each outcome, exit (and all its memory with it). Stopped
+    (SIGTERM from its job, Ctrl-C at the terminal), it closes its cluster on the way out and says nothing: the job
+    reports."""
     _die_with_parent()
+    interrupt_on(signal.SIGTERM, signal.SIGINT)
     from pipeline.cluster import dashboard_link, dask_client
 
     if verbose:  # what the cluster's log level is chosen by (cluster._dask_log_level)
         logging.getLogger("cscsr").setLevel(logging.DEBUG)
 
     try:
-        with dask_client(workers=workers) as client:
-            if show_dashboard and (link := dashboard_link(client)):
-                print(f"dashboard: {link}", file=sys.stderr)
-            for outcome in run(client, items):
-                messages.put((_OUTCOME, outcome))
-        messages.put((_END,))
-    except Exception as error:  # reported by the parent, which owns the user's terminal and exit code
-        messages.put((_FAILED, type(error).__name__, describe(error)))
-    finally:
+        try:
+            with dask_client(workers=workers) as client:
+                if show_dashboard and (link := dashboard_link(client)):
+                    print(f"dashboard: {link}", file=sys.stderr)
+                for outcome in run(client, items):
+                    messages.put((_OUTCOME, outcome))
+            messages.put((_END,))
+        except Exception as error:  # reported by the parent, which owns the user's terminal and exit code
+            messages.put((_FAILED, type(error).__name__, describe(error)))
         messages.close()
         messages.join_thread()
+    except KeyboardInterrupt:  # the job stopped: it reads no more outcomes, so none is waited on to be sent
+        quiet_finalizers()
+        messages.cancel_join_thread()
 
 
 def _die_with_parent() -> None:

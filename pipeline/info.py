@@ -3,7 +3,7 @@
 import contextlib
 
 from pipeline.spike_store import open_spike_store
-from pipeline.storage import missing_chunks, open_group, size_of
+from pipeline.storage import list_chunks, open_group, size_of
 from pipeline.video_store import COMMITTED, FRAMES, VIDEO, check_video_store, is_video_store, lost_frames
 from stages.errors import InputError
 
@@ -56,15 +56,16 @@ def summarize_spikes(url: str) -> dict:
 
 
 def missing_frames(spikes) -> str | None:
-    """``N of M chunks (frames a..b, ...)`` for the chunks of a spike array that are not in its store."""
-    missing = missing_chunks(spikes)
-    if not missing:
+    """``N of M chunks (frames a..b, ...)`` for the chunks of a spike array that are not in its store: counted from
+    what is stored, only the first :data:`SHOWN` named."""
+    listing = list_chunks(spikes)
+    if not listing.missing:
         return None
     step, n = spikes.chunks[0], spikes.shape[0]
-    ranges = [f"{t * step}..{min((t + 1) * step, n) - 1}" for t, *_ in missing]
-    shown = ", ".join(ranges[:SHOWN]) + (f", and {len(ranges) - SHOWN} more" if len(ranges) > SHOWN else "")
-    total = -(-n // step)
-    return f"{len(missing)} of {total} chunks of spikes (frames {shown})"
+    ranges = [f"{t * step}..{min((t + 1) * step, n) - 1}" for t, *_ in listing.first_missing(SHOWN)]
+    more = listing.missing - len(ranges)
+    return f"{listing.missing} of {listing.total} chunks of spikes (frames {', '.join(ranges)}" + \
+        (f", and {more} more)" if more else ")")
 
 
 def summarize_video(url: str, group) -> dict:
@@ -73,13 +74,13 @@ def summarize_video(url: str, group) -> dict:
     and the frames they belong to are named."""
     check_video_store(url, group)  # a format_version it does not know, arrays that disagree: refused by name
     attrs = dict(group.attrs)
-    video, frames = group[VIDEO], group[FRAMES][:]
+    video, frames = group[VIDEO], group[FRAMES]
     n, height, width = video.shape[:3]
     fps = attrs.get("fps")  # recorded since format_version 1; before, from the source, which may be gone
     with contextlib.suppress(InputError, KeyError, TypeError, ZeroDivisionError):
         fps = fps or float(open_group(attrs["source"]).attrs["fps"]) / int(attrs["every"])
     committed = group[COMMITTED] if COMMITTED in group else None  # one chunk per task, written when it commits
-    done = None if committed is None else committed.size - len(missing_chunks(committed))
+    done = None if committed is None else len(list_chunks(committed).stored)
     lost = lost_frames(group)  # written (committed, or the store complete) and gone: they would read as black
     state = attrs.get("state")
     if lost:  # an unfinished store says so too: --resume never redoes a tile recorded committed
@@ -93,7 +94,7 @@ def summarize_video(url: str, group) -> dict:
         "width": width,
         "fps": fps,
         "duration_s": None if fps is None else n / fps,
-        "spike_frames": f"{frames[0]}..{frames[-1]}" if len(frames) else "",
+        "spike_frames": f"{frames[0]}..{frames[n - 1]}" if n else "",  # two reads, whatever the length
         # the part of the recording it holds (reconstruct --start/--stop/--region); None: a store from before them
         "start": attrs.get("start"),
         "stop": attrs.get("stop"),

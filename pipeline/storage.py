@@ -9,9 +9,13 @@ directories as needed), everything else to ``FsspecStore``.
 
 import atexit
 import itertools
+import math
 import os
 import posixpath
+import re
 import warnings
+from collections.abc import Iterator
+from dataclasses import dataclass
 
 import fsspec
 import zarr
@@ -190,22 +194,86 @@ def open_group(url: str, what: str = "store") -> zarr.Group:
         raise InputError(f"cannot read {what} {url}: its Zarr metadata is damaged ({describe(error)})") from None
 
 
-def missing_chunks(array: zarr.Array) -> list[tuple[int, ...]]:
-    """The chunks of ``array`` (grid coordinates) that have no object in its store, from one listing of
-    the array's keys (no chunk is read). Our writers store every chunk, empty or not, so a chunk that
-    is not there is lost data."""
+@dataclass(frozen=True)
+class ChunkListing:
+    """Which chunks of an array have an object in its store, from one listing of its keys (no chunk read), kept as
+    what is stored: the grid's size is arithmetic and its missing chunks runs between stored ones, so a shape that
+    claims 10⁹ frames costs what the store holds, never a list of the whole grid. Chunks are numbered in the grid's
+    C order (:meth:`coordinates`)."""
+
+    grid: tuple[int, ...]  # chunks along each dimension
+    stored: tuple[int, ...]  # the numbers of the chunks that have an object, ascending
+
+    @property
+    def total(self) -> int:
+        return math.prod(self.grid)
+
+    @property
+    def missing(self) -> int:
+        return self.total - len(self.stored)
+
+    def missing_runs(self) -> Iterator[range]:
+        """The runs of consecutive missing chunks (chunk numbers), in order: at most one more than the stored chunks."""
+        previous = -1
+        for number in (*self.stored, self.total):
+            if number > previous + 1:
+                yield range(previous + 1, number)
+            previous = number
+
+    def first_missing(self, count: int) -> list[tuple[int, ...]]:
+        """The grid coordinates of the first ``count`` missing chunks (fewer if fewer are missing)."""
+        numbers = itertools.islice(itertools.chain.from_iterable(self.missing_runs()), count)
+        return [self.coordinates(number) for number in numbers]
+
+    def coordinates(self, number: int) -> tuple[int, ...]:
+        """The grid coordinates of chunk ``number``."""
+        coords = []
+        for size in reversed(self.grid):
+            number, index = divmod(number, size)
+            coords.append(index)
+        return tuple(reversed(coords))
+
+    def number(self, coords: tuple[int, ...]) -> int | None:
+        """The number of the chunk at grid coordinates ``coords``; None outside the grid."""
+        if len(coords) != len(self.grid) or not all(0 <= index < size for index, size in zip(coords, self.grid)):
+            return None
+        number = 0
+        for index, size in zip(coords, self.grid):
+            number = number * size + index
+        return number
+
+
+def list_chunks(array: zarr.Array) -> ChunkListing:
+    """The chunks of ``array`` that have an object in its store (:class:`ChunkListing`), from one listing of the
+    array's keys, no chunk read. Our writers store every chunk, empty or not, so a chunk that is not there is lost
+    data. Keys that are not chunks of the grid (metadata, temporary files of writes, chunks beyond the shape) are
+    not counted."""
     from zarr.core.sync import sync
 
     prefix = array.store_path.path
     lead = f"{prefix}/" if prefix else ""
 
-    async def listed() -> set[str]:
-        return {key async for key in array.store.list_prefix(lead)}
+    async def listed() -> list[str]:
+        return [key async for key in array.store.list_prefix(lead)]
 
-    present = sync(listed())
-    grid = [-(-size // chunk) for size, chunk in zip(array.shape, array.chunks)]
-    return [coords for coords in itertools.product(*map(range, grid))
-            if lead + array.metadata.encode_chunk_key(coords) not in present]
+    grid = tuple(-(-size // chunk) for size, chunk in zip(array.shape, array.chunks))
+    numbering = ChunkListing(grid, ())
+    stored = {numbering.number(coords) for key in sync(listed())
+              if (coords := _chunk_coordinates(array, key[len(lead):])) is not None}
+    return ChunkListing(grid, tuple(sorted(stored - {None})))
+
+
+def _chunk_coordinates(array: zarr.Array, key: str) -> tuple[int, ...] | None:
+    """The grid coordinates that ``key`` (relative to the array) names as a chunk of ``array``, or None: its parts
+    as integers (Zarr's ``c/0/1`` or ``0.1``), kept when the array encodes them back to the same key. Zarr's own
+    decoder fails on its default encoding (zarr 3.1)."""
+    parts = re.split(r"[./]", key)
+    if parts[:1] == ["c"]:
+        parts = parts[1:]
+    if not parts or not all(part.isascii() and part.isdigit() for part in parts):
+        return None
+    coords = tuple(int(part) for part in parts)
+    return coords if array.metadata.encode_chunk_key(coords) == key else None
 
 
 def size_of(url: str) -> int:

@@ -13,6 +13,7 @@ as the coordinate of ``video``); only the group's attributes change after, which
 
 import asyncio
 import json
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -22,7 +23,7 @@ import cscsr
 from zarr.codecs import ZstdCodec
 from zarr.core.sync import sync
 
-from pipeline.storage import consolidate, missing_chunks, open_group, zarr_store
+from pipeline.storage import ChunkListing, consolidate, list_chunks, open_group, zarr_store
 from stages.errors import InputError
 
 VIDEO, FRAMES, COMMITTED = "video", "frames", "committed"
@@ -66,20 +67,55 @@ def open_video_store(url: str, *, writable: bool = False) -> zarr.Group:
 
 
 def check_video_store(url: str, group: zarr.Group) -> None:
-    """Refuse a video store of a ``format_version`` this release does not read, or whose arrays disagree on the
-    number of output frames (``video``, ``frames`` and ``committed``, as the group reads them: the consolidated
-    copy where there is one): shapes only, no chunk read. A store being written has every array declared already:
-    it passes."""
+    """Refuse a video store of a ``format_version`` this release does not read, or whose metadata contradicts itself:
+    an array whose own ``zarr.json`` and the consolidated copy in the group's disagree, arrays that disagree on the
+    number of output frames (``video``, ``frames`` and ``committed``, as the group reads them: the consolidated copy
+    where there is one), or more output frames than the spike frames it records (``start``, ``stop``, ``every``) can
+    give. Metadata only, no chunk read, so a shape edited to claim 10⁹ frames is one line at once. A store being
+    written has every array declared already: it passes."""
     check_format_version(dict(group.attrs), f"video store {url}", FORMAT_VERSION)
     arrays = {name: group[name] for name in (VIDEO, FRAMES, COMMITTED) if name in group}
     if not all(isinstance(array, zarr.Array) and array.ndim >= 1 for array in arrays.values()):
         raise InputError(f"video store {url}: its '{VIDEO}', '{FRAMES}' and '{COMMITTED}' must be arrays")
+    if problem := _copies_disagree(group, list(arrays)) or _frames_disagree(arrays) or _more_than_recorded(group):
+        raise InputError(f"video store {url}: metadata inconsistent: {problem}: the store was altered or damaged; make "
+                         f"it again with cscsr reconstruct --overwrite")
+
+
+def _copies_disagree(group: zarr.Group, names: list[str]) -> str | None:
+    """Which array's shape differs between its own ``zarr.json`` and the consolidated copy, or None."""
+    consolidated = consolidated_shapes(group)
+    for name in names:
+        own = _metadata(group, f"{name}/zarr.json").get("shape")
+        if name in consolidated and isinstance(own, list) and tuple(own) != consolidated[name]:
+            return (f"'{name}' is {tuple(own)} in {name}/zarr.json but {consolidated[name]} in the consolidated copy "
+                    f"in zarr.json")
+    return None
+
+
+def _frames_disagree(arrays: dict[str, zarr.Array]) -> str | None:
+    """Whether the arrays disagree on the number of output frames (their first dimension), in words, or None."""
     counts = {name: array.shape[0] for name, array in arrays.items()}
-    if len(set(counts.values())) > 1:
-        disagree = ", ".join(f"'{name}' {count}" for name, count in counts.items())
-        raise InputError(f"video store {url}: metadata inconsistent: its arrays disagree on the number of output "
-                         f"frames ({disagree}): the store was altered or damaged; make it again with cscsr "
-                         f"reconstruct --overwrite")
+    if len(set(counts.values())) <= 1:
+        return None
+    disagree = ", ".join(f"'{name}' {count}" for name, count in counts.items())
+    return f"its arrays disagree on the number of output frames ({disagree})"
+
+
+def _more_than_recorded(group: zarr.Group) -> str | None:
+    """Whether ``video`` has more output frames than the spike frames ``start`` to ``stop`` that the store records,
+    one every ``every``, can give, in words, or None (a store from before ``start`` and ``stop``: nothing to
+    compare)."""
+    attrs, frames = group.attrs, group[VIDEO].shape[0]
+    start, stop, every = (attrs.get(name) for name in ("start", "stop", "every"))
+    if not all(isinstance(value, int) and not isinstance(value, bool) for value in (start, stop, every)) \
+            or every <= 0 or stop < start:
+        return None
+    most = -(-(stop - start) // every)
+    if frames <= most:
+        return None
+    return (f"'{VIDEO}' has {frames} output frames, but the store records spike frames {start} to {stop} (stop "
+            f"excluded), one output frame every {every}: at most {most}")
 
 
 def check_format_version(attrs: dict, what: str, known: int) -> None:
@@ -104,18 +140,27 @@ def consolidated_shapes(group: zarr.Group) -> dict[str, tuple]:
     """The shape of each array as the consolidated copy in the group's ``zarr.json`` records it (one small metadata
     read; the group is opened from the arrays' own metadata, :func:`pipeline.storage.open_group`); empty where there
     is no copy or it cannot be read (xarray's concern, not ours)."""
+    entries = _metadata(group, "zarr.json").get("consolidated_metadata")
+    entries = entries.get("metadata") if isinstance(entries, dict) else None
+    if not isinstance(entries, dict):
+        return {}
+    return {name: tuple(entry["shape"]) for name, entry in entries.items()
+            if isinstance(entry, dict) and entry.get("node_type") == "array" and isinstance(entry.get("shape"), list)}
+
+
+def _metadata(group: zarr.Group, key: str) -> dict:
+    """The JSON document ``key`` (relative to the group: ``zarr.json``, ``video/zarr.json``) as stored, whatever the
+    group was opened from; empty where it is missing or not a JSON object."""
     from zarr.core.buffer import default_buffer_prototype
     from zarr.core.sync import sync
 
     prefix = f"{group.store_path.path}/" if group.store_path.path else ""
     try:
-        raw = sync(group.store.get(prefix + "zarr.json", prototype=default_buffer_prototype()))
-        entries = json.loads(raw.to_bytes())["consolidated_metadata"]["metadata"]
-        return {name: tuple(entry["shape"]) for name, entry in entries.items()
-                if isinstance(entry, dict) and entry.get("node_type") == "array"
-                and isinstance(entry.get("shape"), list)}
-    except (TypeError, KeyError, ValueError, AttributeError, OSError):
+        raw = sync(group.store.get(prefix + key, prototype=default_buffer_prototype()))
+        document = json.loads(raw.to_bytes()) if raw is not None else {}
+    except (TypeError, ValueError, AttributeError, OSError):
         return {}
+    return document if isinstance(document, dict) else {}
 
 
 def video_array(url: str) -> zarr.Array:
@@ -148,40 +193,50 @@ def committed_mask(group: zarr.Group) -> np.ndarray:
 SHOWN = 4  # ranges of lost frames named in full
 
 
-def lost_chunks(group: zarr.Group) -> list[tuple[int, ...]]:
-    """The chunks of ``video`` that were written and are not in the store now: lost data (read back, they
-    would be black). Every tile is written as a chunk, empty or not, and recorded in ``committed`` after it,
-    so a missing chunk is lost when its tile is recorded committed, or anywhere in a complete store; one
-    listing of the array's keys, no chunk read."""
-    missing = missing_chunks(group[VIDEO])
-    if not missing or group.attrs.get("state") == "complete":
-        return missing
+def lost_chunks(group: zarr.Group, video: ChunkListing) -> list[range]:
+    """The runs of chunks of ``video`` (chunk numbers, :class:`pipeline.storage.ChunkListing`) that were written and
+    are not in the store now: lost data (read back, they would be black). Every tile is written as a chunk, empty
+    or not, and recorded in ``committed`` after it, so a missing chunk is lost when its tile is recorded committed,
+    or anywhere in a complete store. Bounded by what is stored: the listings of both arrays, and a read of
+    ``committed`` only where a tile recorded there has no chunk."""
+    if group.attrs.get("state") == "complete":
+        return list(video.missing_runs())
     if COMMITTED not in group:
         return []
-    done = committed_mask(group)
-    return [(j, y, x, *rest) for j, y, x, *rest in missing
-            if j < done.shape[0] and y < done.shape[1] and x < done.shape[2] and done[j, y, x]]
+    committed = group[COMMITTED]
+    recorded, present = list_chunks(committed), set(video.stored)
+    tail = (0,) * (len(video.grid) - 3)  # a tile's chunk spans the colour channels
+    unwritten = {number: coords for coords in map(recorded.coordinates, recorded.stored)
+                 if (number := video.number((*coords, *tail))) is not None and number not in present}
+    if not unwritten:
+        return []
+    elements = np.array([[i * size for i, size in zip(coords, committed.chunks)] for coords in unwritten.values()])
+    done = committed.get_coordinate_selection(tuple(elements.T))
+    return [range(number, number + 1) for number, tile_done in zip(unwritten, done) if tile_done]
 
 
 def lost_frames(group: zarr.Group) -> str | None:
     """``N of M chunks of video (output frames a..b (spike frames c..d), ...)`` for the lost chunks of a video
-    store (:func:`lost_chunks`), or None if none is lost."""
-    lost = lost_chunks(group)
+    store (:func:`lost_chunks`), or None if none is lost. Only the centres of the frames named are read."""
+    video = list_chunks(group[VIDEO])
+    lost = lost_chunks(group, video)
     if not lost:
         return None
-    video, centres = group[VIDEO], group[FRAMES][:]
-    indices = sorted({coords[0] for coords in lost})
-    runs = []  # consecutive output frames as one range
-    for index in indices:
-        if runs and index == runs[-1][1] + 1:
-            runs[-1][1] = index
+    per_frame = math.prod(video.grid[1:])
+    runs = []  # output frames with a lost chunk, consecutive ones as one [first, last]
+    for chunks in lost:
+        first, last = chunks.start // per_frame, (chunks.stop - 1) // per_frame
+        if runs and first <= runs[-1][1] + 1:
+            runs[-1][1] = max(runs[-1][1], last)
         else:
-            runs.append([index, index])
+            runs.append([first, last])
+    centres = group[FRAMES]
     named = [f"{a} (spike frame {centres[a]})" if a == b else f"{a}..{b} (spike frames {centres[a]}..{centres[b]})"
              for a, b in runs[:SHOWN]]
     shown = ", ".join(named) + (f", and {len(runs) - SHOWN} more" if len(runs) > SHOWN else "")
-    total = int(np.prod([-(-size // chunk) for size, chunk in zip(video.shape, video.chunks)]))
-    return f"{len(lost)} of {total} chunks of video (output frame{'s' if len(indices) > 1 else ''} {shown})"
+    several = len(runs) > 1 or runs[0][0] < runs[0][1]
+    return (f"{sum(map(len, lost))} of {video.total} chunks of video (output frame{'s' if several else ''} "
+            f"{shown})")
 
 
 class TileWriter:

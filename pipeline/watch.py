@@ -493,8 +493,18 @@ def watch(inbox: str, outbox: str, options: WatchOptions, *, once: bool, interva
             log.info("pass over %s: %d processed, %d still settling, %d already handled, %d refused", inbox,
                      counts["processed"], counts["waiting"], counts["skipped"], counts["refused"])
             if once:
+                check_not_all_refused(counts, inbox, outbox)
                 return
             time.sleep(interval)
+
+
+def check_not_all_refused(counts: dict, inbox: str, outbox: str) -> None:
+    """End a ``--once`` pass that refused every recording it found (none processed, settling or handled before) with
+    one line and exit status 1, so that cron or a scheduler sees it; one that refused some and took others ends as
+    usual (the ledger and the log name the refused ones)."""
+    if counts["refused"] and not (counts["processed"] or counts["waiting"] or counts["skipped"]):
+        raise InputError(f"every recording in {inbox} was refused ({counts['refused']}): see the lines above, or "
+                         f"cscsr status {outbox}")
 
 
 def parse_interval(text: str) -> float:

@@ -28,13 +28,22 @@ def test_a_local_clusters_dashboard_link_serves_the_dashboard():
     assert "needs bokeh" not in page
 
 
+def test_one_task_is_one_task_in_the_result_line(cli, tmp_path):
+    """Counts in result lines agree with their nouns: "1 task run", not "1 tasks run" (issue #48)."""
+    write_dat(tmp_path / "scene.dat", integrate_and_fire(smooth_rate(16, 16), 41))
+    store = tmp_path / "spikes.zarr"
+    result = cli("ingest", tmp_path / "scene.dat", store, "--height", 16, "--width", 16, "--workers", 1)
+    assert result.exit_code == 0, result.stderr
+    assert result.stdout.strip().endswith("(1 task run, 0 already committed)"), result.stdout
+
+
 def test_the_dashboard_link_goes_to_stderr_never_stdout(cli_process, tmp_path):
     write_dat(tmp_path / "scene.dat", integrate_and_fire(smooth_rate(16, 16), 41))
     store, out = tmp_path / "spikes.zarr", tmp_path / "video.zarr"
     assert cli_process("ingest", tmp_path / "scene.dat", store, "--height", 16, "--width", 16).returncode == 0
     run = cli_process("reconstruct", store, out, "--workers", 1)  # its own local cluster, in a segment process
     assert run.returncode == 0, run.stderr
-    assert " ".join(run.stdout.split()) == f"{out}: 1 frames (1 tasks run, 0 already committed)"  # the result only
+    assert " ".join(run.stdout.split()) == f"{out}: 1 frame (1 task run, 0 already committed)"  # the result only
     assert re.search(r"^dashboard: http://127\.0\.0\.1:\d+/status$", run.stderr, re.MULTILINE)
 
 

@@ -183,7 +183,7 @@ def test_a_watcher_on_a_memory_inbox_is_refused_before_its_outbox(tmp_path):
 def test_quiet_reconstruct_prints_the_result_only_and_verbose_adds_the_plan_and_tasks(cli_process, tmp_path, spikes):
     quiet = cli_process("-q", "reconstruct", spikes, tmp_path / "q.zarr", "--workers", 1)
     assert quiet.returncode == 0, quiet.stderr
-    assert " ".join(quiet.stdout.split()) == f"{tmp_path / 'q.zarr'}: 1 frames (1 tasks run, 0 already committed)"
+    assert " ".join(quiet.stdout.split()) == f"{tmp_path / 'q.zarr'}: 1 frame (1 task run, 0 already committed)"
     assert quiet.stderr == ""  # before: "dashboard: http://127.0.0.1:.../status"
 
     verbose = cli_process("-v", "reconstruct", spikes, tmp_path / "v.zarr", "--workers", 1)

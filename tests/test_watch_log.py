@@ -62,6 +62,23 @@ def test_the_watcher_logs_one_timestamped_line_per_event(tmp_path, cli):
     assert {row["name"]: row["state"] for row in status} == {"good": "done", "nonsense": "failed"}  # unchanged
 
 
+def test_a_pass_that_refused_every_recording_exits_non_zero(tmp_path, cli):
+    """``watch --once`` for cron: a pass that refused everything it found says so in one line and exits 1 (it exited
+    0); one that took a recording beside a refused one ends as usual (the test above)."""
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    drop(inbox, "nonsense.npy", tiny_capture(1), "{height: tall")
+    drop(inbox, "nocfa.npy", tiny_capture(2), {"height": 16, "width": 16})
+    settled(inbox)
+
+    result = cli(*watch_args(inbox, outbox))
+    assert result.exit_code == 1, result.stderr
+    *logged, last = result.stderr.strip().splitlines()
+    assert last == f"error: every recording in {inbox} was refused (2): see the lines above, or cscsr status {outbox}"
+    assert [level for level, message in records("\n".join(logged))] == ["ERROR", "ERROR", "INFO"]  # each, the pass
+    assert cli(*watch_args(inbox, outbox)).exit_code == 1  # refused before: still nothing taken
+
+
 def test_a_retry_is_a_warning_and_log_file_takes_the_lines(tmp_path, cli, monkeypatch):
     import pipeline.watch
 
