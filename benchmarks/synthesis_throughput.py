@@ -26,8 +26,9 @@ from _common import load_average, markdown_table, median, save_results
 from cscsr.config import named
 from cscsr.network import CSCSR
 from cscsr.synthesis import prepare, synthesise
-from cscsr.train import TrainOptions, optimiser_step
+from cscsr.train import TrainOptions
 from cscsr.training_data import random_plan, run_plan
+from cscsr.training_losses import optimiser_step
 
 
 def timed(work, repeats: int, device: str = "cpu") -> float:

@@ -55,7 +55,7 @@ def portable_tensors(tensors: dict, weights: str = "float32") -> dict:
 
 def write_portable(tensors: dict, metadata: dict, dest: str | Path, *, weights: str = "float32",
                    part_bytes: int = PART_BYTES) -> list[Path]:
-    """Write a checkpoint (``cscsr.train.read_checkpoint``'s tensors and metadata) into ``dest`` as parts of
+    """Write a checkpoint (``cscsr.training_state.read_checkpoint``'s tensors and metadata) into ``dest`` as parts of
     at most ``part_bytes`` bytes each; earlier parts there are replaced. Returns the parts' paths."""
     from safetensors.torch import save
 

@@ -71,7 +71,7 @@ def prepare(plans: list[ClipPlan]) -> PreparedBatch:
 
 
 def synthesise(batch: PreparedBatch, device: torch.device | str) -> dict:
-    """The batch's clips as tensors on ``device``, keyed as the trainer's batches (``cscsr.train.to_tensors``)."""
+    """The batch's clips as tensors on ``device``, keyed as the trainer's batches (``cscsr.training_batches.to_tensors``)."""
     plans = batch.plans
     device = torch.device(device)
     scale, side = plans[0].scale, plans[0].lr_side

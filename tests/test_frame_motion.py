@@ -93,7 +93,8 @@ def test_torch_clips_of_footage_are_the_simulators_clips(footage):
 def test_a_test_picture_among_the_frames_of_a_sequence_is_refused(tmp_path, footage):
     from skimage import data
 
-    from cscsr.train import TrainOptions, training_pictures
+    from cscsr.train import TrainOptions
+    from cscsr.training_batches import training_pictures
     from stages.errors import InputError
 
     folder = tmp_path / "footage"

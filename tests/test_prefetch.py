@@ -51,16 +51,16 @@ def test_a_failed_call_is_raised_in_the_consumer_at_its_key():
 
 
 def test_training_batches_raise_a_failed_batch_instead_of_hanging(monkeypatch):
-    from cscsr import train
+    from cscsr import training_batches
 
     def make_batch(step, *args, **kwargs):
         if step == 3:
             raise RuntimeError("could not read picture 7")
         return step
 
-    monkeypatch.setattr(train, "make_batch", make_batch)
+    monkeypatch.setattr(training_batches, "make_batch", make_batch)
     seen, outcome = [], {}
-    _consume(train._prefetch(0, train.TrainOptions(steps=10)), seen, outcome)
+    _consume(training_batches._prefetch(0, training_batches.TrainOptions(steps=10)), seen, outcome)
     assert seen == [1, 2]
     assert isinstance(outcome["error"], RuntimeError) and "picture 7" in str(outcome["error"])
 

@@ -7,8 +7,11 @@ import pytest
 import torch
 
 from cscsr.network import CSCSR
-from cscsr.train import TrainOptions, load_checkpoint, losses, make_batch, to_tensors, train
+from cscsr.train import TrainOptions, train
+from cscsr.training_batches import make_batch, to_tensors
 from cscsr.training_data import TEST_PICTURES, TRAIN_PICTURES, bundled_picture, random_clip
+from cscsr.training_losses import losses
+from cscsr.training_state import load_checkpoint
 from cscsr.weights_io import load_model
 from stages.errors import InputError
 
@@ -164,8 +167,8 @@ def warp_error(clip, flows) -> float:
 
 
 def test_a_reoriented_clip_is_the_clip_of_the_turned_scene():
-    from cscsr.train import psnr_intensity
     from cscsr.training_data import batch_arrays, dead_leaves, reoriented, simulate_clip
+    from cscsr.training_losses import psnr_intensity
 
     rng = np.random.default_rng(5)
     grey = np.repeat(dead_leaves(rng, 4 * 48).mean(2, keepdims=True), 3, 2)  # grey: the mosaic is one image
@@ -196,7 +199,7 @@ def test_a_reoriented_clip_is_the_clip_of_the_turned_scene():
 
 
 def test_a_pool_is_reproducible_and_batches_come_from_it():
-    from cscsr.train import clip_pool
+    from cscsr.training_batches import clip_pool
 
     options = TrainOptions(pool=3, scale4_share=1.0, **TINY)
     pool = clip_pool(options)
@@ -299,7 +302,8 @@ def test_a_portable_checkpoint_in_small_parts_resumes_close_to_the_exact_one(tmp
     import shutil
 
     from cscsr.portable_checkpoint import portable_parts
-    from cscsr.train import export_portable, read_checkpoint
+    from cscsr.train import export_portable
+    from cscsr.training_state import read_checkpoint
 
     train(TrainOptions(steps=2, **TINY), tmp_path / "run", log=lambda line: None)
     at_two, _ = read_checkpoint(tmp_path / "run" / "checkpoint.safetensors")

@@ -37,7 +37,8 @@ def assert_untouched(folder) -> None:
 def checkpoint_at(run, step: int) -> None:
     """A training folder whose checkpoint is at ``step`` (random weights, no optimiser step: no training)."""
     from cscsr.network import CSCSR
-    from cscsr.train import TrainOptions, save_checkpoint
+    from cscsr.train import TrainOptions
+    from cscsr.training_state import save_checkpoint
 
     run.mkdir(exist_ok=True)
     options = TrainOptions()
