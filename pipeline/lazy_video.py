@@ -39,7 +39,7 @@ from pipeline.video_store import TileWriter, committed_mask, create_video_store,
 from stages.bits import pack_rows, unpack_rows
 from stages.colour import auto_gain
 from stages.errors import InputError, InputTypeError
-from stages.methods import NETWORKS, WINDOW, Reconstructor, Window, classic, output_centres
+from stages.methods import NETWORKS, WINDOW, Reconstructor, Window, output_centres
 from stages.numbers import check_flag, check_number, check_text
 from stages.tfp import tfp_rate
 from stages.tiles import tile_grid
