@@ -249,7 +249,7 @@ def step_command(step: Step, args, size: dict, result: Path) -> list[str]:
 
 def recording_command(size: dict) -> list[str]:
     """Simulate (and cache) the pipeline steps' recording, as gpu_pipeline.py would, on the CPU alone."""
-    code = (f"import sys; sys.path.insert(0, {str(HERE)!r}); from gpu_pipeline import cached_recording; "
+    code = (f"import sys; sys.path.insert(0, {str(HERE)!r}); from _gpu_recording import cached_recording; "
             f"print(cached_recording({size['side']}, {WINDOW * size['frames']}))")
     return [sys.executable, "-c", code]
 
