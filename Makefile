@@ -11,7 +11,9 @@ CONSTRAINTS := constraints.txt
 $(STAMP): pyproject.toml $(CONSTRAINTS)
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	# The CPU build of torch first: a looser requirement would pull gigabytes of CUDA packages.
+	# torch first, at the pinned version, from the configured package index: this project's index serves the
+	# CPU build; from plain PyPI on Linux the same line pulls the CUDA build (gigabytes) - there, add
+	# --index-url https://download.pytorch.org/whl/cpu for the CPU one (README, Install).
 	$(BIN)/pip install --quiet -c $(CONSTRAINTS) torch==2.13.0
 	$(BIN)/pip install --quiet -c $(CONSTRAINTS) -e '.[test]'
 	touch $(STAMP)
