@@ -308,9 +308,12 @@ def open_capture(url: str, *, height: int | None, width: int | None, flip: bool 
         if suffix in (".npy", ".npz"):
             raise InputError(f"--layout {layout} names a raw capture's layout, and {url} is a {suffix} array: leave "
                              f"--layout out")
+    if key is not None and (layout is not None or suffix != ".npz"):  # before anything is read or created
+        kind = f"an {layout}" if layout == "sps100" else f"a {layout or suffix or 'raw'}"
+        raise InputError(f"--key names an array inside a .npz, and {url} is {kind} capture, which has none: leave "
+                         f"--key out")
+    if layout is not None:
         if layout == "sps100":
-            if key is not None:
-                raise InputError("--key names an array inside a .npz: an sps100 capture has none")
             return open_sps100(url, height=height, width=width, flip=flip, head_columns=head_columns)
         suffix = ".dat"
     if suffix == ".dat":

@@ -259,6 +259,13 @@ def on_dask(client, workers: int | None, scheduler: str | None) -> bool:
     return client is not None or workers is not None or scheduler_address(scheduler) is not None
 
 
+def _one_local_task(plan: IngestPlan, client, scheduler: str | None) -> bool:
+    """Whether a parallel ingest would start a local cluster (``--workers``, no client or scheduler) for one task:
+    then it runs in this process, one stream, the same bytes sooner (a cluster of a long-lived scheduler is
+    used whatever the tasks: an ingest under ``deploy/slurm.py`` never runs on the login node)."""
+    return plan.n_tasks <= 1 and client is None and scheduler_address(scheduler) is None
+
+
 def ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *, progress: bool = True,
            workers: int | None = None, scheduler: str | None = None, client=None) -> dict:
     """Copy ``src`` into a spike store at ``dest``; return the store's final attributes (:func:`run_ingest`)."""
@@ -280,6 +287,10 @@ def run_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *,
     check_text("--scheduler", scheduler, optional=True)
     parallel = on_dask(client, workers, scheduler)
     job = _prepare(src, dest, options, parallel=parallel, client=client)
+    if parallel and _one_local_task(job.plan, client, scheduler):
+        parallel = False
+        log.info("%s: one task of %d frames: ingested in this process (a local cluster of --workers would only add "
+                 "its start-up)", src, job.plan.n_frames)
     if parallel and client is None:
         check_scheduler(scheduler)  # a named scheduler answers (within seconds) before DEST is claimed or replaced
     plan = job.plan
@@ -466,10 +477,12 @@ def plan_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *
     plan, meta, counts = job.plan, job.meta, job.counts
     seconds, stored, measured = _measure(job)
     todo = int((counts < 0).sum())
-    per_task = seconds * plan.task_frames / measured  # a whole task's worth
+    task_frames = min(plan.task_frames, plan.n_frames)  # a task holds no more frames than the capture has
+    per_task = seconds * task_frames / measured  # a whole task's worth
     pixels = plan.n_frames * meta.height * meta.width
     estimate = stored * plan.n_frames / measured
-    where = ("this process" if not parallel else "the given client" if client is not None
+    here = not parallel or _one_local_task(plan, client, scheduler)
+    where = ("this process" if here else "the given client" if client is not None
              else f"scheduler {scheduler_address(scheduler)}" if scheduler_address(scheduler)
              else f"a local cluster of {workers} workers")
     return {
@@ -477,7 +490,7 @@ def plan_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *
         "frames": plan.n_frames, "height": meta.height, "width": meta.width,
         "capture_bytes": job.record["capture"]["bytes"],
         "chunk_frames": job.chunk, "chunks": -(-plan.n_frames // job.chunk),
-        "task_frames": plan.task_frames, "tasks": plan.n_tasks, "tasks_committed": plan.n_tasks - todo,
+        "task_frames": task_frames, "tasks": plan.n_tasks, "tasks_committed": plan.n_tasks - todo,
         "tasks_to_run": todo,
         "store_bytes_estimate": int(round(estimate)), "bits_per_pixel_estimate": 8 * estimate / pixels,
         "measured_frames": measured, "seconds_per_task": per_task,

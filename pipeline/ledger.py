@@ -20,7 +20,7 @@ import json
 import sqlite3
 import time
 from contextlib import closing
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from stages.errors import InputError, describe
@@ -123,6 +123,12 @@ class Ledger:
         with closing(self._connect()) as db:
             return db.execute("SELECT * FROM recordings ORDER BY queued_at, name").fetchall()
 
+    def recordings(self) -> list[Row]:
+        """One row per recording (its source in the inbox), as ``cscsr status`` shows them: its latest row (a
+        capture refused for its sidecar, then done once the sidecar was fixed, is done), with the attempts of all
+        its rows counted, in the order the recordings were first found."""
+        return latest_per_source(self.rows())
+
     def owner_of(self, output: str) -> Row | None:
         """The row, done or in progress, that an output name belongs to."""
         with closing(self._connect()) as db:
@@ -153,3 +159,18 @@ class Ledger:
         self._write("INSERT OR IGNORE INTO recordings (key, name, source, fingerprint, params, state, attempts, final, "
                     "error, queued_at, finished_at) VALUES (?, ?, ?, '', '{}', 'failed', 1, 1, ?, ?, ?)",
                     (key, name, source, error, now, now))
+
+
+def latest_per_source(rows: list[Row]) -> list[Row]:
+    """``rows`` collapsed to one per ``source``: the one touched last (queued, started or finished), its
+    ``attempts`` the sum over the source's rows; in the order of each source's first row."""
+    by_source: dict[str, list[Row]] = {}
+    for row in rows:
+        by_source.setdefault(row.source, []).append(row)
+    return [replace(max(group, key=_last_touched), attempts=sum(row.attempts for row in group))
+            for group in by_source.values()]
+
+
+def _last_touched(row: Row) -> float:
+    """When ``row`` last changed: the latest of its queued, started and finished times."""
+    return max(row.queued_at, row.started_at or 0.0, row.finished_at or 0.0)

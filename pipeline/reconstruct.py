@@ -45,6 +45,7 @@ import tempfile
 import threading
 import time
 import uuid
+import weakref
 from collections.abc import Iterable, Iterator
 from typing import NamedTuple
 
@@ -71,6 +72,18 @@ from stages.tfp import tfp_rate
 from stages.tiles import Tile, device_tile, tile_grid
 
 log = logging.getLogger("cscsr.reconstruct")  # DEBUG lines (cscsr --verbose): the job's plan, each task's outcome
+_DASHBOARDS_SHOWN: "weakref.WeakSet" = weakref.WeakSet()  # the clients whose dashboard link is printed already
+
+
+def _show_dashboard_once(client) -> None:
+    """Print ``client``'s dashboard link on standard error (never mixed with results on stdout), once per client:
+    jobs that share a client (the demo's, evaluate's methods) do not repeat it."""
+    if client in _DASHBOARDS_SHOWN:
+        return
+    _DASHBOARDS_SHOWN.add(client)
+    if link := dashboard_link(client):
+        print(f"dashboard: {link}", file=sys.stderr)
+
 
 def reconstructor(method: str, weights: str | None, precision: str | None = "fp32", backend: str | None = "torch",
                   weights_sha256: str | None = None, *, fast_gpu: bool = False,
@@ -315,8 +328,8 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
                   f"local clusters of {workers or 'a worker per core'} workers, {options.segment_tasks} tasks each")
         with held(out), progress_bar(f"reconstruct {options.method}", len(centres), enabled=progress) as advance:
             if client:
-                if progress and not is_quiet() and (link := dashboard_link(client)):
-                    print(f"dashboard: {link}", file=sys.stderr)  # never mixed with results on stdout
+                if progress and not is_quiet():
+                    _show_dashboard_once(client)
                 outcomes = work(client, groups)
             else:  # our own local cluster: a fresh one per segment keeps memory bounded
                 outcomes = in_segments(work, groups, options.segment_tasks, workers=workers, show_dashboard=progress)
@@ -601,9 +614,11 @@ def _measured_into(client, url: str, able: list[str], of: int, plan: Plan, part:
                              tuple((ty, tx, grid[ty][tx]) for ty, tx in block), pure=False, workers=where,
                              allow_other_workers=False, resources=resources)
 
+    most = _most_sampled(task_count(len(part.centres), batch, len(blocks), part.first), len(able))
+
     def sample() -> Iterator:  # for about ``seconds``, and 3 tasks a worker at least
         for n, group in enumerate(groups):
-            if n >= MOST_TASKS * len(able) or (n >= 3 * len(able) and time.perf_counter() - began >= seconds):
+            if n >= most or (n >= 3 * len(able) and time.perf_counter() - began >= seconds):
                 return
             yield group
 
@@ -627,6 +642,13 @@ def _measured_into(client, url: str, able: list[str], of: int, plan: Plan, part:
     return {"workers": len(able), "of": of, "tasks": len(results), "seconds": seconds,
             "seconds_per_task": seconds * len(able) / counted, "bytes": sum(r["bytes"] for r in results),
             "hr_pixels": sum(r["hr_pixels"] for r in results)}
+
+
+def _most_sampled(job_tasks: int, workers: int) -> int:
+    """The most tasks a dry run times after the warm-up round (one task a worker): no more than the job has, the
+    warm-up counted, in whole rounds of a task a worker, but 3 rounds at least (a job of a few tasks is priced on a
+    few rounds of them), and :data:`MOST_TASKS` a worker at most."""
+    return min(MOST_TASKS, max(3, job_tasks // workers - 1)) * workers
 
 
 def _measured_here(client, items, *, job: tuple, seconds: float) -> Iterator[dict]:

@@ -71,13 +71,20 @@ def check_video_store(url: str, group: zarr.Group) -> None:
     an array whose own ``zarr.json`` and the consolidated copy in the group's disagree, arrays that disagree on the
     number of output frames (``video``, ``frames`` and ``committed``, as the group reads them: the consolidated copy
     where there is one), or more output frames than the spike frames it records (``start``, ``stop``, ``every``) can
-    give. Metadata only, no chunk read, so a shape edited to claim 10⁹ frames is one line at once. A store being
-    written has every array declared already: it passes."""
+    give, or attributes that no reconstruction records (:func:`_nonsense_attribute`, :func:`_region_outside`); and,
+    as not an RGB video store, a ``video`` that is not (frames, height, width, 3) uint8. Metadata only, no chunk
+    read, so a shape edited to claim 10⁹ frames is one line at once. A store being written has every array
+    declared already: it passes."""
     check_format_version(dict(group.attrs), f"video store {url}", FORMAT_VERSION)
     arrays = {name: group[name] for name in (VIDEO, FRAMES, COMMITTED) if name in group}
     if not all(isinstance(array, zarr.Array) and array.ndim >= 1 for array in arrays.values()):
         raise InputError(f"video store {url}: its '{VIDEO}', '{FRAMES}' and '{COMMITTED}' must be arrays")
-    if problem := _copies_disagree(group, list(arrays)) or _frames_disagree(arrays) or _more_than_recorded(group):
+    video = arrays[VIDEO]
+    if video.ndim != 4 or video.shape[3] != 3 or video.dtype != np.uint8:
+        raise InputError(f"{url} is not an RGB video store: its '{VIDEO}' is {video.dtype} {video.shape}, not (frames, "
+                         f"height, width, 3) uint8: give a store made by cscsr reconstruct")
+    if problem := (_copies_disagree(group, list(arrays)) or _frames_disagree(arrays) or _more_than_recorded(group)
+                   or _nonsense_attribute(dict(group.attrs)) or _region_outside(dict(group.attrs), video.shape)):
         raise InputError(f"video store {url}: metadata inconsistent: {problem}: the store was altered or damaged; make "
                          f"it again with cscsr reconstruct --overwrite")
 
@@ -116,6 +123,51 @@ def _more_than_recorded(group: zarr.Group) -> str | None:
         return None
     return (f"'{VIDEO}' has {frames} output frames, but the store records spike frames {start} to {stop} (stop "
             f"excluded), one output frame every {every}: at most {most}")
+
+
+WHOLE_ATTRIBUTES = {"every": 1, "window": 1, "scale": 1, "tile_lr": 1, "start": 0, "stop": 0}  # name: least value
+POSITIVE_ATTRIBUTES = ("fps", "gain")  # finite numbers above 0
+
+
+def _whole(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _nonsense_attribute(attrs: dict) -> str | None:
+    """The first attribute that no reconstruction records (a count below its least, a rate or gain that is not a
+    finite positive number, a range that ends before it starts), in words, or None; absent ones (stores from
+    before them) pass."""
+    for name, least in WHOLE_ATTRIBUTES.items():
+        if (value := attrs.get(name)) is not None and not (_whole(value) and value >= least):
+            return f"{name} {value!r} is not a whole number >= {least}"
+    for name in POSITIVE_ATTRIBUTES:
+        value = attrs.get(name)
+        if value is not None and not (isinstance(value, (int, float)) and not isinstance(value, bool)
+                                      and math.isfinite(value) and value > 0):
+            return f"{name} {value!r} is not a finite number > 0"
+    start, stop = attrs.get("start"), attrs.get("stop")
+    if start is not None and stop is not None and stop < start:
+        return f"stop {stop} is before start {start}"
+    return None
+
+
+def _region_outside(attrs: dict, video_shape: tuple) -> str | None:
+    """Whether the LR ``region`` [y0, y1, x0, x1] is not a region of the recording's frame (``source_shape``,
+    where recorded), or ``scale`` times it is not the size of ``video``'s frames, in words, or None."""
+    region, scale, source = attrs.get("region"), attrs.get("scale"), attrs.get("source_shape")
+    if region is None:
+        return None
+    if not (isinstance(region, list) and len(region) == 4 and all(map(_whole, region))):
+        return f"region {region!r} is not [y0, y1, x0, x1] in LR pixels"
+    y0, y1, x0, x1 = region
+    frame = source[1:] if isinstance(source, list) and len(source) == 3 and all(map(_whole, source)) else None
+    if not (0 <= y0 < y1 and 0 <= x0 < x1) or (frame and (y1 > frame[0] or x1 > frame[1])):
+        where = f"the recording's {frame[1]}x{frame[0]} frame" if frame else "a frame"
+        return f"region {y0}:{y1},{x0}:{x1} is not inside {where}"
+    if _whole(scale) and tuple(video_shape[1:3]) != ((y1 - y0) * scale, (x1 - x0) * scale):
+        return (f"region {y0}:{y1},{x0}:{x1} at x{scale} is {(x1 - x0) * scale}x{(y1 - y0) * scale} HR, but '{VIDEO}' "
+                f"frames are {video_shape[2]}x{video_shape[1]}")
+    return None
 
 
 def check_format_version(attrs: dict, what: str, known: int) -> None:

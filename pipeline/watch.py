@@ -144,6 +144,7 @@ def discover(inbox: str) -> list[Candidate]:
         name = sidecar.get("name", stem)
         if problem is None and (not SAFE_NAME.match(name) or ".." in name):
             problem = f"unsafe name {name!r}: letters, digits, '.', '_' and '-' only, no '..'"
+        problem = problem or _misfit_fields(sidecar, stem, base, suffix)
         found.append(Candidate(name, url, suffix, sidecar, modified, problem, look))
     return found
 
@@ -284,6 +285,22 @@ def _sidecar(fs, path: str) -> tuple[dict, str | None]:
         if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
             return {}, f"sidecar {name}: {key} must be {getattr(kind, '__name__', 'a number')}, got {value!r}"
     return {**values, "_modified": _modified(fs, fs.info(path))}, None
+
+
+def _misfit_fields(sidecar: dict, stem: str, base: str, suffix: str) -> str | None:
+    """Why a sidecar's fields do not fit the recording ``base`` beside it, in one line, or None: beside a spike
+    store (``NAME.zarr``, which records its own size, CFA and rate) only ``name`` applies; ``key`` names an array
+    inside a ``.npz``, and other captures have none. Refused rather than ignored: the sender meant something by
+    them."""
+    if suffix == "zarr":
+        fields = sorted(field for field in sidecar if field not in ("name", "_modified"))
+        if fields:
+            return (f"sidecar {stem}.json: {', '.join(fields)} describe{'s' if len(fields) == 1 else ''} a raw capture, "
+                    f"and {base} is a spike store, which records its own: remove {'it' if len(fields) == 1 else 'them'} "
+                    f"(only 'name' applies to a store)")
+    elif "key" in sidecar and suffix != "npz":
+        return f"sidecar {stem}.json: key names an array inside a .npz, and {base} has none: remove it"
+    return None
 
 
 def fingerprint(candidate: Candidate) -> str:

@@ -204,7 +204,7 @@ def test_dry_run_creates_nothing_and_prints_the_plan(cli, tmp_path, small_chunks
     assert plan["seconds_per_task"] > 0 and set(plan["hours"]) == {"1", "8", "64"}
     assert plan["hours"]["1"] >= plan["hours"]["8"] >= plan["hours"]["64"] > 0
     table = cli("ingest", tmp_path / "c.dat", tmp_path / "s.zarr", "--height", 16, "--width", 16, "--dry-run")
-    assert table.exit_code == 0 and "hours on 64 workers" in table.stdout and "store_bytes_estimate" in table.stdout
+    assert table.exit_code == 0 and "time on 64 workers" in table.stdout and "store_bytes_estimate" in table.stdout
     assert tree(tmp_path) == before
     written = api_ingest(str(tmp_path / "c.dat"), str(tmp_path / "s.zarr"), height=16, width=16, dry_run=True)
     assert written.counts["tasks"] == 1 and tree(tmp_path) == before

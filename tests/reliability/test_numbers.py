@@ -128,7 +128,7 @@ def test_sidecar_fps_1e400_is_recorded_as_failed_and_nothing_stored(cli, tmp_pat
     unchanged = fingerprint(inbox)
     result = cli("watch", inbox, outbox, "--once", "--settle", 0, "--workers", 1)
     assert result.exit_code == 0, result.stderr
-    rows = [json.loads(line) for line in cli("status", outbox, "--json").stdout.splitlines()]
+    rows = json.loads(cli("status", outbox, "--json").stdout)  # one JSON list
     assert [(r["name"], r["state"]) for r in rows] == [("rec", "failed")]
     assert "fps must be a finite number, got inf" in rows[0]["error"]
     stored = [p.relative_to(outbox) for p in outbox.rglob("rec*")]  # a spike store would be spikes/rec.zarr

@@ -181,7 +181,7 @@ def test_a_ledger_is_opened_only_if_it_is_ours_and_status_never_writes(tmp_path,
         result = cli("status", outbox, "--json")
         assert result.exit_code == 0, result.stderr
         assert snapshot(outbox) == before and os.stat(outbox / "ledger.sqlite").st_mtime_ns == stamp
-    assert json.loads(cli("status", ours, "--json").stdout)["error"] == "sidecar bad.json is not JSON"
+    assert json.loads(cli("status", ours, "--json").stdout)[0]["error"] == "sidecar bad.json is not JSON"
     with sqlite3.connect(ours / "ledger.sqlite") as db:
         assert db.execute("PRAGMA application_id").fetchone()[0] == APPLICATION_ID
     assert_refused(cli("status", tmp_path / "nowhere"), "has no ledger (ledger.sqlite)")
