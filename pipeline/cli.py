@@ -4,6 +4,8 @@ Every failure is one line on standard error and a non-zero exit; set ``CSCSR_DEB
 the full traceback.
 """
 
+from pipeline import stopping  # first of all: in a worker process of the command, Ctrl-C is ignored from here on
+
 import contextlib
 import functools
 import json
@@ -17,7 +19,6 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from pipeline import stopping
 from stages.cfa import PATTERNS
 from stages.methods import METHODS, WINDOW
 from stages.sps100 import LAYOUTS
@@ -276,14 +277,16 @@ def ingest(src: Annotated[str, typer.Argument(help="Capture: .dat, .npy or .npz,
             return
         hours = plan.pop("hours")
         rows = {k: v for k, v in plan.items() if k not in ("source", "store")}
-        rows.update({f"hours on {n} worker{'s' if n != '1' else ''}": h for n, h in hours.items()})
+        rows["seconds_per_task"] = duration(plan["seconds_per_task"])
+        rows.update({f"time on {counted(int(n), 'worker')}": duration(h * 3600) for n, h in hours.items()})
         show_table(f"ingest {src} -> {store} (dry run: nothing created)", rows)
         return
     done = run_ingest(src, store, options, workers=workers, scheduler=scheduler)
     attrs = done["attrs"]
     tasks = (f" ({counted(done['tasks_run'], 'task')} run, {done['tasks_skipped']} already committed)"
              if resume or workers is not None or scheduler is not None else "")
-    stdout.print(f"{store}: {attrs['spike_count']} spikes, {attrs['height']}x{attrs['width']}, cfa {attrs['cfa']}{tasks}")
+    stdout.print(f"{store}: {counted(done['frames'], 'frame')} {attrs['height']}x{attrs['width']}, cfa {attrs['cfa']}, "
+                 f"{attrs['spike_count']} spikes{tasks}")
 
 
 @command()
@@ -428,10 +431,11 @@ def in_units(size: float) -> str:
 
 
 def duration(seconds: float) -> str:
-    """Seconds as a few digits in the unit that suits them: ``41 s``, ``12 min``, ``3.2 hours``."""
+    """Seconds as a few digits in the unit that suits them: ``0.5 s``, ``41 s``, ``12 min``, ``3.2 h`` (never
+    ``0.000139`` hours; ``--json`` keeps the exact numbers)."""
     if seconds < 90:
         return f"{seconds:.2g} s"
-    return f"{seconds / 60:.3g} min" if seconds < 5400 else f"{seconds / 3600:.3g} hours"
+    return f"{seconds / 60:.3g} min" if seconds < 5400 else f"{seconds / 3600:.3g} h"
 
 
 def show_plan(plan: dict, as_json: bool) -> None:
@@ -459,9 +463,9 @@ def show_plan(plan: dict, as_json: bool) -> None:
     workers = "GPU workers" if plan["runs_on"] == "GPU workers" else "workers"
     table = Table(title="estimated time")
     table.add_column(workers, justify="right")
-    table.add_column("hours", justify="right")
+    table.add_column("time", justify="right")
     for count, hours in plan["hours"].items():
-        table.add_row(count, f"{hours:.3g}")
+        table.add_row(count, duration(hours * 3600))
     stdout.print(table)
     stdout.print(f"{plan['seconds_per_task']:.3g} s per task, one task at a time per worker", soft_wrap=True)
 
@@ -667,16 +671,16 @@ def check_log_file(path: str, inbox: str, outbox: str) -> None:
 
 @command()
 def status(outbox: Annotated[str, typer.Argument(help="A watcher's OUTBOX.")],
-           as_json: Annotated[bool, typer.Option("--json", help="Print JSON lines instead of a table.")] = False):
-    """The watcher's ledger: every recording, its state, attempts, timings and errors."""
+           as_json: Annotated[bool, typer.Option("--json", help="Print one JSON list of the recordings instead of a "
+                                                 "table.")] = False):
+    """The watcher's ledger: every recording once (its latest state), its attempts, timings and errors."""
     import time
 
     from pipeline.ledger import Ledger
 
-    rows = Ledger(outbox, read_only=True).rows()  # refused unless it is a cscsr ledger; never written
-    if as_json:
-        for row in rows:
-            print(json.dumps(row.__dict__))
+    rows = Ledger(outbox, read_only=True).recordings()  # refused unless it is a cscsr ledger; never written
+    if as_json:  # one JSON document per command, as info --json and the dry runs print
+        print(json.dumps([row.__dict__ for row in rows], allow_nan=False))
         return
     table = Table(title=f"{outbox}: {len(rows)} recordings (sources: --json)")
     for column in ("name", "state", "tries", "seconds", "finished", "error / output"):
@@ -730,6 +734,7 @@ def worker(scheduler: Annotated[Optional[str], typer.Argument(
 
 def main() -> None:
     stopping.interrupt_on(signal.SIGTERM)  # this process only: the Python API leaves its caller's signals alone
+    stopping.mark_command_line()
     app(prog_name="cscsr")
 
 

@@ -36,10 +36,14 @@ from collections.abc import Iterable, Iterator, Sequence
 import dask
 from distributed import Client, LocalCluster, Nanny, WorkerPlugin
 
+from pipeline.stopping import start_resource_tracker
 from stages.errors import InputError, describe
 from stages.numbers import check_number
 
 CONNECT_TIMEOUT = "5s"
+WAIT_SETTING = "cscsr.wait-for-workers"  # Dask configuration: how long a job waits for a named scheduler's first worker
+WAIT_DEFAULT = "60s"
+QUIET_WAIT = 2.0  # seconds a job waits for a worker before it says that it is waiting
 WORKERS_PER_CORE, MOST_WORKERS = 4, 256  # --workers at most 4 per core and 256 in all: beyond that a local
 # cluster only multiplies processes (~100 MiB each) and start-up time, with no core left to run them
 GPU = "GPU"  # the Dask worker resource a GPU worker advertises; network tasks ask for one
@@ -134,6 +138,53 @@ def check_scheduler(scheduler: str | None) -> None:
     if error is not None:  # an answer, but not Dask's protocol (a web server, say): undecodable frames
         raise InputError(f"cannot reach Dask scheduler {address}: what answers there does not speak Dask's "
                          f"protocol ({type(error).__name__})")
+
+
+def workers_timeout() -> float | None:
+    """Seconds a job waits for the first worker of a named scheduler (:func:`wait_for_workers`): Dask's configuration
+    value ``cscsr.wait-for-workers`` (``DASK_CSCSR__WAIT_FOR_WORKERS``, a YAML file, ``dask.config.set``), a
+    duration as Dask writes them (``60s``, ``5 minutes``, seconds as a number), default :data:`WAIT_DEFAULT`; None
+    (``null``) waits for ever. Anything else is refused in one line."""
+    value = dask.config.get(WAIT_SETTING, WAIT_DEFAULT)
+    if value is None:
+        return None
+    try:
+        seconds = float(dask.utils.parse_timedelta(value, "s"))
+    except (ValueError, TypeError, KeyError):
+        seconds = -1.0
+    if not seconds > 0:
+        raise InputError(f"Dask setting {WAIT_SETTING} must be a duration such as 60s or 5 minutes (or null: wait "
+                         f"for ever), got {value!r}")
+    return seconds
+
+
+def wait_for_workers(client: Client, address: str) -> None:
+    """Return once the scheduler at ``address`` has a running worker (``client.wait_for_workers(1, timeout)``, Dask's
+    way); after :data:`QUIET_WAIT` seconds (half the limit if that is shorter) without one, say so in one warning,
+    "waiting for workers (0 connected) ...", and at :func:`workers_timeout` give up in one line (:class:`InputError`).
+    A job sent to a scheduler whose workers had all died, or not started yet, waited silently for ever."""
+    from distributed.client import WorkerStartTimeoutError
+
+    limit = workers_timeout()
+    quiet = QUIET_WAIT if limit is None else min(QUIET_WAIT, limit / 2)
+    try:
+        client.wait_for_workers(1, timeout=quiet)
+        return
+    except WorkerStartTimeoutError as waited:
+        connected = waited.available_workers
+    until = "" if limit is None else f", for up to {limit:g} s (Dask setting {WAIT_SETTING})"
+    logging.getLogger("cscsr.cluster").warning("waiting for workers (%d connected) at Dask scheduler %s%s",
+                                               connected, address, until)
+    try:
+        client.wait_for_workers(1, timeout=None if limit is None else limit - quiet)
+    except WorkerStartTimeoutError:
+        raise _no_workers(address, limit) from None
+
+
+def _no_workers(address: str, seconds: float) -> InputError:
+    return InputError(f"no worker at Dask scheduler {address} within {seconds:g} s: start workers there (cscsr worker "
+                      f"{address}, or dask worker), or wait longer with Dask's setting {WAIT_SETTING} "
+                      f"(DASK_CSCSR__WAIT_FOR_WORKERS=5m)")
 
 
 _THIS_PROCESS = uuid.uuid4().hex  # a worker answering with this mark runs in this very process
@@ -255,11 +306,13 @@ def dask_client(*, workers: int | None = None, scheduler: str | None = None,
         except (OSError, TimeoutError) as error:
             raise InputError(f"cannot reach Dask scheduler {address}: {describe(error)}") from None
         with client:
+            wait_for_workers(client, address)  # a scheduler without workers would run nothing, silently, for ever
             yield client
         return
     check_workers(workers)
     if gpus is not None:
         _check_gpus(gpus)
+    start_resource_tracker()  # one, deaf to Ctrl-C, shared by the workers (pipeline.stopping)
     workers = workers if workers is not None else os.cpu_count() or 1
     gpus = visible_gpus() if gpus is None else gpus
     options = {}

@@ -31,7 +31,7 @@ from pipeline.lease import check_free
 from pipeline.spike_store import SPIKES
 from pipeline.storage import exists, is_local, open_group, remove, resolve
 from pipeline.video_store import is_video_store
-from stages.errors import InputError, exists_error, not_ours_error
+from stages.errors import InputError, exists_error, not_ours_error, unfinished_error
 
 log = logging.getLogger("cscsr.outputs")
 
@@ -159,8 +159,23 @@ def check_existing(url: str, *, overwrite: bool, kind: str, flag: str) -> bool:
     check_free(url)
     check_ours(url, kind)
     if not overwrite:
-        raise exists_error(url, flag)
+        raise unfinished_error(url, left, flag) if (left := leftover(url, kind)) else exists_error(url, flag)
     return True
+
+
+def leftover(url: str, kind: str) -> str | None:
+    """What the store of ``kind`` at ``url`` is, in a few words, when its writer did not finish it (its ``state`` is
+    not "complete": an interrupted or killed ``simulate``, ``ingest`` or ``reconstruct``); None for a finished store,
+    any other output, or one that cannot be read."""
+    if kind not in _STORES:
+        return None
+    fs, path = resolve(url)
+    root = _json(fs, f"{str(path).rstrip('/')}/zarr.json")
+    attrs = root.get("attributes") if isinstance(root, dict) else None
+    if not isinstance(attrs, dict) or attrs.get("state", "complete") == "complete":
+        return None
+    writer = "reconstruct" if kind == VIDEO_STORE else "simulate" if attrs.get("simulated") else "ingest"
+    return f"an incomplete {kind} (state {attrs['state']!r}), the leftover of an interrupted {writer}"
 
 
 def _local_path(url: str) -> str:

@@ -6,10 +6,13 @@ clusters stopped, temporary files removed). SIGTERM's default ends the process a
 the command line's process and each segment process raise :class:`Terminated`, a ``KeyboardInterrupt``, instead.
 """
 
+import os
 import signal
 import sys
+import threading
 
 _handled: set = set()  # the signals interrupt_on handles in this process
+COMMAND_LINE = "CSCSR_COMMAND_LINE"  # set by the command line for the processes it starts: they belong to a command
 
 
 class Terminated(KeyboardInterrupt):
@@ -41,3 +44,42 @@ def quiet_finalizers() -> None:
     with a traceback after the command's one line. Elsewhere (the Python API, tests) nothing changes."""
     if _handled:
         sys.unraisablehook = lambda unraisable: None
+
+
+def mark_command_line() -> None:
+    """Mark this process (the command line's) and every process it starts as belonging to a command."""
+    os.environ[COMMAND_LINE] = "1"
+
+
+def ignore_ctrl_c_while_spawned() -> None:
+    """In a process that ``multiprocessing`` spawns for a command (a local cluster's worker, a segment), ignore SIGINT
+    from its first import of this module on: the terminal's Ctrl-C reaches every process of the job, and a worker
+    still importing printed a ``KeyboardInterrupt`` traceback of its own (dozens of lines when a job is stopped as its
+    cluster starts), while the command closes its cluster, and with it the worker, anyway. A segment process handles
+    SIGINT again once it runs (:func:`interrupt_on`). Python's own handler, not ``SIG_IGN``, so that processes started
+    after it begin with the default. Elsewhere (the Python API, its own processes, tests) nothing changes."""
+    spawned = "--multiprocessing-fork" in getattr(sys, "orig_argv", ())
+    if spawned and os.environ.get(COMMAND_LINE) and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, lambda signum, frame: None)
+
+
+def start_resource_tracker() -> None:
+    """Start ``multiprocessing``'s resource tracker of this process now, deaf to Ctrl-C from its first instruction, so
+    that the processes this one spawns (a local cluster's workers) share it rather than each start one of their own,
+    which Ctrl-C, reaching every process of the job, could stop while it starts (a ``KeyboardInterrupt`` traceback,
+    and semaphores left unaccounted for: "leaked semaphore objects"). Ctrl-C is ignored here only while the tracker
+    process is created (a few milliseconds); outside the main thread, or when a tracker runs already, it only makes
+    sure one runs."""
+    from multiprocessing import resource_tracker
+
+    if threading.current_thread() is not threading.main_thread():
+        resource_tracker.ensure_running()
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        resource_tracker.ensure_running()
+    finally:
+        signal.signal(signal.SIGINT, signal.SIG_DFL if previous is None else previous)  # None: set from C, not Python
+
+
+ignore_ctrl_c_while_spawned()  # at import: pipeline.cli imports this module first, before anything slow to import

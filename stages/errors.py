@@ -25,3 +25,12 @@ def not_ours_error(output, what: str, found: str) -> InputError:
 def exists_error(output, flag: str = "--overwrite") -> InputError:
     """The refusal of an existing output of ours that the user did not ask to replace."""
     return InputError(f"output {output} already exists (pass {flag} to replace it)")
+
+
+def unfinished_error(output, what: str, flag: str = "--overwrite") -> InputError:
+    """The refusal of an existing output of ours that an interrupted run left unfinished (its ``state`` still
+    "writing"), which the user did not ask to replace: ``what`` it is and who left it (``an incomplete spike store
+    (state 'writing'), the leftover of an interrupted simulate``); ``flag`` what the command offers."""
+    advice = ("pass --resume to finish it, or --overwrite to replace it" if "--resume" in flag
+              else f"pass {flag} to replace it")
+    return InputError(f"output {output} already exists: {what}; {advice}")
