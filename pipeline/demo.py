@@ -81,8 +81,9 @@ def simulated_job(out_dir: str, console: Console, workers: int) -> list[dict]:
     export(video, os.path.join(out_dir, "video_cscsr.mp4"), overwrite=True)
     truth, truth_frames = read_truth(open_spike_store(recording))
     write_image(os.path.join(out_dir, "comparison.png"), comparison_picture(truth, truth_frames, videos))
-    console.print(_table(f"reconstruction x4 of {recording} against ground truth ({rows[0]['frames']} frames)",
-                         ["method", "PSNR (dB)", "SSIM", "s / image"],
+    console.print(_table(f"reconstruction x4 of {recording} against ground truth: means over {rows[0]['frames']} "
+                         f"frames (comparison.png's panels: the PSNR of its one frame)",
+                         ["method", "mean PSNR (dB)", "mean SSIM", "s / image"],
                          [[r["method"], r["psnr"], r["ssim"], r["seconds_per_image"]] for r in rows]))
     return rows
 

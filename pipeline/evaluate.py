@@ -107,7 +107,7 @@ def comparison_picture(truth, truth_frames, videos: dict) -> np.ndarray:
     there (``videos``: label -> frames at the truth frames, as a video store holds them)."""
     middle = len(truth_frames) // 2
     pictures = [labelled(truth[middle], f"truth (frame {truth_frames[middle]})")]
-    pictures += [labelled(video[middle], f"{label}: {psnr(video[middle], truth[middle]):.2f} dB")
+    pictures += [labelled(video[middle], f"{label}: {psnr(video[middle], truth[middle]):.2f} dB this frame")
                  for label, video in videos.items()]
     return side_by_side(*pictures)
 
