@@ -1,4 +1,4 @@
-"""The measured job: ``pipeline.reconstruct.reconstruct`` on a local cluster of one GPU worker.
+"""The measured job: ``pipeline.jobs.reconstruct.reconstruct`` on a local cluster of one GPU worker.
 
 The cluster (:func:`gpu_worker_client`), the job's options (:func:`reconstruct_options`), the warm
 job timed (:func:`timed_jobs`: wall clock, the worker's CPU, the task stream), the stand-in device's
@@ -24,17 +24,17 @@ from _gpu_standin import stand_in_passes
 def gpu_worker_client():
     """A local cluster of one GPU worker and its client; -> (client, how it was made).
 
-    ``pipeline.cluster.dask_client(workers=1, gpus=1)`` where it takes ``gpus`` (a pinned GPU worker
+    ``pipeline.compute.cluster.dask_client(workers=1, gpus=1)`` where it takes ``gpus`` (a pinned GPU worker
     running several tasks at once); else one worker process with one thread advertising ``GPU=1``, as
     compose's ``gpu-worker`` (``--nthreads 1 --resources GPU=1``), with ``dask_client``'s settings."""
     import dask
     from distributed import Client, LocalCluster
 
-    import pipeline.cluster as cluster
+    import pipeline.compute.cluster as cluster
 
     if "gpus" in inspect.signature(cluster.dask_client).parameters:
         with cluster.dask_client(workers=1, gpus=1) as client:
-            yield client, "pipeline.cluster.dask_client(workers=1, gpus=1)"
+            yield client, "pipeline.compute.cluster.dask_client(workers=1, gpus=1)"
         return
     with dask.config.set(getattr(cluster, "_PRE_SPAWN", {})), \
             LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
@@ -57,7 +57,7 @@ def cpu_seconds(pids: list[int]) -> np.ndarray:
 
 def reconstruct_options(args, weights: str, precision: str = "fp32"):
     """The job's options: the network, ``--tile`` (None: the pipeline's choice), ``--gpu-batch``, ``--fast-gpu``."""
-    from pipeline.reconstruct_plan import ReconstructOptions
+    from pipeline.jobs.reconstruct_plan import ReconstructOptions
 
     fields = {f.name for f in dataclasses.fields(ReconstructOptions)}
     extra = {}
@@ -80,7 +80,7 @@ def timed_jobs(client, store: str, out: str, options, repeats: int) -> dict:
     import psutil
     from distributed import get_task_stream
 
-    from pipeline.reconstruct import reconstruct
+    from pipeline.jobs.reconstruct import reconstruct
 
     reconstruct(store, out, options, client=client, progress=False)
     pids = worker_pids(client)
@@ -129,7 +129,7 @@ def device_busy(client, runs: dict) -> list[dict]:
 
 def check_output(url: str, frames: int, side: int) -> dict:
     """The output is complete and of the expected shape; -> its recorded tile and compressed bytes per frame."""
-    from pipeline.video_store import VIDEO, open_video_store
+    from pipeline.stores.video_store import VIDEO, open_video_store
 
     group = open_video_store(url)
     shape = group[VIDEO].shape

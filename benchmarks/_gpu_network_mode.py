@@ -25,9 +25,9 @@ BF16_DENSE_PEAK_TFLOPS = {"H100 PCIe": 756.0, "H100": 989.4, "H200": 989.4, "A10
 
 def task_windows(store_url: str, tile: int, halo: int, batch: int):
     """The windows the job reads, in passes of ``batch`` consecutive output frames of one tile."""
-    from pipeline.spike_store import open_spike_store, read_frames
-    from stages.methods import Window, output_centres
-    from stages.tiles import tile_grid
+    from pipeline.stores.spike_store import open_spike_store, read_frames
+    from stages.reconstruction.methods import Window, output_centres
+    from stages.reconstruction.tiles import tile_grid
 
     store = open_spike_store(store_url)
     meta = store.meta
@@ -46,13 +46,13 @@ def task_windows(store_url: str, tile: int, halo: int, batch: int):
 
 def pipeline_batch(args, method, precision: str, tile: int) -> int:
     """Windows per pass as the job's GPU tasks run them: a task's frames of one tile (``method.batch``), at most
-    ``--gpu-batch``, else what the device's memory holds (``pipeline.reconstruct.sized``, where it exists)."""
+    ``--gpu-batch``, else what the device's memory holds (``pipeline.jobs.reconstruct.sized``, where it exists)."""
     most = args.gpu_batch
     if most is None and method.device.type == "cuda":
         import torch
 
         with contextlib.suppress(ImportError):
-            from pipeline.reconstruct import Placement, sized
+            from pipeline.jobs.reconstruct import Placement, sized
 
             where = Placement(True, torch.cuda.get_device_properties(method.device).total_memory)
             options = dataclasses.replace(reconstruct_options(args, method.weights, precision), tile=tile)
@@ -72,7 +72,7 @@ def forward_pass(method, windows):
     running one pass, synchronised, under the reconstructor's precision (autocast for bf16)."""
     import torch
 
-    from stages.bits import unpack_rows
+    from stages.capture.bits import unpack_rows
 
     first = windows[0]
     x = torch.from_numpy(np.stack([unpack_rows(w.packed, w.width) for w in windows])).to(method.device, torch.float32)
@@ -93,7 +93,7 @@ def time_passes(method, passes, repeats: int) -> dict:
     pass of each shape), and the forward pass's FLOPs (convolutions and matrix products, 2 per multiply-add)."""
     from torch.utils.flop_counter import FlopCounterMode
 
-    from cscsr.reconstructor import one_thread_on_cpu
+    from cscsr.inference.reconstructor import one_thread_on_cpu
 
     forward, many, flops = 0.0, 0.0, 0
     counted = {}  # (window shape, windows) -> FLOPs of one pass
@@ -138,8 +138,8 @@ def measure_network(args, store: str, work: Path, config: str, precision: str, d
     its cluster is closed before the model is loaded here, so the two never share the device's memory."""
     import torch
 
-    from cscsr.reconstructor import load_reconstructor
-    from cscsr.weights_io import default_weights
+    from cscsr.inference.reconstructor import load_reconstructor
+    from cscsr.weights.weights_io import default_weights
 
     weights = str(Path(args.weights or default_weights(config)).resolve())
     options = reconstruct_options(args, weights, precision)

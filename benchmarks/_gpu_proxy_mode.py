@@ -21,8 +21,8 @@ GOAL_CPU_PER_FRAME = 0.15  # non-network CPU seconds of the worker per output fr
 
 def measure_stand_in(args, store: str, work: Path) -> dict:
     """``--stand-in S``: the warm job with the stand-in in the worker; figures per repeat and medians."""
-    from cscsr.weights_io import default_weights
-    from pipeline.spike_store import open_spike_store
+    from cscsr.weights.weights_io import default_weights
+    from pipeline.stores.spike_store import open_spike_store
 
     picture = str(stand_in_picture(store))
     gain = float(open_spike_store(store).meta.gain)
@@ -68,11 +68,11 @@ def profile_steps(store: str, work: Path, weights: str, picture: str, gain: floa
     views: ``sum(...) / 1``) but the proxy's CPU device does: measured alone, as "of which"."""
     import psutil
 
-    import pipeline.reconstruct as reconstruct_module
-    from pipeline.spike_store import open_spike_store, read_frames
-    from pipeline.video_store import TileWriter, create_video_store
-    from stages.methods import Window, output_centres
-    from stages.tiles import tile_grid
+    import pipeline.jobs.reconstruct_tasks as reconstruct_module
+    from pipeline.stores.spike_store import open_spike_store, read_frames
+    from pipeline.stores.video_store import TileWriter, create_video_store
+    from stages.reconstruction.methods import Window, output_centres
+    from stages.reconstruction.tiles import tile_grid
 
     path = install_stand_in(0.0, picture, gain)
     method = reconstruct_module.reconstructor("cscsr", weights)
@@ -109,7 +109,7 @@ def profile_steps(store: str, work: Path, weights: str, picture: str, gain: floa
     def device_ops():  # the old path's averaging of views (sum, / 1) over float HR rates: a GPU's work there
         import torch
 
-        from cscsr.reconstructor import one_thread_on_cpu
+        from cscsr.inference.reconstructor import one_thread_on_cpu
 
         rates = method.stand_in.model(torch.empty(len(centres), 1, t.ry1 - t.ry0, t.rx1 - t.rx0), meta.cfa,
                                       False, SCALE, gain)["image"]
@@ -138,9 +138,9 @@ def picture_against_network(store: str, weights: str, picture: str, side: int = 
     HR pixel and seconds per HR megapixel (median of 5). The network runs here, on the CPU (seconds)."""
     from numcodecs import Zstd
 
-    from cscsr.reconstructor import load_reconstructor
-    from pipeline.spike_store import open_spike_store
-    from stages.methods import Window
+    from cscsr.inference.reconstructor import load_reconstructor
+    from pipeline.stores.spike_store import open_spike_store
+    from stages.reconstruction.methods import Window
 
     spikes = open_spike_store(store)
     meta = spikes.meta

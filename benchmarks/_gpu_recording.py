@@ -1,6 +1,6 @@
 """The recording ``gpu_pipeline.py`` reconstructs, and its geometry.
 
-A simulated RGGB spike recording of a still picture (``pipeline.simulate``), cached in
+A simulated RGGB spike recording of a still picture (``pipeline.jobs.simulate``), cached in
 ``/tmp/cscsr_bench`` by its parameters (:func:`cached_recording`; ``gpu_prove.py`` calls it too,
 to simulate the pipeline steps' recording before the lease's clock runs), and the figures every part
 of the GPU benchmark shares: the network's window (one output frame per window), the scale, and the
@@ -38,7 +38,7 @@ def simulate_recording(work: Path, side: int, frames: int) -> str:
     """Simulate ``frames`` spike frames of side x side LR RGGB (a still picture) into ``work/spikes.zarr``."""
     import cv2
 
-    from pipeline.simulate import SimulateOptions, simulate
+    from pipeline.jobs.simulate import SimulateOptions, simulate
 
     picture = work / "scene.png"
     cv2.imwrite(str(picture), scene(side * SCALE)[..., ::-1], [cv2.IMWRITE_PNG_COMPRESSION, 1])  # RGB -> BGR

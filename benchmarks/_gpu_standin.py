@@ -18,11 +18,11 @@ from _gpu_recording import SCALE, WINDOW
 
 def stand_in_picture(store_url: str) -> Path:
     """The stand-in's output picture, made once per recording and saved beside it: the first window's TFP
-    image (``stages.tfp.tfp_image``) at the store's gain, enlarged x4 to HR, (4H, 4W, 3) uint8."""
+    image (``stages.reconstruction.tfp.tfp_image``) at the store's gain, enlarged x4 to HR, (4H, 4W, 3) uint8."""
     path = Path(store_url).parent / "stand_in_picture.npy"
     if not path.exists():
-        from pipeline.spike_store import open_spike_store
-        from stages.tfp import tfp_image
+        from pipeline.stores.spike_store import open_spike_store
+        from stages.reconstruction.tfp import tfp_image
 
         store = open_spike_store(store_url)
         meta = store.meta
@@ -108,11 +108,11 @@ class _OldModelStandIn:
 
 
 def install_stand_in(seconds: float, picture: str, gain: float) -> str:
-    """In this process: wrap ``pipeline.reconstruct.reconstructor`` so that every reconstructor it returns
+    """In this process: wrap ``pipeline.jobs.reconstruct_tasks.reconstructor`` so that every reconstructor it returns
     runs :class:`StandInDevice` instead of the network; -> which path the reconstructor has: "device-side"
     (it has ``device_images``) or "old". Idempotent."""
-    import pipeline.reconstruct as reconstruct_module
-    from cscsr.reconstructor import NetworkReconstructor
+    import pipeline.jobs.reconstruct_tasks as reconstruct_module
+    from cscsr.inference.reconstructor import NetworkReconstructor
 
     path = "device-side" if hasattr(NetworkReconstructor, "device_images") else "old"
     original = getattr(reconstruct_module.reconstructor, "measured_original", reconstruct_module.reconstructor)
@@ -136,7 +136,7 @@ def install_stand_in(seconds: float, picture: str, gain: float) -> str:
 
 def stand_in_passes() -> list:
     """In a worker: the stand-in's passes so far, (start, stop, windows) on this process's perf_counter."""
-    import pipeline.reconstruct as reconstruct_module
+    import pipeline.jobs.reconstruct_tasks as reconstruct_module
 
     return list(reconstruct_module.reconstructor.stand_in.passes)
 

@@ -37,14 +37,14 @@ def main() -> None:
     if variants[0] != "torch" or not set(variants) <= set(VARIANTS):
         parser.error(f"--variants: torch first (the reference), then any of {', '.join(VARIANTS)}")
 
-    from pipeline.cluster import dask_client
-    from pipeline.evaluate import checked_evaluation
-    from pipeline.ground_truth import read_truth
-    from pipeline.reconstruct import reconstruct
-    from pipeline.spike_store import open_spike_store
-    from pipeline.testset import items, make_testset
-    from pipeline.video_store import VIDEO, open_video_store
-    from stages.metrics import psnr, ssim
+    from pipeline.compute.cluster import dask_client
+    from pipeline.jobs.evaluate import checked_evaluation
+    from pipeline.stores.ground_truth import read_truth
+    from pipeline.jobs.reconstruct import reconstruct
+    from pipeline.stores.spike_store import open_spike_store
+    from pipeline.jobs.testset import items, make_testset
+    from pipeline.stores.video_store import VIDEO, open_video_store
+    from stages.measures.metrics import psnr, ssim
 
     load_start = load_average()
     work = Path(tempfile.mkdtemp(prefix="backend-quality-"))

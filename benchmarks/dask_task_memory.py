@@ -1,7 +1,7 @@
 """Dask's own memory per task: the reference for the soak's slow growth.
 
 What: ``--tasks`` trivial tasks (``i + 1``, no Zarr, none of our stages) through the same
-bounded submission the pipeline uses (``pipeline.executor.in_bounded_window``), on a local
+bounded submission the pipeline uses (``pipeline.compute.executor.in_bounded_window``), on a local
 cluster of 2 worker processes; the current RSS of the client process (which hosts the
 scheduler) and of each worker every ``--every`` tasks. If the soak's growth per task
 (``benchmarks/soak.py``) reappears here, it comes from Dask's bookkeeping, not from ours.
@@ -31,7 +31,7 @@ def main() -> None:
     sys.path.insert(0, str(ROOT))
     from distributed import Client, LocalCluster
 
-    from pipeline.executor import in_bounded_window, window_size
+    from pipeline.compute.executor import in_bounded_window, window_size
 
     samples = []
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \

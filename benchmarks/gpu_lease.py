@@ -51,7 +51,7 @@ def pack(sources: list[str], dest: Path, sequences: list[str] = (), short_side: 
     sub-folder per source folder."""
     import cv2
 
-    from cscsr.training_data import picture_files
+    from cscsr.training.training_data import picture_files
 
     dest.mkdir(parents=True, exist_ok=True)
     count, size = 0, 0
@@ -73,8 +73,8 @@ def check(out: Path, tiny: bool) -> None:
     import numpy as np
     import torch
 
-    from cscsr.synthesis import prepare, synthesise
-    from cscsr.training_data import random_plan, run_plan
+    from cscsr.training.synthesis import prepare, synthesise
+    from cscsr.training.training_data import random_plan, run_plan
 
     cuda = torch.cuda.is_available() and not tiny
     device = "cuda" if cuda else "cpu"
@@ -120,7 +120,7 @@ def check(out: Path, tiny: bool) -> None:
 
 
 def train_slice(options: dict, run: Path, *, resume: bool, log=print) -> Path:
-    from cscsr.train import TrainOptions, train
+    from cscsr.training.train import TrainOptions, train
 
     return train(TrainOptions(**options), run, resume=resume, log=lambda line: log(line, flush=True),
                  command="benchmarks/gpu_lease.py train " + json.dumps(options, sort_keys=True))
@@ -130,8 +130,8 @@ def train_command(out: Path, run: Path, minutes: float, pictures: list[str], ini
                   tiny: bool, portable_weights: str = "float16", steps: int = 0) -> None:
     import torch
 
-    from cscsr.portable_checkpoint import portable_parts
-    from cscsr.train import export_portable, export_weights
+    from cscsr.weights.portable_checkpoint import portable_parts
+    from cscsr.training.train import export_portable, export_weights
 
     device = "cuda" if torch.cuda.is_available() and not tiny else "cpu"
     resume = (run / "checkpoint.safetensors").exists() or bool(portable_parts(run, complete=False))

@@ -2,9 +2,9 @@
 
 Two modes, both on a simulated RGGB spike recording of ``--side`` x ``--side`` LR pixels with
 ``41 * --frames`` spike frames (one output frame per 41: the network's window and the default
-``--every``), reconstructed at x4 through ``pipeline.reconstruct.reconstruct(..., client=...)`` on
+``--every``), reconstructed at x4 through ``pipeline.jobs.reconstruct.reconstruct(..., client=...)`` on
 a local cluster of one GPU worker (a Dask worker advertising ``GPU=1``, so that the job takes the
-GPU-worker path: ``pipeline.cluster.dask_client(workers=1, gpus=1)`` where it exists, else one
+GPU-worker path: ``pipeline.compute.cluster.dask_client(workers=1, gpus=1)`` where it exists, else one
 worker with one thread and ``GPU=1``, as compose's ``gpu-worker``).
 
 **``--stand-in S``: the CPU proxy, measured without a GPU.** The network is replaced, in the
@@ -41,7 +41,7 @@ in FLOP/s (counted by ``torch.utils.flop_counter``) and as a share of the GPU's 
 and GPU-hours per terabyte of capture (8 M spike frames, one output per 41: 195,122 output frames)
 at ``pipeline_frames_per_second``. ``--cli`` adds the whole command line as a user runs it, cold.
 
-The recording is made by the project's simulator (``pipeline.simulate``, a still picture, about 20 s
+The recording is made by the project's simulator (``pipeline.jobs.simulate``, a still picture, about 20 s
 for 984 frames of 1000x1000 on 2 cores) and cached in ``/tmp/cscsr_bench`` by its parameters.
 
 Run: ``python benchmarks/gpu_pipeline.py --stand-in 0.25 --frames 24 --side 1000 --tile 1000

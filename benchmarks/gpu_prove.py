@@ -86,12 +86,12 @@ STEPS = (  # in this order; limits from the first lease (H200, 2026-11-27: docs/
 
 def smoke_windows(side: int):
     """Two 41-frame windows of side x side LR at x4: a clip of a natural picture simulated by the simulator of
-    record (``cscsr.training_data.random_clip``), as recorded and reversed in time; same CFA, reset, gain."""
+    record (``cscsr.training.training_data.random_clip``), as recorded and reversed in time; same CFA, reset, gain."""
     import numpy as np
 
-    from cscsr.training_data import random_clip
-    from stages.bits import pack_rows
-    from stages.methods import Window
+    from cscsr.training.training_data import random_clip
+    from stages.capture.bits import pack_rows
+    from stages.reconstruction.methods import Window
 
     clip = random_clip([46, 0], lr_side=side, scale=SCALE)
     spikes = clip.spikes.astype(np.uint8)  # (41, side, side) 0/1
@@ -106,9 +106,9 @@ def host_path(network, windows) -> list:
     import numpy as np
     import torch
 
-    from cscsr.reconstructor import one_thread_on_cpu
-    from stages.bits import unpack_rows
-    from stages.colour import expose
+    from cscsr.inference.reconstructor import one_thread_on_cpu
+    from stages.capture.bits import unpack_rows
+    from stages.reconstruction.colour import expose
 
     first = windows[0]
     spikes = np.stack([unpack_rows(w.packed, w.width) for w in windows])
@@ -140,7 +140,7 @@ def smoke(args) -> None:
     (and, with ``--fast-gpu``, the eager device path's); the result file rewritten after each."""
     import torch
 
-    from cscsr.reconstructor import load_reconstructor
+    from cscsr.inference.reconstructor import load_reconstructor
 
     result_file = Path(args.result)
     windows = smoke_windows(args.smoke_side)

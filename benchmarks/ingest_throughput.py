@@ -1,6 +1,6 @@
 """Ingest throughput of a large raw capture, against ``cp`` of the same file.
 
-What: ``pipeline.ingest.ingest()`` of a 1000x1000 ``.dat`` capture of 17,000 frames (2.1 GB,
+What: ``pipeline.jobs.ingest.ingest()`` of a 1000x1000 ``.dat`` capture of 17,000 frames (2.1 GB,
 more than any single block or chunk) into a local Zarr spike store, in MB/s of input
 (MB = 1e6 bytes). Reference: ``cp`` of the same file on the same disk in the same run,
 the fastest anything can move those bytes; ingest reads them, compresses and writes less.
@@ -32,9 +32,9 @@ from pathlib import Path
 import numpy as np
 
 from _common import ROOT, entropy_bits, load_average, markdown_table, median, save_results, write_integrate_and_fire
-from pipeline.info import summarize
-from pipeline.ingest import BLOCK_BYTES
-from pipeline.spike_store import CODEC_LEVEL, SpikeMeta, chunk_frames_for
+from pipeline.jobs.info import summarize
+from pipeline.jobs.ingest import BLOCK_BYTES
+from pipeline.stores.spike_store import CODEC_LEVEL, SpikeMeta, chunk_frames_for
 
 H = W = 1000
 FRAME_BYTES = H * W // 8
@@ -43,7 +43,7 @@ BLOCK = 200  # frames generated per block (25 MB packed); the rate map drifts bl
 
 CHILD = """
 import json, resource, sys, time
-from pipeline.ingest import IngestOptions, ingest
+from pipeline.jobs.ingest import IngestOptions, ingest
 rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 start = time.perf_counter()
 ingest(sys.argv[1], sys.argv[2], IngestOptions(height=%d, width=%d, overwrite=True), progress=False)

@@ -1,6 +1,6 @@
 """Integrate-and-fire throughput of the sensor model, against a plain numpy loop over frames.
 
-What: ``stages.sensor.fire()`` (numba, parallel over rows, bytes packed in the kernel) on
+What: ``stages.simulation.sensor.fire()`` (numba, parallel over rows, bytes packed in the kernel) on
 precomputed increments of a 1000x1000 sensor, in Gpixel-frames/s (1e9 pixel x frames per
 second), for both resets. Reference: in the same run, the obvious numpy loop over frames
 (``acc += q; s = acc >= thr; acc -= s * thr`` or ``np.where(s, 0, acc)``; ``np.packbits``),
@@ -28,7 +28,7 @@ import numba
 import numpy as np
 
 from _common import load_average, markdown_table, median, save_results
-from stages.sensor import UNITS, SensorModel, fire, increments, initial_state, pixel_thresholds
+from stages.simulation.sensor import UNITS, SensorModel, fire, increments, initial_state, pixel_thresholds
 
 H = W = 1000
 GOAL = 10.0

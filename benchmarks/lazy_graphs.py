@@ -7,7 +7,7 @@ What (issue #45):
    to build it and the growth of the process's peak resident memory (``VmHWM``) over its state after the imports.
    Nothing is read: the store's chunks are deleted before (computing it would fail). Goals: < 5 s and < 1 GB.
 2. **Lazy against the job.** On one ``LocalCluster`` of 2 single-threaded worker processes (started and warmed
-   before the clock), ``pipeline.reconstruct.reconstruct(..., client=)`` (the reference) and
+   before the clock), ``pipeline.jobs.reconstruct.reconstruct(..., client=)`` (the reference) and
    ``lazy.to_video(lazy.reconstruct(lazy.windows(lazy.open_spikes(...))))`` with the same options, on the same
    recording: TFP of a 256x256 RGGB recording of ``--frames`` (default 2,000) spike frames every 41 (48 output
    frames of 1024x1024, tile 128: 4 tasks a frame), and the shipped ``lite`` network on its region 0:64,0:64 over
@@ -37,7 +37,7 @@ GOAL_RATIO, GOAL_SECONDS, GOAL_BYTES = 1.15, 5.0, 2**30
 BUILD = """
 import shutil, sys, time
 import numpy as np
-from pipeline.spike_store import SPIKES, SpikeMeta, SpikeStoreWriter
+from pipeline.stores.spike_store import SPIKES, SpikeMeta, SpikeStoreWriter
 
 def high_water() -> int:
     return int(next(line.split()[1] for line in open("/proc/self/status") if line.startswith("VmHWM:"))) * 1024
@@ -74,7 +74,7 @@ def side_by_side(client, store: str, folder: Path, options: dict, repeats: int) 
     import zarr
 
     from cscsr import lazy
-    from pipeline.reconstruct import ReconstructOptions, reconstruct
+    from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct
 
     part = {k: options[k] for k in ("start", "stop", "region") if k in options}
     stage = {k: options[k] for k in ("method", "weights", "tile") if k in options}
@@ -124,7 +124,7 @@ def main() -> None:
         results = {}
         with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
                 Client(cluster) as client:
-            client.run(lambda: __import__("pipeline.reconstruct") and __import__("cscsr.reconstructor"))  # warm
+            client.run(lambda: __import__("pipeline.jobs.reconstruct") and __import__("cscsr.inference.reconstructor"))  # warm
             for name, options in methods.items():
                 options = {k: v for k, v in options.items() if v is not None}
                 results[name] = side_by_side(client, store, folder, options, args.repeats)

@@ -25,9 +25,9 @@ def main() -> None:
 
     import torch
 
-    from cscsr.network import use_channels_last
-    from cscsr.onnx_runtime import OnnxNetwork
-    from cscsr.weights_io import default_weights, load_model
+    from cscsr.network.model import use_channels_last
+    from cscsr.inference.onnx_runtime import OnnxNetwork
+    from cscsr.weights.weights_io import default_weights, load_model
 
     torch.set_num_threads(1)
     spikes = torch.from_numpy(random_window(args.side))

@@ -4,7 +4,7 @@ What: one forward pass (batch 1, x4, ``torch.inference_mode``) of ``lite`` and `
 (randomly initialised: time and memory do not depend on the weights) on a 41-frame RGGB
 clip of LR 64x64, 180x320 (the paper's REDS size: 720x1280 output) and a 256x256 tile
 (the pipeline's default tile; 320x320 with its 32-px halo is what a task really runs).
-Reference in the same run: the classic TFP reconstructor (``stages.methods``: rate,
+Reference in the same run: the classic TFP reconstructor (``stages.reconstruction.methods``: rate,
 VNG demosaicking, bicubic x4, uint8) on the same packed window.
 
 Each case runs in a fresh subprocess with ``torch.set_num_threads(--threads)`` (default:
@@ -20,7 +20,7 @@ On a GPU (``--device cuda``) the same cases run in fp32 and bf16 (autocast).
 
 ``--compile`` runs the network through ``torch.compile`` (the warm-up pass compiles; not timed).
 
-``--channels-last`` runs the network on NHWC tensors (``cscsr.network.use_channels_last``).
+``--channels-last`` runs the network on NHWC tensors (``cscsr.network.model.use_channels_last``).
 
 Run: ``python benchmarks/network_forward.py [--repeats 3] [--device cpu|cuda] [--compile] [--channels-last]
 [--sizes 180x320,...] [--configs lite,full] [--quick]``.
@@ -48,10 +48,10 @@ def one_case(config: str, height: int, width: int, repeats: int, device: str, dt
     import torch
     from torch.utils.flop_counter import FlopCounterMode
 
-    from cscsr.config import named
-    from cscsr.network import CSCSR, use_channels_last
-    from stages.bits import pack_rows
-    from stages.methods import Window, classic
+    from cscsr.network.config import named
+    from cscsr.network.model import CSCSR, use_channels_last
+    from stages.capture.bits import pack_rows
+    from stages.reconstruction.methods import Window, classic
 
     torch.set_num_threads(threads)
     torch.manual_seed(0)

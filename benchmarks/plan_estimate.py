@@ -1,13 +1,13 @@
 """How close ``cscsr reconstruct --dry-run``'s estimate comes to the job it plans.
 
-What: the plan (``pipeline.reconstruct.reconstruct(..., dry_run=True)``) of TFP over a 1000-frame 512x512
+What: the plan (``pipeline.jobs.reconstruct.reconstruct(..., dry_run=True)``) of TFP over a 1000-frame 512x512
 RGGB recording (window 41, every ``--every``, default 10: 96 output frames of 2048x2048; tile 256: 4 tasks a
 frame, 384 tasks), then the job itself, timed whole, two ways:
 
 - ``local``: the job starts its own local cluster of ``--workers`` (default 2) processes, as ``cscsr
   reconstruct`` without ``--scheduler`` does (the plan measures on a local cluster alike and adds its
   start-up);
-- ``cluster``: a local cluster of ``--workers`` started before both (``pipeline.cluster.dask_client``), passed
+- ``cluster``: a local cluster of ``--workers`` started before both (``pipeline.compute.cluster.dask_client``), passed
   as ``client=``, as a job on a long-lived cluster runs.
 
 The reference is the measured job; the figure is the plan's ``job_seconds`` (this job on its workers) over
@@ -49,8 +49,8 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
 
-    from pipeline.cluster import dask_client
-    from pipeline.reconstruct import ReconstructOptions, reconstruct
+    from pipeline.compute.cluster import dask_client
+    from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct
 
     load_start = load_average()
     CACHE.mkdir(parents=True, exist_ok=True)

@@ -2,7 +2,7 @@
 
 What: on the held-out test set (``cscsr make-testset``: astronaut, coffee, chelsea, x4,
 alpha 0.6 / 0.8 / 1.0, three truth frames each), PSNR and SSIM of four references made from
-the ground truth instead of spikes (``stages.references``): the exact LR picture enlarged
+the ground truth instead of spikes (``stages.measures.references``): the exact LR picture enlarged
 bicubically; the exact LR mosaic demosaicked (VNG) and enlarged, which is TFP / TFI with no
 spike noise and no motion blur; that mosaic as a still scene's long-run firing rate reads it
 through the test set's noiseless zero-reset sensor, whose firing period quantises intensity
@@ -26,10 +26,10 @@ from pathlib import Path
 import numpy as np
 
 from _common import RESULTS, markdown_table, save_results
-from pipeline.spike_store import open_spike_store
-from pipeline.testset import average_per_alpha, make_testset
-from stages.metrics import psnr, ssim
-from stages.references import (exact_lr_bicubic, exact_mosaic_demosaicked, mean_level_per_period, read_periods,
+from pipeline.stores.spike_store import open_spike_store
+from pipeline.jobs.testset import average_per_alpha, make_testset
+from stages.measures.metrics import psnr, ssim
+from stages.measures.references import (exact_lr_bicubic, exact_mosaic_demosaicked, mean_level_per_period, read_periods,
                                steady_state_mosaic)
 
 def references(truth: np.ndarray, cfa: str, scale: int, alpha: float, levels: dict[int, float]) -> dict:

@@ -1,6 +1,6 @@
 """The test-set quality table: PSNR / SSIM per alpha, median time per image, the gap to the goal.
 
-What: ``pipeline.testset.evaluate_testset`` (what ``cscsr evaluate-testset`` runs) on the
+What: ``pipeline.jobs.testset.evaluate_testset`` (what ``cscsr evaluate-testset`` runs) on the
 held-out test set (``cscsr make-testset``: astronaut, coffee, chelsea, x4, alpha 0.6 / 0.8 /
 1.0, three truth frames each) for the classic methods and the network with the weights it
 ships (or ``--weights``), ``--repeats`` times on one Dask worker. PSNR and SSIM are
@@ -20,9 +20,9 @@ import tempfile
 from pathlib import Path
 
 from _common import RESULTS, load_average, markdown_table, median, save_results
-from cscsr.model_info import model_info
-from cscsr.weights_io import default_weights, read_metadata
-from pipeline.testset import evaluate_testset, make_testset
+from cscsr.weights.model_info import model_info
+from cscsr.weights.weights_io import default_weights, read_metadata
+from pipeline.jobs.testset import evaluate_testset, make_testset
 
 CLASSIC = ("tfp", "tfi")
 GOAL_DB = 2.0

@@ -1,6 +1,6 @@
 """Peak memory of the distributed reconstruction against the length of the recording.
 
-What: ``pipeline.reconstruct.reconstruct(..., client=...)`` on a local cluster of 2 worker
+What: ``pipeline.jobs.reconstruct.reconstruct(..., client=...)`` on a local cluster of 2 worker
 processes, TFP of a 256x256 RGGB recording of 2,000 frames and of one 10x longer (20,000
 frames), window 41, every 41 (48 and 487 output frames of 1024x1024), tile 256 (one task per
 frame), fixed gain. Measured: the peak resident memory (RSS) of each worker process and of
@@ -96,8 +96,8 @@ class Sampler(threading.Thread):
 
 def child(store: str, out: str, gain: float, tile: int) -> dict:
     """One measured run (in a fresh interpreter): cluster, warm-up, sampled reconstruct."""
-    from pipeline.cluster import dask_client
-    from pipeline.reconstruct import reconstruct
+    from pipeline.compute.cluster import dask_client
+    from pipeline.jobs.reconstruct import reconstruct
 
     with dask_client(workers=WORKERS) as client:
         pids = client.run(warm_worker)

@@ -6,12 +6,12 @@ frames, centres 20, 30, ..., 970; ``--every 41`` gives 24), three ways and a con
 all with the same fixed gain:
 
 (a) the reference, a plain loop in this process: for each centre c, ``open_spike_store(...)
-    .read(c - 20, c + 21)``, ``stages.tfp.tfp_image(window, width=512, cfa="rggb", gain=g,
+    .read(c - 20, c + 21)``, ``stages.reconstruction.tfp.tfp_image(window, width=512, cfa="rggb", gain=g,
     scale=4)``, and a write of that frame into the ``video`` array of an output store made by
     the pipeline's own ``create_video_store`` (same shape, one 2048x2048x3 chunk per frame,
     same codec), frame by frame, every chunk written without an emptiness scan (the array is
     declared ``write_empty_chunks``);
-(b) ``pipeline.reconstruct.reconstruct(..., workers=1)`` with ``tile=512`` (one tile, so one
+(b) ``pipeline.jobs.reconstruct.reconstruct(..., workers=1)`` with ``tile=512`` (one tile, so one
     task, per frame: the same work as the loop), timed whole: local cluster start-up and
     shut-down included;
 (c) the same on a one-worker cluster started (and warmed: the worker imports the pipeline
@@ -59,7 +59,7 @@ GOAL = 1.10
 
 def rate_map(height: int, width: int, t: float) -> np.ndarray:
     """Firing rate per pixel in [0.05, 0.3]: a smooth colour scene through RGGB, drifting 0.01 px/frame."""
-    from stages.cfa import colour_index
+    from stages.reconstruction.cfa import colour_index
 
     y, x = np.mgrid[0:height, 0:width].astype(np.float32)
     x = x - 0.01 * t
@@ -88,7 +88,7 @@ def cached_capture(frames: int, height: int, width: int) -> Path:
 
 def spike_store(frames: int, height: int, width: int, dest: Path) -> str:
     """Ingest the cached recording (cfa rggb) into a spike store at ``dest``; its URL."""
-    from pipeline.ingest import IngestOptions, ingest
+    from pipeline.jobs.ingest import IngestOptions, ingest
 
     ingest(str(cached_capture(frames, height, width)), str(dest),
            IngestOptions(height=height, width=width, cfa="rggb", overwrite=True), progress=False)
@@ -97,10 +97,10 @@ def spike_store(frames: int, height: int, width: int, dest: Path) -> str:
 
 def middle_gain(store_url: str, window: int, every: int) -> float:
     """The automatic exposure of the middle output window (what ``reconstruct`` would pick)."""
-    from stages.methods import output_centres
-    from pipeline.spike_store import open_spike_store
-    from stages.colour import auto_gain
-    from stages.tfp import tfp_rate
+    from stages.reconstruction.methods import output_centres
+    from pipeline.stores.spike_store import open_spike_store
+    from stages.reconstruction.colour import auto_gain
+    from stages.reconstruction.tfp import tfp_rate
 
     store = open_spike_store(store_url)
     centres = output_centres(store.n_frames, window, every)
@@ -118,9 +118,9 @@ def warm_worker() -> int:
     """Run on a worker before timing: import what a reconstruction task imports."""
     import os
 
-    import cv2  # noqa: F401  (stages.colour imports it lazily, in the first task)
+    import cv2  # noqa: F401  (stages.reconstruction.colour imports it lazily, in the first task)
 
-    import pipeline.reconstruct  # noqa: F401
+    import pipeline.jobs.reconstruct  # noqa: F401
 
     return os.getpid()
 
@@ -141,10 +141,10 @@ def outputs_equal(url_a: str, url_b: str) -> bool:
 
 def plain_loop(store_url: str, out: str, every: int, gain: float) -> int:
     """(a): read, tfp_image, write each frame into a Zarr array like the pipeline's output."""
-    from stages.methods import output_centres
-    from pipeline.spike_store import open_spike_store
-    from pipeline.video_store import VIDEO, create_video_store
-    from stages.tfp import tfp_image
+    from stages.reconstruction.methods import output_centres
+    from pipeline.stores.spike_store import open_spike_store
+    from pipeline.stores.video_store import VIDEO, create_video_store
+    from stages.reconstruction.tfp import tfp_image
 
     store = open_spike_store(store_url)
     meta = store.meta
@@ -163,7 +163,7 @@ def plain_loop(store_url: str, out: str, every: int, gain: float) -> int:
 
 
 def options(every: int, gain: float, tile: int, method: str = "tfp"):
-    from pipeline.reconstruct import ReconstructOptions
+    from pipeline.jobs.reconstruct import ReconstructOptions
 
     return ReconstructOptions(method=method, every=every, window=WINDOW, gain=gain, scale=SCALE, tile=tile, overwrite=True)
 
@@ -176,9 +176,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3, help="repetitions of each variant (default 3)")
     args = parser.parse_args()
 
-    from pipeline.cluster import dask_client
-    from pipeline.reconstruct import reconstruct
-    from stages.tfp import tfp_image
+    from pipeline.compute.cluster import dask_client
+    from pipeline.jobs.reconstruct import reconstruct
+    from stages.reconstruction.tfp import tfp_image
 
     load_start = load_average()
     CACHE.mkdir(parents=True, exist_ok=True)

@@ -1,6 +1,6 @@
 """Scaling of the distributed reconstruction from one worker process to two.
 
-What: ``pipeline.reconstruct.reconstruct(..., client=...)`` of the same job on a local
+What: ``pipeline.jobs.reconstruct.reconstruct(..., client=...)`` of the same job on a local
 cluster of 1 and of 2 worker processes: TFP of a 1000-frame 512x512 RGGB recording, window
 41, every 10 (98 output frames of 2048x2048), tile 256 (4 tasks per frame), fixed gain.
 Each cluster is started and warmed (every worker imports the pipeline and OpenCV) before the
@@ -68,7 +68,7 @@ def _forward_seconds(side: int, repeats: int, start_at: float) -> float:
     """Median seconds of ``lite``'s forward pass on a side x side LR window, one thread, from ``start_at``."""
     import torch
 
-    from cscsr.weights_io import default_weights, load_model
+    from cscsr.weights.weights_io import default_weights, load_model
 
     torch.set_num_threads(1)
     network = load_model(default_weights("lite"))[0]
@@ -97,8 +97,8 @@ def machine_ceiling(side: int, repeats: int) -> dict:
 
 def timed_run(store: str, out: Path, workers: int, every: int, gain: float, tile: int, method: str) -> dict:
     """Start and warm a cluster, then time reconstruct(client=...) on it alone."""
-    from pipeline.cluster import dask_client
-    from pipeline.reconstruct import reconstruct
+    from pipeline.compute.cluster import dask_client
+    from pipeline.jobs.reconstruct import reconstruct
 
     fresh(out)
     with dask_client(workers=workers) as client:
@@ -144,7 +144,7 @@ def main() -> None:
         shutil.rmtree(work, ignore_errors=True)
     ceiling = None
     if args.ceiling:
-        from pipeline.reconstruct import reconstructor
+        from pipeline.jobs.reconstruct_tasks import reconstructor
 
         halo = reconstructor("cscsr", None).halo  # a task's tile is read with this margin on each side
         ceiling = machine_ceiling(args.tile + 2 * halo, args.repeats)

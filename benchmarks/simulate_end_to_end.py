@@ -1,7 +1,7 @@
 """Whole ``simulate`` of 1,000 spike frames from a 4000x4000 video (LR 1000x1000), against a
 reference version of the code in the same run, and where the time goes.
 
-The run: ``pipeline.simulate.simulate`` on a local cluster (2 workers by default), scale 4,
+The run: ``pipeline.jobs.simulate.simulate`` on a local cluster (2 workers by default), scale 4,
 RGGB, reset zero, flow interpolation, ground truth every 41 frames, in a fresh process per run.
 With ``--reference DIR`` (a checkout of an earlier commit: ``git worktree add DIR COMMIT``) the
 same simulation runs with that code too, alternating with this code, and the two outputs are
@@ -44,7 +44,7 @@ def run_once(code: str, video: str, dest: str, frames: int, workers: int) -> flo
         "import sys, time\n"
         f"sys.path.insert(0, {code!r})\n"
         "start = time.perf_counter()\n"
-        "from pipeline.simulate import SimulateOptions, simulate\n"
+        "from pipeline.jobs.simulate import SimulateOptions, simulate\n"
         f"options = SimulateOptions(scale=4, cfa='rggb', frames={frames}, reset='zero', interp='flow', chunk_frames={CHUNK_FRAMES})\n"
         f"simulate({video!r}, {dest!r}, options, workers={workers}, progress=False)\n"
         "print(time.perf_counter() - start)\n")
@@ -73,13 +73,13 @@ def timed(fn, *args, repeats: int = 3):
 
 def stage_breakdown(video: str, frames: int, dest: str) -> list[tuple[str, float, int]]:
     """(stage, seconds per call, calls in the run) for every stage of the graph, this code."""
-    from pipeline.frame_sources import open_frame_source
-    from pipeline.simulate import Scene, SimulateOptions, _fire, _hr_frame, _increments, _write_truth
-    from pipeline.spike_store import SpikeMeta, SpikeStoreWriter
-    from stages import sensor
-    from stages.interpolate import estimate_motion
-    from stages.latent import bracket, source_position, upscale_motion
-    from stages.methods import WINDOW, output_centres
+    from pipeline.stores.frame_sources import open_frame_source
+    from pipeline.jobs.simulate import Scene, SimulateOptions, _fire, _hr_frame, _increments, _write_truth
+    from pipeline.stores.spike_store import SpikeMeta, SpikeStoreWriter
+    from stages.simulation import sensor
+    from stages.simulation.interpolate import estimate_motion
+    from stages.simulation.latent import bracket, source_position, upscale_motion
+    from stages.reconstruction.methods import WINDOW, output_centres
 
     options = SimulateOptions(scale=4, cfa="rggb", frames=frames, reset="zero", interp="flow", chunk_frames=CHUNK_FRAMES)
     source = open_frame_source(video)

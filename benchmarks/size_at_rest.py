@@ -13,9 +13,9 @@ References, measured in the same run: for size, the entropy H(p) of an i.i.d. Be
 pixel at the sample's measured rate p (a true lower bound only for the Bernoulli rows;
 integrate-and-fire and real data are more predictable, so they can beat it); for speed,
 a plain memory copy of the same chunks. Goals for the chosen codec (zstd at the level
-``pipeline/spike_store.py`` uses): <= 1.0 bit/pixel always, and within 15 % of H(p) at
+``pipeline/stores/spike_store.py`` uses): <= 1.0 bit/pixel always, and within 15 % of H(p) at
 rates >= 0.1. For the real samples the store written by ``ingest()`` is measured too
-(``pipeline.info.summarize``), to confirm the pipeline gets the same size.
+(``pipeline.jobs.info.summarize``), to confirm the pipeline gets the same size.
 
 Run: ``python benchmarks/size_at_rest.py [--repeats R]``.
 """
@@ -31,9 +31,9 @@ from numcodecs import Blosc, Zstd
 from scipy.ndimage import gaussian_filter
 
 from _common import ROOT, entropy_bits, load_average, markdown_table, median, save_results
-from pipeline.info import summarize
-from pipeline.ingest import IngestOptions, ingest
-from pipeline.spike_store import CODEC_LEVEL, SpikeMeta, chunk_frames_for
+from pipeline.jobs.info import summarize
+from pipeline.jobs.ingest import IngestOptions, ingest
+from pipeline.stores.spike_store import CODEC_LEVEL, SpikeMeta, chunk_frames_for
 
 SAMPLES = ROOT / "cscsr" / "samples"
 REDS, HELICOPTER = SAMPLES / "synthetic_reds_200_part1_250x400.dat", SAMPLES / "uhsr_u_caltech_helicopter.npz"

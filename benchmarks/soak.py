@@ -2,10 +2,10 @@
 
 What: for recordings of ``--lengths`` frames (default 100,000, 300,000 and 1,000,000) of small
 16x16 RGGB frames (an integrate-and-fire simulation of a slowly changing scene, written
-straight into a spike store in blocks), ``pipeline.reconstruct.reconstruct`` with TFP, window
+straight into a spike store in blocks), ``pipeline.jobs.reconstruct.reconstruct`` with TFP, window
 41, an output frame every 41 spike frames (2,439, 7,317 and 24,390 output frames; one task
 each), as ``cscsr reconstruct --workers 2`` runs it: in segments of ``--segment`` tasks, each in
-a fresh process with a fresh local cluster of 2 workers (``pipeline.executor.in_segments``). Measured per
+a fresh process with a fresh local cluster of 2 workers (``pipeline.compute.executor.in_segments``). Measured per
 length, in a fresh interpreter, by sampling the job's process tree every second: wall time,
 output frames per second, peak RSS (VmHWM) of the largest worker, of the largest segment
 process (client and scheduler) and of the job's own process. Reference: the shortest
@@ -35,8 +35,8 @@ from reconstruct_memory import high_water, resident
 def write_recording(url: str, frames: int, size: int) -> None:
     import numpy as np
 
-    from pipeline.spike_store import SpikeMeta, SpikeStoreWriter
-    from stages.bits import pack_rows
+    from pipeline.stores.spike_store import SpikeMeta, SpikeStoreWriter
+    from stages.capture.bits import pack_rows
 
     meta = SpikeMeta(height=size, width=size, cfa="rggb", gain=2.0)
     writer = SpikeStoreWriter(url, meta, frames)
@@ -64,7 +64,7 @@ def child(store: str, out: str, segment: int) -> dict:
     """Run the job as ``cscsr reconstruct`` does (its own clusters, in segments); sample the process tree."""
     import psutil
 
-    from pipeline.reconstruct import ReconstructOptions, reconstruct
+    from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct
 
     me = psutil.Process()
     stop = threading.Event()

@@ -1,6 +1,6 @@
-"""Training clips per second: the torch synthesis (cscsr.synthesis) against the numpy simulator.
+"""Training clips per second: the torch synthesis (cscsr.training.synthesis) against the numpy simulator.
 
-What: the same batch of ``--batch`` x4 clip plans (``cscsr.training_data.random_plan``, LR side
+What: the same batch of ``--batch`` x4 clip plans (``cscsr.training.training_data.random_plan``, LR side
 ``--side``) made three ways, median of ``--repeats``:
 
 * numpy: ``run_plan`` per clip, the simulator of record (``stages``), as ``cscsr train`` on the CPU;
@@ -23,12 +23,12 @@ import time
 import torch
 
 from _common import load_average, markdown_table, median, save_results
-from cscsr.config import named
-from cscsr.network import CSCSR
-from cscsr.synthesis import prepare, synthesise
-from cscsr.train import TrainOptions
-from cscsr.training_data import random_plan, run_plan
-from cscsr.training_losses import optimiser_step
+from cscsr.network.config import named
+from cscsr.network.model import CSCSR
+from cscsr.training.synthesis import prepare, synthesise
+from cscsr.training.train import TrainOptions
+from cscsr.training.training_data import random_plan, run_plan
+from cscsr.training.training_losses import optimiser_step
 
 
 def timed(work, repeats: int, device: str = "cpu") -> float:

@@ -5,7 +5,7 @@ What (issue #36): a synthetic 1000x1000 RGGB ``.dat`` capture of ``--frames`` fr
 background and a bright disc crossing it, so edges move; rates 0.02-0.35 spikes/pixel/frame), then:
 
 1. ``ingest``: ``cp`` of the capture (the reference), ``cscsr ingest`` in one process, and on local clusters
-   of 1 and 2 workers started before the timer (``pipeline.cluster.dask_client``); the stores of one process
+   of 1 and 2 workers started before the timer (``pipeline.compute.cluster.dask_client``); the stores of one process
    and of 2 workers are compared file by file (identical bytes). Goals: 2 workers >= 1.7x one process, and
    >= 0.8x ``cp``.
 2. ``ingest-resume``: ``cscsr ingest --workers 2`` SIGKILLed (its process group: client and cluster) once about a
@@ -107,8 +107,8 @@ def remove(path: Path) -> None:
 
 INGEST_CHILD = """
 import json, sys, time
-from pipeline.cluster import dask_client
-from pipeline.ingest import IngestOptions, ingest
+from pipeline.compute.cluster import dask_client
+from pipeline.jobs.ingest import IngestOptions, ingest
 src, dest, workers = sys.argv[1], sys.argv[2], int(sys.argv[3])
 options = IngestOptions(height=%d, width=%d, cfa="rggb", fps=%d)
 if workers:

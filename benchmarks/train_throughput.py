@@ -1,11 +1,11 @@
 """Training throughput of CSCSR, in clips per second, beside the cost of simulating a clip.
 
 What: for each configuration and LR crop side, ``--repeats`` timed optimiser steps (after two
-warm-up steps) of exactly what ``cscsr train`` does per step (``cscsr.training_losses.optimiser_step``:
+warm-up steps) of exactly what ``cscsr train`` does per step (``cscsr.training.training_losses.optimiser_step``:
 forward, L1 image and flow losses, backward, gradient clipping, Adam) on a batch of ``--batch`` x4
 clips from a pool, median. References in the same run: the forward pass alone on the same
 batch (``torch.inference_mode``; a step costs about three of them) and the simulation of one
-clip (``cscsr.training_data.random_clip``, on one core), which is why ``cscsr train --pool``
+clip (``cscsr.training.training_data.random_clip``, on one core), which is why ``cscsr train --pool``
 simulates clips once and reuses them. Threads: every CPU (``--threads``); on a GPU
 (``--device cuda``) the same in fp32.
 
@@ -20,12 +20,12 @@ import time
 import torch
 
 from _common import load_average, markdown_table, median, save_results
-from cscsr.config import named
-from cscsr.network import CSCSR
-from cscsr.train import TrainOptions
-from cscsr.training_batches import to_tensors
-from cscsr.training_data import batch_arrays, random_clip
-from cscsr.training_losses import optimiser_step
+from cscsr.network.config import named
+from cscsr.network.model import CSCSR
+from cscsr.training.train import TrainOptions
+from cscsr.training.training_batches import to_tensors
+from cscsr.training.training_data import batch_arrays, random_clip
+from cscsr.training.training_losses import optimiser_step
 
 
 def synchronised(device: str) -> None:

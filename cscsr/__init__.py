@@ -13,7 +13,23 @@ neither the pipeline nor Dask. So is ``cscsr.lazy`` (:mod:`pipeline.lazy`), the 
 xarray: ``from cscsr import lazy``.
 """
 
-__version__ = "0.1.0"
+from cscsr.version import __version__
+
+from stages.moved import keep_importable  # noqa: E402
+
+keep_importable("cscsr", {  # the old paths of the modules now in rooms (docs/layout.md): still importable
+    "blocks": "network.blocks", "bssr": "network.bssr", "temporal_pixels": "network.temporal_pixels",
+    "spike_flow": "network.spike_flow", "motion_estimation": "network.motion_estimation", "warp": "network.warp",
+    "base_image": "network.base_image", "bayer": "network.bayer", "integration": "network.integration",
+    "config": "network.config", "weights_io": "weights.weights_io",
+    "portable_checkpoint": "weights.portable_checkpoint", "model_info": "weights.model_info",
+    "reconstructor": "inference.reconstructor", "device_steps": "inference.device_steps",
+    "device_memory": "inference.device_memory", "onnx_runtime": "inference.onnx_runtime", "train": "training.train",
+    "training_batches": "training.training_batches", "training_losses": "training.training_losses",
+    "training_options": "training.training_options", "training_state": "training.training_state",
+    "training_data": "training.training_data", "synthesis": "training.synthesis",
+    "frame_motion": "training.frame_motion",
+})
 
 API = ("ingest", "simulate", "reconstruct", "evaluate", "Written")
 MODULES = {"lazy": "pipeline.lazy"}  # submodules of the pipeline offered here

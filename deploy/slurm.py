@@ -53,7 +53,7 @@ def make_cluster(*, gpu: bool = False, gpus_per_job: int = 1, partition: str | N
             job_script_prologue=["export OMP_NUM_THREADS=1"],
             **kwargs,
         )
-    from pipeline.cluster import GPU_TASKS_IN_FLIGHT
+    from pipeline.compute.cluster import GPU_TASKS_IN_FLIGHT
 
     if not isinstance(gpus_per_job, int) or gpus_per_job < 1:
         raise ValueError(f"gpus_per_job must be an integer >= 1, got {gpus_per_job!r}")

@@ -2,8 +2,8 @@
 evaluate`` (``cscsr`` loads this module only when one of them is first used).
 
 Every function takes its inputs and output as paths or URLs (``file://``, ``s3://``, ``memory://``, ...), the
-command's options as keyword arguments (the fields of :class:`~pipeline.ingest.IngestOptions`,
-:class:`~pipeline.simulate.SimulateOptions`, :class:`~pipeline.reconstruct.ReconstructOptions`), and an
+command's options as keyword arguments (the fields of :class:`~pipeline.jobs.ingest.IngestOptions`,
+:class:`~pipeline.jobs.simulate.SimulateOptions`, :class:`~pipeline.jobs.reconstruct.ReconstructOptions`), and an
 optional connected :class:`distributed.Client`. It returns a :class:`Written`: what it wrote and what it found.
 
 Where the work runs, for the jobs on Dask (``simulate``, ``reconstruct``, ``evaluate``):
@@ -75,7 +75,7 @@ def _checked(job: str, *, client=None, workers=None, scheduler=None, progress=Fa
     """The arguments every job takes, checked before anything is read or written: ``client`` a running
     :class:`distributed.Client` (or None), ``workers`` as ``--workers``, ``scheduler`` an address (or None),
     ``progress`` True or False."""
-    from pipeline.cluster import check_workers
+    from pipeline.compute.cluster import check_workers
 
     if client is not None:
         from distributed import Client
@@ -91,7 +91,7 @@ def _checked(job: str, *, client=None, workers=None, scheduler=None, progress=Fa
 
 
 def _spike_counts(url: str) -> dict:
-    from pipeline.spike_store import open_spike_store
+    from pipeline.stores.spike_store import open_spike_store
 
     store = open_spike_store(url)
     return {"frames": store.n_frames, "spikes": int(store.attrs.get("spike_count", 0))}
@@ -117,7 +117,7 @@ def ingest(src: str, store: str, *, client=None, workers: int | None = None, sch
     ``cscsr ingest --workers/--scheduler``; without any, in this process, one stream (the same bytes).
     ``dry_run=True`` writes nothing: ``counts`` then holds the plan (as ``cscsr ingest --dry-run --json``).
     """
-    from pipeline.ingest import IngestOptions, plan_ingest, run_ingest
+    from pipeline.jobs.ingest import IngestOptions, plan_ingest, run_ingest
 
     src, store = _path("ingest", "src", src), _path("ingest", "store", store)
     _checked("ingest", client=client, workers=workers, scheduler=scheduler, progress=progress)
@@ -139,7 +139,7 @@ def simulate(src: str, store: str, *, client=None, workers: int | None = None, s
     ``frames``, ``motion``, ``seed``, ``noise``, ``reset``, ``interp``, ``truth_every``, ``speed``,
     ``deform``, ``fps``, ``chunk_frames``, ``overwrite``) as in ``cscsr simulate``.
     """
-    from pipeline.simulate import SimulateOptions, simulate as run
+    from pipeline.jobs.simulate import SimulateOptions, simulate as run
 
     src, store = _path("simulate", "src", src), _path("simulate", "store", store)
     _checked("simulate", client=client, workers=workers, scheduler=scheduler, progress=progress)
@@ -160,8 +160,8 @@ def reconstruct(store: str, out: str, *, client=None, workers: int | None = None
     ``(y0, y1, x0, x1)`` in LR pixels)) as in ``cscsr reconstruct``. ``dry_run``: every check, nothing created;
     ``counts`` holds the plan that ``cscsr reconstruct --dry-run --json`` prints (``attrs`` is empty).
     """
-    from pipeline.reconstruct import ReconstructOptions, reconstruct as run
-    from pipeline.video_store import open_video_store
+    from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct as run
+    from pipeline.stores.video_store import open_video_store
 
     store, out = _path("reconstruct", "store", store), _path("reconstruct", "out", out)
     _checked("reconstruct", client=client, workers=workers, scheduler=scheduler, progress=progress)
@@ -180,7 +180,7 @@ def evaluate(store: str, methods: str | Iterable[str] = ("tfp", "tfi"), out: str
     evaluate``: the reconstructions, ``metrics.csv``, ``summary.csv`` and ``comparison.png`` in the folder
     ``out`` (an existing one is refused unless ``overwrite``, and replaced only if it is an evaluation);
     ``rows`` holds the summary, one dict per method."""
-    from pipeline.evaluate import evaluate as run
+    from pipeline.jobs.evaluate import evaluate as run
 
     store, out = _path("evaluate", "store", store), _path("evaluate", "out", out)
     weights = None if weights is None else _path("evaluate", "weights", weights)

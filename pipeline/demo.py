@@ -21,21 +21,21 @@ from rich.table import Table
 from skimage import data
 
 from cscsr import samples
-from pipeline.cluster import dask_client
-from pipeline.evaluate import comparison_picture, evaluate
-from pipeline.export import VIDEO_FPS, export
-from pipeline.ground_truth import read_truth
-from pipeline.images import read_image, write_image
-from pipeline.ingest import IngestOptions, ingest
-from pipeline.preview import preview
-from pipeline.reconstruct import ReconstructOptions, reconstruct
-from pipeline.simulate import SimulateOptions, simulate
-from pipeline.spike_store import open_spike_store
-from pipeline.storage import check_apart
-from pipeline.video_store import VIDEO, open_video_store
-from stages.methods import NETWORKS
-from stages.metrics import correlation, psnr
-from stages.montage import labelled, side_by_side
+from pipeline.compute.cluster import dask_client
+from pipeline.jobs.evaluate import comparison_picture, evaluate
+from pipeline.jobs.export import VIDEO_FPS, export
+from pipeline.stores.ground_truth import read_truth
+from pipeline.stores.images import read_image, write_image
+from pipeline.jobs.ingest import IngestOptions, ingest
+from pipeline.jobs.preview import preview
+from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct
+from pipeline.jobs.simulate import SimulateOptions, simulate
+from pipeline.stores.spike_store import open_spike_store
+from pipeline.stores.storage import check_apart
+from pipeline.stores.video_store import VIDEO, open_video_store
+from stages.reconstruction.methods import NETWORKS
+from stages.measures.metrics import correlation, psnr
+from stages.measures.montage import labelled, side_by_side
 
 # the table's rows and the picture's columns, by evaluation: (folder, its network's weights, methods);
 # a network is labelled with its weights ("cscsr lite", "cscsr full")

@@ -14,7 +14,7 @@ import pytest
 from distributed import get_task_stream
 
 from cscsr import Written, evaluate, ingest, reconstruct, simulate
-from pipeline.video_store import open_video_store
+from pipeline.stores.video_store import open_video_store
 from stages.errors import InputError
 from tests.conftest import integrate_and_fire, smooth_rate, write_dat
 from tests.test_simulate import picture

@@ -55,7 +55,7 @@ def test_npz_values_not_binary(cli, tmp_path):
     spikes[250, 3, 5] = 2  # late in the stream: earlier blocks are already written
     np.savez(tmp_path / "bad.npz", spk=spikes)
     out = tmp_path / "s.zarr"
-    from pipeline import ingest as module
+    from pipeline.jobs import ingest as module
 
     module.BLOCK_BYTES, saved = 16 * 64, module.BLOCK_BYTES
     try:

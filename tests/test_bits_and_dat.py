@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from stages.bits import count_spikes, pack_rows, packed_width, unpack_rows
-from stages.dat import DatLayout, dat_to_packed, packed_to_dat
+from stages.capture.bits import count_spikes, pack_rows, packed_width, unpack_rows
+from stages.capture.dat import DatLayout, dat_to_packed, packed_to_dat
 from stages.errors import InputError
 
 

@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from stages.bits import pack_rows
-from stages.cfa import BAYER_PATTERNS, check_cfa, colour_index, flip_vertically
-from stages.colour import auto_gain, rate_to_rgb
+from stages.capture.bits import pack_rows
+from stages.reconstruction.cfa import BAYER_PATTERNS, check_cfa, colour_index, flip_vertically
+from stages.reconstruction.colour import auto_gain, rate_to_rgb
 from stages.errors import InputError
-from stages.tfp import tfp_rate
+from stages.reconstruction.tfp import tfp_rate
 
 
 @pytest.mark.parametrize("cfa", BAYER_PATTERNS)

@@ -4,7 +4,7 @@
 import re
 import urllib.request
 
-from pipeline.cluster import dashboard_link, dask_client
+from pipeline.compute.cluster import dashboard_link, dask_client
 from tests.conftest import integrate_and_fire, smooth_rate, write_dat
 
 

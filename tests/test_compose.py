@@ -126,7 +126,7 @@ def test_gpu_worker_only_in_gpu_profile(config, tmp_path):
     gpu = config["services"]["gpu-worker"]
     assert gpu["profiles"] == ["gpu"]
     command = _command(gpu)
-    # One pinned worker per GPU, each advertising GPU=1 (pipeline.cluster.serve_workers, tested in
+    # One pinned worker per GPU, each advertising GPU=1 (pipeline.compute.cluster.serve_workers, tested in
     # tests/test_gpu_cluster.py), with the CPU workers' memory limit; every GPU of the host.
     assert command[:3] == ["cscsr", "worker", "tcp://scheduler:8786"]
     assert command[command.index("--memory-limit") + 1] == "4GiB"

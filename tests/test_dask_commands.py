@@ -11,8 +11,8 @@ import imageio.v3 as iio
 import pytest
 import zarr
 
-from pipeline.reconstruct import ReconstructOptions, reconstruct
-from pipeline.simulate import SimulateOptions, simulate
+from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct
+from pipeline.jobs.simulate import SimulateOptions, simulate
 from tests.test_simulate import chunk_files, picture
 from tests.test_watch import settled
 

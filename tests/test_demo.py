@@ -11,10 +11,10 @@ from rich.console import Console
 
 from cscsr import samples
 from pipeline.demo import run
-from pipeline.export import VIDEO_FPS
-from pipeline.images import read_image
-from pipeline.preview import preview
-from stages.montage import side_by_side
+from pipeline.jobs.export import VIDEO_FPS
+from pipeline.stores.images import read_image
+from pipeline.jobs.preview import preview
+from stages.measures.montage import side_by_side
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PANEL = 256  # HR pixels of the demo's scene

@@ -87,7 +87,7 @@ def test_slurm_cpu_job_script(slurm):
 
 @pytest.mark.parametrize("gpus", [1, 3])
 def test_slurm_gpu_job_script_matches_the_compose_gpu_worker(slurm, gpus):
-    from pipeline.cluster import GPU_TASKS_IN_FLIGHT
+    from pipeline.compute.cluster import GPU_TASKS_IN_FLIGHT
 
     script, address = _job_script(slurm, gpu=True, gpus_per_job=gpus)
     directives = [line for line in script.splitlines() if line.startswith("#SBATCH")]

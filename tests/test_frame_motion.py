@@ -1,13 +1,13 @@
-"""Real motion from folders of consecutive frames (cscsr.frame_motion): which folders are sequences, and clips
+"""Real motion from folders of consecutive frames (cscsr.training.frame_motion): which folders are sequences, and clips
 of footage whose frames follow the footage's motion, in numpy and in torch alike."""
 
 import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from cscsr.frame_motion import FrameMotion, group_sequences, sequence_frames
-from cscsr.synthesis import prepare, synthesise
-from cscsr.training_data import dead_leaves, picture_files, random_plan, run_plan
+from cscsr.training.frame_motion import FrameMotion, group_sequences, sequence_frames
+from cscsr.training.synthesis import prepare, synthesise
+from cscsr.training.training_data import dead_leaves, picture_files, random_plan, run_plan
 
 SHIFT = 2  # HR pixels per frame of footage: the picture moves left by this much from frame to frame
 SIDE = 96  # the padded scene of a clip of LR 16 at x4: frames of exactly this size are cropped, not rescaled
@@ -93,8 +93,8 @@ def test_torch_clips_of_footage_are_the_simulators_clips(footage):
 def test_a_test_picture_among_the_frames_of_a_sequence_is_refused(tmp_path, footage):
     from skimage import data
 
-    from cscsr.train import TrainOptions
-    from cscsr.training_batches import training_pictures
+    from cscsr.training.train import TrainOptions
+    from cscsr.training.training_batches import training_pictures
     from stages.errors import InputError
 
     folder = tmp_path / "footage"

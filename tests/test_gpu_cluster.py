@@ -16,8 +16,8 @@ import dask
 import pytest
 from distributed import Client, LocalCluster
 
-from pipeline import cluster as gpu_cluster
-from pipeline.cluster import (GPU, GPU_SHARE, GPU_TASKS_IN_FLIGHT, dask_client, gpu_worker_specs, serve_workers,
+from pipeline.compute import cluster as gpu_cluster
+from pipeline.compute.cluster import (GPU, GPU_SHARE, GPU_TASKS_IN_FLIGHT, dask_client, gpu_worker_specs, serve_workers,
                               visible_gpus)
 from stages.errors import InputError
 from tests.test_bad_input import assert_refused
@@ -96,7 +96,7 @@ def test_visible_gpus_of_a_cpu_torch_imports_nothing():
 
     if not importlib.metadata.version("torch").endswith("+cpu"):
         pytest.skip("torch here is not a CPU build")
-    code = "import sys; from pipeline.cluster import visible_gpus; print(visible_gpus(), 'torch' in sys.modules)"
+    code = "import sys; from pipeline.compute.cluster import visible_gpus; print(visible_gpus(), 'torch' in sys.modules)"
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert done.stdout.split() == ["0", "False"], done.stderr
 

@@ -9,8 +9,8 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 
-from cscsr.weights_io import read_metadata
-from pipeline.reconstruct_plan import DEFAULT_TILE
+from cscsr.weights.weights_io import read_metadata
+from pipeline.jobs.reconstruct_plan import DEFAULT_TILE
 
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "gpu_lease.py"
 LEASE_FILES, LEASE_FILE_BYTES = 8, 16 * 2**20  # what may come back from a lease
@@ -23,8 +23,8 @@ def lease(*args) -> str:
 
 
 def test_pack_reencodes_pictures_and_keeps_sequences_whole(tmp_path):
-    from cscsr.frame_motion import group_sequences
-    from cscsr.training_data import picture_files
+    from cscsr.training.frame_motion import group_sequences
+    from cscsr.training.training_data import picture_files
 
     rng = np.random.default_rng(0)
     (tmp_path / "stills").mkdir()
@@ -111,7 +111,7 @@ def test_a_compiled_forward_is_kept_as_it_is():
     --fast-gpu load failing ('CSCSR does not support len()': a compiled module's truth asks the model's len)."""
     import torch
 
-    from cscsr.reconstructor import NetworkReconstructor, load_reconstructor
+    from cscsr.inference.reconstructor import NetworkReconstructor, load_reconstructor
 
     network = load_reconstructor("lite", "cpu")
     compiled = torch.compile(network.model)  # lazy: nothing compiles until it is called

@@ -1,6 +1,6 @@
 """The GPU workers' data path, run on the CPU: packed bits in, uint8 out, several tasks in flight.
 
-- The device-side steps (``cscsr.device_steps``) give the numpy steps' bytes, and ``many()`` gives the
+- The device-side steps (``cscsr.inference.device_steps``) give the numpy steps' bytes, and ``many()`` gives the
   bytes of the path before them (numpy unpacking, the network on float32 spikes, numpy exposure).
 - The device lock: one call on the device at a time, released when a call raises.
 - Where the network runs decides the default weights, the tile and the windows per pass.
@@ -23,19 +23,19 @@ import pytest
 import torch
 from distributed import Client, Nanny, Scheduler, SpecCluster, get_task_stream
 
-from cscsr.device_steps import expose_uint8, unpack_bits
-from cscsr.reconstructor import load_reconstructor
-from pipeline.cluster import GPU, GPU_SHARE, GPU_TASKS_IN_FLIGHT
-from pipeline.hold import hold_environment
-from pipeline.reconstruct import (JobIncomplete, Placement, ReconstructOptions, placed, reconstruct, reconstructor,
+from cscsr.inference.device_steps import expose_uint8, unpack_bits
+from cscsr.inference.reconstructor import load_reconstructor
+from pipeline.compute.cluster import GPU, GPU_SHARE, GPU_TASKS_IN_FLIGHT
+from pipeline.compute.hold import hold_environment
+from pipeline.jobs.reconstruct import (JobIncomplete, Placement, ReconstructOptions, placed, reconstruct, reconstructor,
                                   sized)
-from pipeline.reconstruct_plan import DEFAULT_TILE, GPU_BATCH
-from pipeline.spike_store import open_spike_store
-from stages.bits import pack_rows, unpack_rows
-from stages.colour import expose
+from pipeline.jobs.reconstruct_plan import DEFAULT_TILE, GPU_BATCH
+from pipeline.stores.spike_store import open_spike_store
+from stages.capture.bits import pack_rows, unpack_rows
+from stages.reconstruction.colour import expose
 from stages.errors import InputError
-from stages.methods import Window
-from stages.tiles import device_tile, tile_grid
+from stages.reconstruction.methods import Window
+from stages.reconstruction.tiles import device_tile, tile_grid
 from tests.test_gpu_workers import wide  # noqa: F401 - the module's recording fixture, LR 32x96 RGGB
 from tests.conftest import committed_tasks, kill_mid_job
 from tests.test_simulate import chunk_files
@@ -200,7 +200,7 @@ def gpu_worker(env: dict | None = None):
 
 def _faulty_device(fail_on_call: int) -> None:
     """Run on the worker: the loaded network's device pass records when it runs, and raises on one call."""
-    import pipeline.reconstruct as module
+    import pipeline.jobs.reconstruct_tasks as module
 
     real = module.reconstructor
     log = module._device_log = []
@@ -226,7 +226,7 @@ def _faulty_device(fail_on_call: int) -> None:
 
 
 def _device_passes() -> list:
-    import pipeline.reconstruct as module
+    import pipeline.jobs.reconstruct_tasks as module
 
     return module._device_log
 

@@ -18,10 +18,10 @@ import pytest
 import zarr
 from distributed import Client, Nanny, Scheduler, SpecCluster, get_task_stream
 
-from pipeline.reconstruct import ReconstructOptions, reconstruct
-from pipeline.reconstruct_plan import task_groups, tile_blocks
-from pipeline.simulate import SimulateOptions, simulate
-from stages.tiles import tile_grid
+from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct
+from pipeline.jobs.reconstruct_plan import task_groups, tile_blocks
+from pipeline.jobs.simulate import SimulateOptions, simulate
+from stages.reconstruction.tiles import tile_grid
 from tests.test_bad_input import assert_refused
 from tests.test_simulate import chunk_files, picture
 
@@ -205,9 +205,9 @@ def test_tile_blocks_hold_tiles_of_one_shape():
 def test_one_pass_per_tile_shape_when_tiles_are_joined(wide):
     """``many_tiles`` with tiles joined (what a GPU does): one network pass per tile shape, at most ``most``
     windows a pass, each image where it belongs; on the CPU by default one pass per tile, ``many``'s bytes."""
-    from cscsr.reconstructor import load_reconstructor
-    from pipeline.spike_store import open_spike_store
-    from stages.methods import Window
+    from cscsr.inference.reconstructor import load_reconstructor
+    from pipeline.stores.spike_store import open_spike_store
+    from stages.reconstruction.methods import Window
 
     store = open_spike_store(wide)
     meta = store.meta

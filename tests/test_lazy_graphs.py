@@ -24,12 +24,12 @@ import zarr
 from distributed import Client, LocalCluster, get_task_stream
 
 from cscsr import lazy
-from pipeline.cluster import GPU, GPU_SHARE
-from pipeline.ingest import IngestOptions, ingest
-from pipeline import lazy_video
-from pipeline.lazy_video import MARGIN
-from pipeline.reconstruct import ReconstructOptions, reconstruct
-from pipeline.spike_store import SPIKES, SpikeMeta, SpikeStoreWriter
+from pipeline.compute.cluster import GPU, GPU_SHARE
+from pipeline.jobs.ingest import IngestOptions, ingest
+from pipeline.lazy import video as lazy_video
+from pipeline.lazy.video import MARGIN
+from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct
+from pipeline.stores.spike_store import SPIKES, SpikeMeta, SpikeStoreWriter
 from stages.errors import InputError, InputTypeError
 from tests.test_gpu_workers import cluster, names
 from tests.test_ranges_and_regions import FPS, moving_scene
@@ -130,7 +130,7 @@ LONG_RUN = """
 import resource, sys
 import dask, numpy as np
 from cscsr import lazy
-from pipeline.spike_store import SpikeMeta, SpikeStoreWriter
+from pipeline.stores.spike_store import SpikeMeta, SpikeStoreWriter
 frames, url, out = int(sys.argv[1]), sys.argv[2], sys.argv[3]
 writer = SpikeStoreWriter(url, SpikeMeta(height=8, width=16, cfa="rggb", fps=20000.0, gain=1.0), frames,
                           chunk_frames=50_000)
@@ -153,7 +153,7 @@ def test_to_video_over_a_million_frames_runs_in_the_memory_of_a_tenth_of_them(tm
                                str(tmp_path / f"{frames}-hr.zarr")], capture_output=True, text=True, timeout=600)
         assert done.returncode == 0, done.stderr[-2000:]
         written, peaks[frames] = map(int, done.stdout.split())
-        assert written == len(range(20, frames - 20, 410))  # centres 20, 430, ... (stages.methods.output_centres)
+        assert written == len(range(20, frames - 20, 410))  # centres 20, 430, ... (stages.reconstruction.methods.output_centres)
     record_property("peak_rss_mib", peaks)
     print(f"peak RSS: {peaks[100_000]} MiB for 10^5 frames, {peaks[1_000_000]} MiB for 10^6")
     assert peaks[1_000_000] < 1.25 * peaks[100_000], peaks
@@ -281,7 +281,7 @@ def test_bad_input_is_the_jobs_one_line_before_anything_is_written(recording, tm
 
 
 def test_the_margin_holds_every_built_in_halo():
-    from cscsr.reconstructor import HALO
-    from stages.methods import CLASSIC
+    from cscsr.inference.reconstructor import HALO
+    from stages.reconstruction.methods import CLASSIC
 
     assert MARGIN >= max(HALO, *(method.halo for method in CLASSIC.values()))

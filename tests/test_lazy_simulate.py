@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from pipeline.lazy_simulate import SpikesIncomplete, simulate, to_spikes
-from pipeline.lazy_spikes import open_spikes
-from pipeline.simulate import SimulateOptions, simulate as simulate_job
-from pipeline.spike_store import COMMITTED, open_spike_store, store_identity
-from stages.bits import pack_rows
+from pipeline.lazy.simulate import SpikesIncomplete, simulate, to_spikes
+from pipeline.lazy.spikes import open_spikes
+from pipeline.jobs.simulate import SimulateOptions, simulate as simulate_job
+from pipeline.stores.spike_store import COMMITTED, open_spike_store, store_identity
+from stages.capture.bits import pack_rows
 from stages.errors import InputError, InputTypeError
 from tests.test_parallel_ingest import store_files
 

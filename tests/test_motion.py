@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from stages.errors import InputError
-from stages.cfa import BAYER_PATTERNS, colour_index
-from stages.interpolate import estimate_flows, flow_interpolate, interpolate, interpolate_mosaic, linear, pair_motion
-from stages.sensor import cfa_sample
-from stages.camera_path import CameraPath, backward_warp, render
+from stages.reconstruction.cfa import BAYER_PATTERNS, colour_index
+from stages.simulation.interpolate import estimate_flows, flow_interpolate, interpolate, interpolate_mosaic, linear, pair_motion
+from stages.simulation.sensor import cfa_sample
+from stages.simulation.camera_path import CameraPath, backward_warp, render
 
 HEIGHT, WIDTH = 96, 128
 

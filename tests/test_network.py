@@ -4,16 +4,16 @@ import numpy as np
 import pytest
 import torch
 
-from cscsr.bayer import cell_masks, split_half
-from cscsr.config import CONFIGS, named
-from cscsr.network import CSCSR, pad_keeping_phase
-from cscsr.reconstructor import NetworkReconstructor
-from cscsr.warp import warp
-from cscsr.weights_io import load_model, save_weights
-from stages.bits import pack_rows
+from cscsr.network.bayer import cell_masks, split_half
+from cscsr.network.config import CONFIGS, named
+from cscsr.network.model import CSCSR, pad_keeping_phase
+from cscsr.inference.reconstructor import NetworkReconstructor
+from cscsr.network.warp import warp
+from cscsr.weights.weights_io import load_model, save_weights
+from stages.capture.bits import pack_rows
 from stages.errors import InputError
-from stages.methods import Window
-from stages.tiles import tile_grid
+from stages.reconstruction.methods import Window
+from stages.reconstruction.tiles import tile_grid
 from tests.conftest import with_random_heads
 
 FRAMES = 41
@@ -246,7 +246,7 @@ def test_the_self_ensemble_turns_with_the_recording(lite):
 
 
 def test_channels_last_gives_the_same_image_and_the_default_layout_stays():
-    from cscsr.network import use_channels_last
+    from cscsr.network.model import use_channels_last
 
     torch.manual_seed(0)
     model = CSCSR(named("lite")).eval()
@@ -266,7 +266,7 @@ def test_channels_last_gives_the_same_image_and_the_default_layout_stays():
 
 
 def test_bssr_s_windows_are_its_3d_convolution_as_one_2d_convolution():
-    from cscsr.bssr import BSSR
+    from cscsr.network.bssr import BSSR
 
     torch.manual_seed(0)
     bssr = BSSR(features=6, length=11, stride=3, time_points=11)

@@ -6,9 +6,9 @@ import pytest
 import torch
 import zarr
 
-from cscsr.onnx_runtime import OnnxNetwork
-from cscsr.weights_io import default_weights, load_model
-from pipeline.reconstruct import ReconstructOptions, reconstruct
+from cscsr.inference.onnx_runtime import OnnxNetwork
+from cscsr.weights.weights_io import default_weights, load_model
+from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct
 from tests.test_bad_input import assert_refused
 from tests import test_gpu_workers
 from tests.test_gpu_workers import psnr, video

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from cscsr import ingest as api_ingest
-from pipeline import spike_store
-from pipeline.hold import hold_environment
-from pipeline.ingest import IngestOptions, ingest
-from pipeline.spike_store import open_spike_store
+from pipeline.stores import spike_store
+from pipeline.compute.hold import hold_environment
+from pipeline.jobs.ingest import IngestOptions, ingest
+from pipeline.stores.spike_store import open_spike_store
 from stages.errors import InputError, InputTypeError
 from tests.conftest import CSCSR, committed_tasks, kill_mid_job, write_dat
 
@@ -113,7 +113,7 @@ def test_the_api_and_the_cli_write_the_same_bytes(cli, tmp_path):
 
 def killed_ingest(src, store, args, *, workers: bool, tmp_path) -> None:
     """``cscsr ingest`` (on a local cluster of one worker, or in its own process) killed outright once 3 tasks are
-    committed: its tasks hold after the 3rd (pipeline.hold), so the kill lands mid-job on any machine."""
+    committed: its tasks hold after the 3rd (pipeline.compute.hold), so the kill lands mid-job on any machine."""
     command = [CSCSR, "-q", "ingest", str(src), str(store), *args, *(["--workers", "1"] if workers else [])]
     kill_mid_job(command, lambda: committed_tasks(store) >= 3, timeout=120,
                  env={**os.environ, **hold_environment(3, tmp_path / "never")})

@@ -51,7 +51,7 @@ def test_a_failed_call_is_raised_in_the_consumer_at_its_key():
 
 
 def test_training_batches_raise_a_failed_batch_instead_of_hanging(monkeypatch):
-    from cscsr import training_batches
+    from cscsr.training import training_batches
 
     def make_batch(step, *args, **kwargs):
         if step == 3:

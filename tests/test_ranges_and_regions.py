@@ -19,12 +19,12 @@ import numpy as np
 import pytest
 import zarr
 
-from pipeline.estimate import hours, hours_table, output_bytes
-from pipeline.ingest import IngestOptions, ingest
-from pipeline.reconstruct import ReconstructOptions, reconstruct
-from pipeline.reconstruct_plan import task_count, task_groups
+from pipeline.compute.estimate import hours, hours_table, output_bytes
+from pipeline.jobs.ingest import IngestOptions, ingest
+from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct
+from pipeline.jobs.reconstruct_plan import task_count, task_groups
 from stages.errors import InputError, InputTypeError
-from stages.ranges import parse_region, parse_time, spike_frame
+from stages.reconstruction.ranges import parse_region, parse_time, spike_frame
 from tests.conftest import smooth_rate
 from tests.test_bad_input import assert_refused
 
@@ -260,9 +260,9 @@ def test_the_python_api_refuses_them_as_strictly(recording, tmp_path):
 @pytest.fixture
 def quick(monkeypatch):
     """Dry runs that measure for 0.3 s rather than 3 (at least 3 tasks a worker all the same)."""
-    import pipeline.reconstruct
+    import pipeline.jobs.dry_run
 
-    monkeypatch.setattr(pipeline.reconstruct, "SAMPLE_SECONDS", 0.3)
+    monkeypatch.setattr(pipeline.jobs.dry_run, "SAMPLE_SECONDS", 0.3)
 
 
 def test_a_dry_run_creates_nothing_and_prints_the_plan(recording, cli, tmp_path, quick):
@@ -343,7 +343,7 @@ def test_the_estimate_is_whole_rounds_of_the_measured_task():
 def test_a_network_dry_run_measures_on_the_gpu_workers(recording, tmp_path, quick):
     """A cluster with a worker that advertises a GPU (no CUDA here: the network runs on its CPU) and one that does
     not: the network's tasks, and so the measure, go to the GPU worker only."""
-    from pipeline.cluster import GPU
+    from pipeline.compute.cluster import GPU
     from tests.test_gpu_workers import cluster
 
     options = ReconstructOptions(method="cscsr", weights="lite", every=41, tile=64)  # one task: 4 windows
@@ -377,7 +377,7 @@ def test_the_dry_run_scratch_is_a_temporary_folder_or_each_workers_memory(client
     each worker's memory (workers of another machine: they cannot); the folder removed after either way."""
     import tempfile
 
-    from pipeline.reconstruct import _scratch
+    from pipeline.jobs.dry_run import _scratch
 
     class Elsewhere:  # a cluster whose workers see none of this machine's folders
         def run(self, function, *args, workers):
@@ -435,7 +435,7 @@ def test_a_dry_run_of_a_memory_output_writes_no_key(recording, monkeypatch, quic
 
     store = Recorded(MemoryFileSystem.store)
     monkeypatch.setattr(MemoryFileSystem, "store", store)
-    monkeypatch.setattr("pipeline.reconstruct._writable", lambda folder: False)
+    monkeypatch.setattr("pipeline.jobs.dry_run._writable", lambda folder: False)
     out = "memory://dry-run-plans/out.zarr"
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as local, \
             Client(local) as client:
@@ -450,7 +450,7 @@ def test_a_dry_run_on_workers_that_share_no_folder_measures_in_their_memory(reco
                                                                            monkeypatch, quick):
     """Worker processes that cannot reach this machine's temporary folder (as a remote cluster's): the sample's store
     is made in each one's memory, priced the same, and removed after; nothing beside OUT."""
-    monkeypatch.setattr("pipeline.reconstruct._writable", lambda folder: False)  # sent by value to the workers
+    monkeypatch.setattr("pipeline.jobs.dry_run._writable", lambda folder: False)  # sent by value to the workers
     plan = reconstruct(recording, str(tmp_path / "out.zarr"), ReconstructOptions(every=7, tile=16), client=client,
                        dry_run=True)
     assert plan["workers"] == 2 and plan["measured"]["bytes"] > 0 and plan["measured"]["tasks"] >= 6

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import zarr
 
-from pipeline.hold import hold_environment
-from pipeline.reconstruct import ReconstructOptions, reconstruct
-from stages.methods import output_centres
-from pipeline.simulate import SimulateOptions, simulate
+from pipeline.compute.hold import hold_environment
+from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct
+from stages.reconstruction.methods import output_centres
+from pipeline.jobs.simulate import SimulateOptions, simulate
 from tests.conftest import CSCSR, committed_tasks, kill_mid_job, with_random_heads
 from tests.test_bad_input import assert_refused
 from tests.test_simulate import chunk_files, picture
@@ -83,7 +83,7 @@ def test_resume_after_a_killed_run(recording, client, tmp_path):
 
     command = [CSCSR, "reconstruct", recording, killed, "--method", "tfi", "--every", "2", "--tile", "16",
                "--workers", "1"]
-    # the job's tasks hold after the 30th (pipeline.hold): the kill lands mid-job on any machine, under any load
+    # the job's tasks hold after the 30th (pipeline.compute.hold): the kill lands mid-job on any machine, under any load
     kill_mid_job(command, lambda: committed_tasks(killed) >= 30,
                  env={**os.environ, **hold_environment(30, tmp_path / "never")})
     done_before = committed_tasks(killed)
@@ -158,7 +158,7 @@ def test_bad_input(cli, recording, tmp_path):
 
 def test_submission_stays_in_a_bounded_window(client):
     """However many tasks a job has, at most ``limit`` are submitted and unfinished at once."""
-    from pipeline.executor import in_bounded_window
+    from pipeline.compute.executor import in_bounded_window
 
     submitted, finished = [0], [0]
 
@@ -193,9 +193,9 @@ def random_weights(tmp_path_factory) -> str:
     """A randomly initialised ``lite`` network saved as safetensors (trained weights are another issue)."""
     import torch
 
-    from cscsr.config import named
-    from cscsr.network import CSCSR
-    from cscsr.weights_io import save_weights
+    from cscsr.network.config import named
+    from cscsr.network.model import CSCSR
+    from cscsr.weights.weights_io import save_weights
 
     torch.manual_seed(0)
     path = tmp_path_factory.mktemp("weights") / "lite-random.safetensors"
@@ -208,10 +208,10 @@ def test_cscsr_on_the_cluster_matches_the_network_run_directly(recording, client
     running the network on whole frames (the 32-px halo covers this 32x32 frame from every tile)."""
     import torch
 
-    from cscsr.weights_io import load_model
-    from pipeline.spike_store import open_spike_store
-    from stages.bits import unpack_rows
-    from stages.colour import expose
+    from cscsr.weights.weights_io import load_model
+    from pipeline.stores.spike_store import open_spike_store
+    from stages.capture.bits import unpack_rows
+    from stages.reconstruction.colour import expose
 
     out = str(tmp_path / "cscsr.zarr")
     options = ReconstructOptions(method="cscsr", weights=random_weights, every=41, tile=8)
@@ -223,7 +223,7 @@ def test_cscsr_on_the_cluster_matches_the_network_run_directly(recording, client
     store = open_spike_store(recording)
     model, _ = load_model(random_weights)
     clips = np.stack([unpack_rows(store.read(c - 20, c + 21), 32) for c in centres])
-    from cscsr.reconstructor import one_thread_on_cpu
+    from cscsr.inference.reconstructor import one_thread_on_cpu
 
     with one_thread_on_cpu(torch.device("cpu")), torch.inference_mode():  # as the workers run it
         rate = model(torch.from_numpy(clips).float(), store.meta.cfa, store.meta.reset == "zero", 4)["image"]
@@ -238,9 +238,9 @@ def test_cscsr_ensemble_on_the_cluster_matches_the_self_ensemble_run_directly(re
                                                                              tmp_path):
     """--method cscsr-ensemble: the network averaged over 8 flips and turns, the same bytes on two
     workers as the reconstructor run in this process, and not the plain network's bytes."""
-    from cscsr.reconstructor import load_reconstructor
-    from pipeline.spike_store import open_spike_store
-    from stages.methods import Window
+    from cscsr.inference.reconstructor import load_reconstructor
+    from pipeline.stores.spike_store import open_spike_store
+    from stages.reconstruction.methods import Window
 
     out = str(tmp_path / "ensemble.zarr")
     reconstruct(recording, out, ReconstructOptions(method="cscsr-ensemble", weights=random_weights, every=41),
@@ -278,7 +278,7 @@ def test_network_refusals(method, cli, recording, random_weights, tmp_path):
 
 
 def test_task_groups_are_fixed_by_frame_number():
-    from pipeline.reconstruct_plan import task_groups
+    from pipeline.jobs.reconstruct_plan import task_groups
 
     done = np.zeros((10, 1, 2), bool)
     tiles = [((0, 0),), ((0, 1),)]  # one tile per task

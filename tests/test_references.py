@@ -3,13 +3,13 @@
 import numpy as np
 import pytest
 
-from stages.colour import rate_to_rgb
+from stages.reconstruction.colour import rate_to_rgb
 from stages.errors import InputError
-from stages.metrics import psnr
-from stages.references import (exact_lr_bicubic, exact_mosaic_demosaicked, mean_level_per_period, read_periods,
+from stages.measures.metrics import psnr
+from stages.measures.references import (exact_lr_bicubic, exact_mosaic_demosaicked, mean_level_per_period, read_periods,
                                steady_state_mosaic)
-from stages.sensor import SensorModel, area_downsample, cfa_sample, fire, increments, initial_state
-from stages.tfp import tfp_rate
+from stages.simulation.sensor import SensorModel, area_downsample, cfa_sample, fire, increments, initial_state
+from stages.reconstruction.tfp import tfp_rate
 from tests.test_sensor import smooth_rgb
 
 COLOUR = (200, 100, 30)

@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 from distributed import Client, LocalCluster
 
-from pipeline.cli import duration
-from pipeline.ingest import IngestOptions, ingest
-from pipeline.reconstruct import MOST_TASKS, ReconstructOptions, _most_sampled, reconstruct
+from pipeline.cli.recordings import duration
+from pipeline.jobs.ingest import IngestOptions, ingest
+from pipeline.jobs.dry_run import MOST_TASKS, _most_sampled
+from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct
 from tests.conftest import write_dat
 
 FRAMES, SIDE = 301, 16
@@ -59,9 +60,9 @@ def test_a_dry_run_samples_no_more_tasks_than_the_job_has():
 
 
 def test_reconstruct_dry_run_of_a_small_job_times_at_most_its_tasks(tmp_path, monkeypatch):
-    import pipeline.reconstruct
+    import pipeline.jobs.dry_run
 
-    monkeypatch.setattr(pipeline.reconstruct, "SAMPLE_SECONDS", 30.0)  # tasks of milliseconds: the cap stops it
+    monkeypatch.setattr(pipeline.jobs.dry_run, "SAMPLE_SECONDS", 30.0)  # tasks of milliseconds: the cap stops it
     np.save(tmp_path / "s.npy", (np.random.default_rng(1).random((120, 16, 32)) < 0.2).astype(np.uint8))
     ingest(str(tmp_path / "s.npy"), str(tmp_path / "s.zarr"), IngestOptions(cfa="rggb"), progress=False)
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as local, \
@@ -81,12 +82,12 @@ def test_ingest_result_names_its_frames(dat, cli, tmp_path):
 
 
 def test_a_parallel_ingest_of_one_task_runs_in_this_process_and_says_so(dat, cli, tmp_path, monkeypatch):
-    import pipeline.ingest
+    import pipeline.jobs.ingest
 
     def no_cluster(*args, **kwargs):
         raise AssertionError("a local cluster was started for one task")
 
-    monkeypatch.setattr(pipeline.ingest, "_run_on_cluster", no_cluster)
+    monkeypatch.setattr(pipeline.jobs.ingest, "_run_on_cluster", no_cluster)
     result = cli("ingest", dat, tmp_path / "s.zarr", "--height", SIDE, "--width", SIDE, "--workers", 2)
     assert result.exit_code == 0, result.stderr
     assert "(1 task run, 0 already committed)" in result.stdout
@@ -110,7 +111,7 @@ def test_jobs_on_one_client_print_its_dashboard_once(tmp_path, capsys):
 # --- status -----------------------------------------------------------------------------------
 
 def test_status_shows_a_recording_once_in_its_latest_state_as_one_json_document(cli, tmp_path):
-    from pipeline.ledger import Ledger
+    from pipeline.inbox.ledger import Ledger
 
     ledger, source = Ledger(tmp_path), str(tmp_path / "inbox" / "a.dat")
     ledger.record_refusal("refused", "a", source, "sidecar a.json is not JSON")  # then the sidecar was fixed
@@ -220,8 +221,8 @@ def test_a_key_for_a_capture_without_keys_is_refused_before_anything_is_made(dat
 
 
 def test_the_watcher_records_sidecar_fields_that_mean_nothing_beside_their_recording(tmp_path, cli):
-    from pipeline.ledger import Ledger
-    from pipeline.watch import WatchOptions, discover, watch_once
+    from pipeline.inbox.ledger import Ledger
+    from pipeline.inbox.watch import WatchOptions, discover, watch_once
     from tests.test_watch import settled
 
     inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"

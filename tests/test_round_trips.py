@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 import zarr
 
-from pipeline.export import export_dat
-from pipeline.ingest import IngestOptions, ingest
-from pipeline.spike_store import open_spike_store
-from stages.bits import unpack_rows
+from pipeline.jobs.export import export_dat
+from pipeline.jobs.ingest import IngestOptions, ingest
+from pipeline.stores.spike_store import open_spike_store
+from stages.capture.bits import unpack_rows
 from tests.conftest import integrate_and_fire, smooth_rate, write_dat
 
 
@@ -90,7 +90,7 @@ def test_mp4_export_keeps_the_frame_size_and_says_when_it_pads(cli, tmp_path, he
     which H.264's yuv420p cannot hold, grows by one repeated row or column, said in one line of our own."""
     import imageio.v3 as iio
 
-    from pipeline.video_store import COMMITTED, VIDEO, create_video_store
+    from pipeline.stores.video_store import COMMITTED, VIDEO, create_video_store
 
     frames = np.stack([np.broadcast_to(np.linspace(0, 255, width, dtype=np.uint8)[None, :, None], (height, width, 3))
                        for _ in range(2)])

@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 import zarr
 
-from pipeline.ingest import IngestOptions
-from pipeline.watch import WatchOptions, watch, watch_once
+from pipeline.jobs.ingest import IngestOptions
+from pipeline.inbox.watch import WatchOptions, watch, watch_once
 from stages.errors import InputError
 from tests.conftest import integrate_and_fire, smooth_rate, write_dat
 from tests.test_watch import drop, settled, states
@@ -102,7 +102,7 @@ def test_the_watchers_cfa_is_checked_and_shown_without_a_default(cli, tmp_path):
 # --- 2. evaluate-testset: every option before the output ------------------------------------------------
 
 def test_evaluate_testset_checks_its_scheduler_before_claiming_out(tmp_path, monkeypatch):
-    import pipeline.testset as testset
+    import pipeline.jobs.testset as testset
 
     tset = tmp_path / "set"
     tset.mkdir()
@@ -145,9 +145,9 @@ def test_memory_outputs_and_inputs_of_jobs_on_worker_processes_are_refused_up_fr
 def test_memory_is_refused_with_a_client_of_worker_processes_and_kept_for_one_in_this_process(tmp_path, client):
     from distributed import Client, LocalCluster
 
-    from pipeline.ingest import ingest
-    from pipeline.reconstruct import ReconstructOptions, reconstruct
-    from pipeline.video_store import open_video_store
+    from pipeline.jobs.ingest import ingest
+    from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct
+    from pipeline.stores.video_store import open_video_store
 
     write_dat(tmp_path / "scene.dat", integrate_and_fire(smooth_rate(16, 16), 41))
     ingest(str(tmp_path / "scene.dat"), "memory://shared/s.zarr", IngestOptions(16, 16), progress=False)
@@ -210,8 +210,8 @@ def test_verbose_ingest_adds_the_plan_and_a_line_per_task(cli, tmp_path):
 
 
 def test_quiet_hides_the_dashboard_of_a_job_on_a_given_client(tmp_path, spikes, client, capsys):
-    from pipeline.progress import set_quiet
-    from pipeline.reconstruct import reconstruct
+    from pipeline.compute.progress import set_quiet
+    from pipeline.jobs.reconstruct import reconstruct
 
     reconstruct(str(spikes), str(tmp_path / "a.zarr"), client=client, progress=True)
     assert "dashboard: " in capsys.readouterr().err
@@ -225,13 +225,13 @@ def test_quiet_hides_the_dashboard_of_a_job_on_a_given_client(tmp_path, spikes, 
 
 def verbose_in_segment(client, items):
     """A segment's work: whether the segment process was told ``cscsr --verbose`` (Dask's warnings follow it)."""
-    from pipeline.cluster import _dask_log_level
+    from pipeline.compute.cluster import _dask_log_level
 
     yield logging.getLogger("cscsr").isEnabledFor(logging.DEBUG), _dask_log_level()
 
 
 def test_verbose_reaches_the_segment_processes():
-    from pipeline.executor import in_segments
+    from pipeline.compute.executor import in_segments
 
     logger = logging.getLogger("cscsr")
     logger.setLevel(logging.DEBUG)

@@ -7,8 +7,8 @@ import imageio.v3 as iio
 import numpy as np
 
 from cscsr import samples
-from pipeline.preview import preview
-from stages.metrics import correlation
+from pipeline.jobs.preview import preview
+from stages.measures.metrics import correlation
 
 
 def test_reds_clip_ingests_matches_truth_and_exports_identically(cli, reds_dat, tmp_path):

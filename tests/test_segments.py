@@ -5,8 +5,8 @@ import os
 
 import pytest
 
-from pipeline.executor import in_segments
-from pipeline.reconstruct import Outcome
+from pipeline.compute.executor import in_segments
+from pipeline.jobs.reconstruct import Outcome
 from stages.errors import InputError
 
 

@@ -6,10 +6,10 @@ import numba
 import numpy as np
 import pytest
 
-from stages.bits import pack_rows, unpack_rows
-from stages.cfa import BAYER_PATTERNS, colour_index
+from stages.capture.bits import pack_rows, unpack_rows
+from stages.reconstruction.cfa import BAYER_PATTERNS, colour_index
 from stages.errors import InputError
-from stages.sensor import (UNITS, SensorModel, area_downsample, cfa_sample, dark_increments, fire, increments,
+from stages.simulation.sensor import (UNITS, SensorModel, area_downsample, cfa_sample, dark_increments, fire, increments,
                            initial_state, pixel_thresholds)
 
 

@@ -6,10 +6,10 @@ import imageio.v3 as iio
 import pytest
 import zarr
 
-from cscsr.weights_io import default_weights, read_metadata
-from pipeline.evaluate import evaluate
-from pipeline.reconstruct import ReconstructOptions, reconstruct
-from pipeline.simulate import SimulateOptions, simulate
+from cscsr.weights.weights_io import default_weights, read_metadata
+from pipeline.jobs.evaluate import evaluate
+from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct
+from pipeline.jobs.simulate import SimulateOptions, simulate
 from tests.test_simulate import chunk_files, picture
 
 MARGIN_DB = 0.5  # measured: +1.59 dB over TFI on this clip (PSNR 22.32 vs 20.73, SSIM 0.710 vs 0.642)

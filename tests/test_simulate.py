@@ -10,14 +10,14 @@ import pytest
 import zarr
 from skimage import data
 
-from pipeline.preview import preview
-from pipeline.simulate import SimulateOptions, simulate
-from pipeline.spike_store import open_spike_store
-from stages.bits import unpack_rows
-from stages.cfa import colour_index
-from stages.metrics import psnr
-from stages.camera_path import backward_warp
-from stages.sensor import area_downsample
+from pipeline.jobs.preview import preview
+from pipeline.jobs.simulate import SimulateOptions, simulate
+from pipeline.stores.spike_store import open_spike_store
+from stages.capture.bits import unpack_rows
+from stages.reconstruction.cfa import colour_index
+from stages.measures.metrics import psnr
+from stages.simulation.camera_path import backward_warp
+from stages.simulation.sensor import area_downsample
 from tests.test_bad_input import assert_refused
 
 
@@ -99,7 +99,7 @@ def test_round_trip_tfp_psnr_static_scale_1(tmp_path, cfa, floor):
 
 def test_zero_reset_bias_is_undone_by_the_classic_method(tmp_path):
     """Held-out pictures, reset zero: naive TFP is several dB worse than the inverted one."""
-    from stages.tfp import tfp_rate
+    from stages.reconstruction.tfp import tfp_rate
 
     gains = []
     for name in ("chelsea", "rocket", "immunohistochemistry"):
@@ -174,8 +174,8 @@ def test_a_video_s_bytes_are_unchanged_since_the_first_simulator(tmp_path):
 
 
 def test_a_worker_decodes_each_source_frame_once(tmp_path, monkeypatch):
-    from pipeline import simulate as simulation
-    from pipeline.frame_sources import FrameSource, open_frame_source
+    from pipeline.jobs import simulate as simulation
+    from pipeline.stores.frame_sources import FrameSource, open_frame_source
 
     folder = tmp_path / "frames"
     folder.mkdir()
@@ -223,7 +223,7 @@ def test_a_zarr_source_without_video_names_the_video_stores_dimensions(cli, tmp_
 
 
 def test_the_plan_is_frozen_steps_in_submission_order():
-    from pipeline.simulate_plan import FlowField, SpikeChunk, TruthFrame, simulation_steps
+    from pipeline.jobs.simulate_plan import FlowField, SpikeChunk, TruthFrame, simulation_steps
 
     still = list(simulation_steps(100, 40, [20, 61], None, camera_moves=True))
     assert still == [SpikeChunk(range(0, 40), ()), TruthFrame(0, 20, None), FlowField(0, 20, 61),

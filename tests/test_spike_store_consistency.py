@@ -2,7 +2,7 @@
 
 A spike array cut from 205 to 100 frames by editing its ``zarr.json`` (and the consolidated copy in the
 group's), or a ``format_version`` this release does not know, used to pass ``info``, ``export`` and
-``reconstruct`` without a word. The opener (:func:`pipeline.spike_store.open_spike_store`) now compares what the
+``reconstruct`` without a word. The opener (:func:`pipeline.stores.spike_store.open_spike_store`) now compares what the
 store records of itself, metadata only: ``format_version``, the ``frames`` attribute, ``spike_count``, the
 consolidated copy and an ingested store's task record. Each refusal is one line ``error: ...`` naming the store
 and the problem, exit status 1, nothing created; an untampered store, a store from before the ``frames``
@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import zarr
 
-from pipeline import spike_store
+from pipeline.stores import spike_store
 from tests.reliability.test_fuzz_readers import run_on_store as run
 
 FRAMES, HEIGHT, WIDTH, TASK_FRAMES = 205, 16, 16, 40  # 5 frames a chunk (small_chunks), 6 tasks

@@ -1,6 +1,6 @@
 """The megapixel camera's raw captures (#37): ``cscsr ingest SRC STORE --layout sps100``.
 
-Captures are made here from known spike arrays by the layout of ``stages.sps100`` (itself built from SpikeCV's
+Captures are made here from known spike arrays by the layout of ``stages.capture.sps100`` (itself built from SpikeCV's
 public reader, not from a real capture): 64-byte half-lines of 500 pixel bits (LSB first) and a 12-bit tag
 (line, channel), 2000 a frame, row ``k // 2`` and columns ``500 * (k % 2)``.. from half-line ``k``. Round trips in
 one process and in parallel, a capture begun mid-frame (mid-packet, even), and damage (a dropped packet, a
@@ -12,11 +12,11 @@ import os
 import numpy as np
 import pytest
 
-from pipeline import spike_store
-from pipeline.ingest import IngestOptions, ingest, plan_ingest
-from pipeline.spike_store import open_spike_store
-from stages import sps100
-from stages.bits import unpack_rows
+from pipeline.stores import spike_store
+from pipeline.jobs.ingest import IngestOptions, ingest, plan_ingest
+from pipeline.stores.spike_store import open_spike_store
+from stages.capture import sps100
+from stages.capture.bits import unpack_rows
 from stages.errors import InputError
 from tests.test_bad_input import assert_refused
 from tests.test_parallel_ingest import store_files

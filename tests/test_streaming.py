@@ -5,12 +5,12 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from pipeline import ingest as ingest_module
-from pipeline import spike_store
-from pipeline.captures import open_capture
-from pipeline.ingest import IngestOptions, ingest
-from pipeline.spike_store import open_spike_store
-from stages.bits import unpack_rows
+from pipeline.jobs import ingest as ingest_module
+from pipeline.stores import spike_store
+from pipeline.stores.captures import open_capture
+from pipeline.jobs.ingest import IngestOptions, ingest
+from pipeline.stores.spike_store import open_spike_store
+from stages.capture.bits import unpack_rows
 from tests.conftest import write_dat
 
 

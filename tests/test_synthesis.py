@@ -1,4 +1,4 @@
-"""Clips synthesised in torch (cscsr.synthesis, for a GPU) agree with the numpy simulator of record."""
+"""Clips synthesised in torch (cscsr.training.synthesis, for a GPU) agree with the numpy simulator of record."""
 
 from dataclasses import replace
 
@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from cscsr.synthesis import SensorDraws, fire, increments, prepare, synthesise
-from cscsr.training_data import FRAMES, random_plan, run_plan
-from stages import sensor as simulator
-from stages.bits import unpack_rows
-from stages.cfa import BAYER_PATTERNS
-from stages.camera_path import CameraPath
+from cscsr.training.synthesis import SensorDraws, fire, increments, prepare, synthesise
+from cscsr.training.training_data import FRAMES, random_plan, run_plan
+from stages.simulation import sensor as simulator
+from stages.capture.bits import unpack_rows
+from stages.reconstruction.cfa import BAYER_PATTERNS
+from stages.simulation.camera_path import CameraPath
 
 
 def plans_covering_every_case() -> list:

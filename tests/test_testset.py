@@ -2,8 +2,8 @@
 
 import json
 
-from pipeline.testset import ALPHAS, PICTURES, items, make_testset
-from cscsr.training_data import TEST_PICTURES, TRAIN_PICTURES
+from pipeline.jobs.testset import ALPHAS, PICTURES, items, make_testset
+from cscsr.training.training_data import TEST_PICTURES, TRAIN_PICTURES
 from tests.test_simulate import chunk_files
 
 

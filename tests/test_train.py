@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 import torch
 
-from cscsr.network import CSCSR
-from cscsr.train import TrainOptions, train
-from cscsr.training_batches import make_batch, to_tensors
-from cscsr.training_data import TEST_PICTURES, TRAIN_PICTURES, bundled_picture, random_clip
-from cscsr.training_losses import losses
-from cscsr.training_state import load_checkpoint
-from cscsr.weights_io import load_model
+from cscsr.network.model import CSCSR
+from cscsr.training.train import TrainOptions, train
+from cscsr.training.training_batches import make_batch, to_tensors
+from cscsr.training.training_data import TEST_PICTURES, TRAIN_PICTURES, bundled_picture, random_clip
+from cscsr.training.training_losses import losses
+from cscsr.training.training_state import load_checkpoint
+from cscsr.weights.weights_io import load_model
 from stages.errors import InputError
 
 TINY = dict(batch=2, lr_side=16, checkpoint_every=2, validate_every=2, validation_clips=1, warmup=2)
@@ -44,8 +44,8 @@ def test_the_loss_falls_and_the_weights_reload(tmp_path):
     options = TrainOptions(steps=12, learning_rate=1e-3, distinct_batches=1, **TINY)  # tiny data: one batch
     probe = to_tensors(make_batch(1, options, {}))  # the first step's batch, seen again after training
 
-    from cscsr.config import named
-    from cscsr.network import CSCSR
+    from cscsr.network.config import named
+    from cscsr.network.model import CSCSR
 
     before, _ = losses(CSCSR(named("lite")).train(), probe, options.flow_weight)  # same seed: the initial weights
     final = train(options, tmp_path / "run", log=lambda line: None)
@@ -158,7 +158,7 @@ def test_export_weights_from_a_checkpoint(tmp_path, cli):
 
 def warp_error(clip, flows) -> float:
     """How well ``flows`` (middle -> frame 11) carry the spikes around frame 11 onto those around frame 20."""
-    from cscsr.warp import warp
+    from cscsr.network.warp import warp
 
     spikes = torch.from_numpy(clip.spikes).float()
     middle, early = spikes[16:25].mean(0)[None, None], spikes[7:16].mean(0)[None, None]
@@ -167,8 +167,8 @@ def warp_error(clip, flows) -> float:
 
 
 def test_a_reoriented_clip_is_the_clip_of_the_turned_scene():
-    from cscsr.training_data import batch_arrays, dead_leaves, reoriented, simulate_clip
-    from cscsr.training_losses import psnr_intensity
+    from cscsr.training.training_data import batch_arrays, dead_leaves, reoriented, simulate_clip
+    from cscsr.training.training_losses import psnr_intensity
 
     rng = np.random.default_rng(5)
     grey = np.repeat(dead_leaves(rng, 4 * 48).mean(2, keepdims=True), 3, 2)  # grey: the mosaic is one image
@@ -185,8 +185,8 @@ def test_a_reoriented_clip_is_the_clip_of_the_turned_scene():
                                  warp_error(turned, turned.flows[:, ::-1]))
         # the CFA name follows the turn: the demosaicked base image is exactly as good
         probe = to_tensors(batch_arrays([reoriented(colourful, orientation)]))
-        from cscsr.network import CSCSR
-        from cscsr.config import named
+        from cscsr.network.model import CSCSR
+        from cscsr.network.config import named
 
         model_base = model_base or CSCSR(named("lite")).eval()
         with torch.inference_mode():
@@ -199,7 +199,7 @@ def test_a_reoriented_clip_is_the_clip_of_the_turned_scene():
 
 
 def test_a_pool_is_reproducible_and_batches_come_from_it():
-    from cscsr.training_batches import clip_pool
+    from cscsr.training.training_batches import clip_pool
 
     options = TrainOptions(pool=3, scale4_share=1.0, **TINY)
     pool = clip_pool(options)
@@ -279,8 +279,8 @@ def test_cuda_without_a_gpu_is_refused(tmp_path):
 
 
 def test_half_weights_are_half_the_size_and_load_as_float32(tmp_path):
-    from cscsr.config import named
-    from cscsr.weights_io import read_metadata, save_weights
+    from cscsr.network.config import named
+    from cscsr.weights.weights_io import read_metadata, save_weights
 
     model = CSCSR(named("lite"))
     save_weights(model, tmp_path / "full.safetensors")
@@ -301,9 +301,9 @@ def test_half_weights_are_half_the_size_and_load_as_float32(tmp_path):
 def test_a_portable_checkpoint_in_small_parts_resumes_close_to_the_exact_one(tmp_path):
     import shutil
 
-    from cscsr.portable_checkpoint import portable_parts
-    from cscsr.train import export_portable
-    from cscsr.training_state import read_checkpoint
+    from cscsr.weights.portable_checkpoint import portable_parts
+    from cscsr.training.train import export_portable
+    from cscsr.training.training_state import read_checkpoint
 
     train(TrainOptions(steps=2, **TINY), tmp_path / "run", log=lambda line: None)
     at_two, _ = read_checkpoint(tmp_path / "run" / "checkpoint.safetensors")

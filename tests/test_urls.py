@@ -2,9 +2,9 @@
 
 import fsspec
 
-from pipeline.export import export
-from pipeline.info import summarize
-from pipeline.ingest import IngestOptions, ingest
+from pipeline.jobs.export import export
+from pipeline.jobs.info import summarize
+from pipeline.jobs.ingest import IngestOptions, ingest
 
 REDS = IngestOptions(250, 400, flip=True)
 

@@ -9,8 +9,8 @@ import time
 import pytest
 
 from cscsr import samples
-from pipeline.ledger import Ledger
-from pipeline.watch import WatchOptions, outbox_lock, parse_interval, watch_once
+from pipeline.inbox.ledger import Ledger
+from pipeline.inbox.watch import WatchOptions, outbox_lock, parse_interval, watch_once
 from stages.errors import InputError
 from tests.conftest import CSCSR, committed_tasks, kill_mid_job
 from tests.test_simulate import chunk_files
@@ -81,7 +81,7 @@ def test_recordings_whose_outputs_would_collide_keep_their_own(tmp_path, client)
     the very path of the other recording's video, which overwrote it. Now each keeps its own outputs."""
     import zarr
 
-    from pipeline.ingest import IngestOptions, ingest
+    from pipeline.jobs.ingest import IngestOptions, ingest
     from tests.conftest import integrate_and_fire, smooth_rate, write_dat
     from tests.reliability.test_overlap import snapshot
 
@@ -114,7 +114,7 @@ def test_recordings_whose_outputs_would_collide_keep_their_own(tmp_path, client)
 
 
 def test_failures_are_retried_with_back_off_then_quarantined(tmp_path, client, monkeypatch):
-    import pipeline.watch
+    import pipeline.inbox.watch
 
     inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
     inbox.mkdir()
@@ -126,7 +126,7 @@ def test_failures_are_retried_with_back_off_then_quarantined(tmp_path, client, m
         calls.append(args)
         raise OSError("disk on fire")
 
-    monkeypatch.setattr(pipeline.watch, "reconstruct", broken)
+    monkeypatch.setattr(pipeline.inbox.watch, "reconstruct", broken)
     options = WatchOptions(max_attempts=3, backoff=3600)
     watch_once(str(inbox), str(outbox), options, client)
     state, final, attempts, error = states(outbox)["flaky"]
@@ -163,8 +163,8 @@ def _ledger_state(outbox, name):
 def test_killing_the_watcher_mid_job_loses_nothing_and_duplicates_nothing(tmp_path):
     """A real ``cscsr watch`` process group is SIGKILLed while it reconstructs; the next pass finishes the
     job: one ledger row (2 attempts), outputs byte-identical to an uninterrupted watcher's."""
-    from pipeline.hold import hold_environment
-    from pipeline.simulate import SimulateOptions, simulate
+    from pipeline.compute.hold import hold_environment
+    from pipeline.jobs.simulate import SimulateOptions, simulate
     from tests.test_simulate import picture
     import imageio.v3 as iio
 
@@ -182,7 +182,7 @@ def test_killing_the_watcher_mid_job_loses_nothing_and_duplicates_nothing(tmp_pa
     subprocess.run(command(tmp_path / "clean"), check=True, capture_output=True)
 
     killed = tmp_path / "killed"
-    # the job's tasks hold after the 30th (pipeline.hold): the kill lands mid-job on any machine, under any load
+    # the job's tasks hold after the 30th (pipeline.compute.hold): the kill lands mid-job on any machine, under any load
     kill_mid_job(command(killed), lambda: (_ledger_state(killed, "scene") == "running"
                                            and committed_tasks(killed / "scene.zarr") >= 20),
                  env={**os.environ, **hold_environment(30, tmp_path / "never")})

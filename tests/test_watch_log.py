@@ -80,12 +80,12 @@ def test_a_pass_that_refused_every_recording_exits_non_zero(tmp_path, cli):
 
 
 def test_a_retry_is_a_warning_and_log_file_takes_the_lines(tmp_path, cli, monkeypatch):
-    import pipeline.watch
+    import pipeline.inbox.watch
 
     def broken(*args, **kwargs):
         raise OSError("disk on fire")
 
-    monkeypatch.setattr(pipeline.watch, "reconstruct", broken)
+    monkeypatch.setattr(pipeline.inbox.watch, "reconstruct", broken)
     inbox, outbox, log = tmp_path / "inbox", tmp_path / "outbox", tmp_path / "logs" / "watch.log"
     inbox.mkdir()
     log.parent.mkdir()
@@ -130,13 +130,13 @@ def test_quiet_and_verbose_on_ingest(tmp_path, cli):
     both = cli("-q", "-v", "ingest", tmp_path / "a.npy", tmp_path / "both.zarr")
     assert both.exit_code == 1 and both.stderr.strip() == "error: -q/--quiet and -v/--verbose exclude each other: give one"
     assert not (tmp_path / "both.zarr").exists()
-    from pipeline.progress import _quiet
+    from pipeline.compute.progress import _quiet
 
     assert _quiet is False and logging.getLogger("cscsr").level == logging.NOTSET  # nothing left behind in-process
 
 
 def test_verbose_lets_dask_warnings_through():
-    from pipeline.cluster import _dask_log_level
+    from pipeline.compute.cluster import _dask_log_level
 
     logger = logging.getLogger("cscsr")
     assert _dask_log_level() == logging.ERROR

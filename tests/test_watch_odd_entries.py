@@ -12,8 +12,8 @@ import subprocess
 import fsspec
 import pytest
 
-from pipeline.ledger import Ledger
-from pipeline.watch import WatchOptions, watch_once
+from pipeline.inbox.ledger import Ledger
+from pipeline.inbox.watch import WatchOptions, watch_once
 from tests.conftest import CSCSR
 from tests.test_watch import drop, settled
 from tests.test_watch_log import LINE, tiny_capture

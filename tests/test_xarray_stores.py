@@ -11,12 +11,12 @@ import xarray as xr
 import zarr
 
 import cscsr
-from pipeline.info import summarize_video
-from pipeline.ingest import IngestOptions, ingest
-from pipeline.reconstruct import ReconstructOptions, reconstruct
-from pipeline.simulate import SimulateOptions, simulate
-from pipeline.spike_store import open_spike_store
-from pipeline.video_store import open_video_store
+from pipeline.jobs.info import summarize_video
+from pipeline.jobs.ingest import IngestOptions, ingest
+from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct
+from pipeline.jobs.simulate import SimulateOptions, simulate
+from pipeline.stores.spike_store import open_spike_store
+from pipeline.stores.video_store import open_video_store
 from tests.test_simulate import picture
 
 

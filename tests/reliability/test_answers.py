@@ -36,7 +36,7 @@ def store(cli, tmp_path):
 
 @pytest.fixture
 def shipped():
-    from cscsr.weights_io import default_weights
+    from cscsr.weights.weights_io import default_weights
 
     return str(default_weights("lite"))
 
@@ -65,7 +65,7 @@ def test_weights_with_only_classic_methods_in_evaluate_or_watch_are_refused(cli,
 
 def test_evaluate_gives_the_weights_to_the_network_only(store, shipped):
     """``evaluate --methods tfp,cscsr --weights W``: W is the network's; tfp's output never records it."""
-    from pipeline.evaluate import checked_evaluation
+    from pipeline.jobs.evaluate import checked_evaluation
 
     _, _, options = checked_evaluation(str(store), ["tfp", "cscsr"], shipped)
     assert options["tfp"].weights is None and options["cscsr"].weights == shipped
@@ -107,7 +107,7 @@ def test_a_video_store_is_named_as_one_and_info_describes_it(cli, tmp_path, stor
 # --- info of a spike store with lost chunks --------------------------------------------------------
 
 def test_info_of_a_store_with_missing_chunks_names_them_and_never_says_complete(cli, tmp_path):
-    from pipeline.spike_store import SpikeMeta, SpikeStoreWriter
+    from pipeline.stores.spike_store import SpikeMeta, SpikeStoreWriter
 
     path = tmp_path / "chunked.zarr"
     packed = np.random.default_rng(1).integers(0, 256, (FRAMES, HEIGHT, WIDTH // 8), np.uint8)
@@ -204,7 +204,7 @@ def test_files_of_the_wrong_kind_are_named_with_the_cause(cli, tmp_path, store):
 # --- a lost or garbage chunk during reconstruct: one summary line, no traceback per task -------------
 
 def test_lost_and_garbage_chunks_end_in_one_line_not_a_traceback_per_task(cli_process, tmp_path):
-    from pipeline.spike_store import SpikeMeta, SpikeStoreWriter
+    from pipeline.stores.spike_store import SpikeMeta, SpikeStoreWriter
 
     path, out = tmp_path / "lost.zarr", tmp_path / "v.zarr"
     writer = SpikeStoreWriter(str(path), SpikeMeta(HEIGHT, WIDTH, "rggb"), 400, chunk_frames=10)
@@ -227,7 +227,7 @@ def test_only_our_own_task_errors_are_kept_out_of_worker_logs():
     a heartbeat cut by the local cluster's shutdown is dropped."""
     import logging
 
-    from pipeline.cluster import QuietExpectedErrors
+    from pipeline.compute.cluster import QuietExpectedErrors
 
     def record(exception_text):
         return logging.LogRecord("distributed.worker", logging.ERROR, __file__, 1,

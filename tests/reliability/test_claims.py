@@ -1,4 +1,4 @@
-"""Jobs claiming one output at the same moment: exactly one gets it, every time (``pipeline.lease.claimed``).
+"""Jobs claiming one output at the same moment: exactly one gets it, every time (``pipeline.stores.lease.claimed``).
 
 Two claimants are released together by a barrier, ``ROUNDS`` times: two processes on a local path
 (the kernel lock), two threads on ``memory://``; the winner holds its claim until the loser has
@@ -19,8 +19,8 @@ import fsspec
 import pytest
 import zarr
 
-from pipeline.ingest import IngestOptions, ingest
-from pipeline.lease import claim_path, claimed
+from pipeline.jobs.ingest import IngestOptions, ingest
+from pipeline.stores.lease import claim_path, claimed
 from stages.errors import InputError
 from tests.conftest import integrate_and_fire, smooth_rate, write_dat
 
@@ -102,7 +102,7 @@ def test_two_threads_claim_one_memory_output_at_once():
 
 def test_a_killed_holder_frees_its_claim_at_once(tmp_path):
     out = str(tmp_path / "out.zarr")
-    holder = subprocess.Popen([sys.executable, "-c", "import sys, time\nfrom pipeline.lease import claimed\n"
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time\nfrom pipeline.stores.lease import claimed\n"
                                f"with claimed({out!r}):\n    print('held', flush=True)\n    time.sleep(120)"],
                               stdout=subprocess.PIPE, text=True, cwd=os.getcwd())
     try:
@@ -147,7 +147,7 @@ def spike_store(tmp_path) -> str:
 
 
 def test_two_reconstructs_started_together_on_one_output(spike_store, tmp_path):
-    from pipeline.hold import hold_environment
+    from pipeline.compute.hold import hold_environment
 
     out, release = str(tmp_path / "out.zarr"), tmp_path / "release"
     env = {**os.environ, **hold_environment(0, release)}  # the winner's first task waits: it cannot finish early

@@ -14,8 +14,8 @@ import imageio.v3 as iio
 import pytest
 import zarr
 
-from pipeline.reconstruct import JobIncomplete, ReconstructOptions, reconstruct
-from pipeline.simulate import SimulateOptions, simulate
+from pipeline.jobs.reconstruct import JobIncomplete, ReconstructOptions, reconstruct
+from pipeline.jobs.simulate import SimulateOptions, simulate
 from tests.test_simulate import chunk_files, picture
 
 BIN = os.path.dirname(sys.executable)
@@ -144,10 +144,10 @@ def test_a_failing_tile_is_reported_and_the_rest_committed(recording, client, tm
 
 
 def test_two_jobs_on_one_output_never_interleave(recording, tmp_path):
-    from pipeline.hold import hold_environment
+    from pipeline.compute.hold import hold_environment
 
     out, release = str(tmp_path / "out.zarr"), tmp_path / "release"
-    # the first job holds after 10 tasks (pipeline.hold) until the rival attempts are over: no race to lose
+    # the first job holds after 10 tasks (pipeline.compute.hold) until the rival attempts are over: no race to lose
     first = subprocess.Popen([f"{BIN}/cscsr", "reconstruct", recording, out, "--method", "tfi", "--every", "20",
                               "--tile", "8", "--workers", "1"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                              text=True, env={**os.environ, **hold_environment(10, release)})

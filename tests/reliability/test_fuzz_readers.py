@@ -185,7 +185,7 @@ def test_ingest_refuses(cli, tmp_path, name, data, args, fragments):
 
 
 def test_binary_arrays_of_other_dtypes_are_accepted(cli, tmp_path):
-    """By design (stages.spike_arrays) 0/1 floats, int16 and booleans are spike arrays too."""
+    """By design (stages.capture.spike_arrays) 0/1 floats, int16 and booleans are spike arrays too."""
     for dtype in (np.float32, np.float64, np.int16, np.bool_):
         np.savez(tmp_path / "a.npz", spk=SPIKES.astype(dtype))
         result = cli("ingest", tmp_path / "a.npz", tmp_path / "s.zarr", "--overwrite")
@@ -398,9 +398,9 @@ def raw_header(header) -> bytes:
 @pytest.fixture(scope="module")
 def weights_dir(tmp_path_factory):
     """Valid lite weights (to cut and tamper with) and a Bayer store of 45 frames for reconstruct."""
-    from cscsr.config import named
-    from cscsr.network import CSCSR
-    from cscsr.weights_io import save_weights
+    from cscsr.network.config import named
+    from cscsr.network.model import CSCSR
+    from cscsr.weights.weights_io import save_weights
 
     folder = tmp_path_factory.mktemp("weights")
     save_weights(CSCSR(named("lite")), folder / "good.safetensors")
@@ -427,7 +427,7 @@ def config(**values):
 def mismatched_tensors(folder) -> bytes:
     from safetensors.torch import load_file
 
-    from cscsr.config import named
+    from cscsr.network.config import named
 
     return safetensors_bytes(meta(config=named("full").to_json()), load_file(folder / "good.safetensors"))
 

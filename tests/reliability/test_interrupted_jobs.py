@@ -9,7 +9,7 @@ folder holding only its marker, no claim); no process it started is left running
 - ``simulate`` mid-work: a 35-line traceback was reported; it held in every run here before this change too.
 - ``evaluate`` as its cluster starts: each worker process still importing printed a ``KeyboardInterrupt``
   traceback of its own (dozens of lines). Worker
-  processes of a command now ignore Ctrl-C from their first import of ``pipeline.stopping`` (before anything slow,
+  processes of a command now ignore Ctrl-C from their first import of ``pipeline.compute.stopping`` (before anything slow,
   checked with ``-X importtime``: a Ctrl-C sent as workers start cannot be timed reliably on a loaded machine), and
   share one resource tracker that the command starts deaf to Ctrl-C; the command closes them. Not held: a worker
   still in the interpreter's own start (tens of milliseconds on an idle machine, more on a loaded one), where
@@ -29,7 +29,7 @@ import numpy as np
 import pytest
 import zarr
 
-from pipeline.stopping import COMMAND_LINE
+from pipeline.compute.stopping import COMMAND_LINE
 from tests.conftest import CSCSR
 from tests.reliability.test_sigterm import assert_stopped, terminated_mid_work, tmpdir_of_its_own  # noqa: F401
 from tests.test_bad_input import assert_refused
@@ -92,12 +92,12 @@ def imports(env: dict, *args: str) -> subprocess.CompletedProcess:
 def test_a_worker_of_the_command_ignores_ctrl_c_before_its_slow_imports():
     """Ctrl-C as a command's cluster starts: each worker process, importing the command's modules (typer, Dask) for a
     second or more, printed a KeyboardInterrupt traceback of its own. It now ignores Ctrl-C from its first import of
-    ``pipeline.stopping``, which ``pipeline.cli`` makes before anything else."""
+    ``pipeline.compute.stopping``, which ``pipeline.cli`` makes before anything else."""
     worker = imports({COMMAND_LINE: "1"}, "--multiprocessing-fork")
     assert worker.returncode == 0, worker.stderr
     assert worker.stdout.strip() == "False"
     modules = [line.rsplit("|", 1)[-1].strip() for line in worker.stderr.splitlines() if "|" in line]
-    assert modules.index("pipeline.stopping") < min(modules.index(name) for name in ("json", "typer", "rich"))
+    assert modules.index("pipeline.compute.stopping") < min(modules.index(name) for name in ("json", "typer", "rich"))
     assert imports({COMMAND_LINE: "1"}).stdout.strip() == "True"  # the command itself: Ctrl-C as before
     assert imports({}, "--multiprocessing-fork").stdout.strip() == "True"  # processes of the Python API's callers
 

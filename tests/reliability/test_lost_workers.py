@@ -4,7 +4,7 @@ job submitted by the ``cscsr`` command, the worker processes SIGKILLed mid-job.
 Before: the job's plan was scattered to the workers once; when the workers holding it died the
 scheduler lost it for good ("caused the cluster to lose scattered data, which can't be recovered")
 and every task still to run failed with the reason ``None``. Each kill here lands while the job is
-held part-way (``pipeline.hold``), so it always finds work remaining.
+held part-way (``pipeline.compute.hold``), so it always finds work remaining.
 """
 
 import json
@@ -20,7 +20,7 @@ import pytest
 import zarr
 from distributed import Client
 
-from pipeline.hold import hold_environment
+from pipeline.compute.hold import hold_environment
 from tests.conftest import integrate_and_fire, smooth_rate
 from tests.test_simulate import chunk_files
 
@@ -180,7 +180,7 @@ def test_a_task_the_cluster_drops_is_submitted_again(tmp_path):
     task is idempotent, and otherwise reported as a cluster fault, never as ``None``."""
     from distributed import LocalCluster
 
-    from pipeline.executor import failure, submitted
+    from pipeline.compute.executor import failure, submitted
 
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as local, \
             Client(local) as client:
@@ -249,7 +249,7 @@ def test_a_finished_task_whose_result_died_with_its_worker_is_waited_for():
     Dask reruns them: the job waits for the rerun instead of calling them failed."""
     from distributed import LocalCluster, wait
 
-    from pipeline.executor import failure, submitted
+    from pipeline.compute.executor import failure, submitted
 
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as local, \
             Client(local) as client:

@@ -175,7 +175,7 @@ def test_store_attribute_out_of_range(cli, tmp_path, store, name, value, fragmen
 def test_weights_with_a_nan_tensor_are_refused_naming_file_and_tensor(cli, tmp_path, store):
     from safetensors.torch import load_file, save_file
 
-    from cscsr.weights_io import default_weights, read_metadata
+    from cscsr.weights.weights_io import default_weights, read_metadata
 
     shipped = default_weights("lite")
     tensors = load_file(str(shipped))
@@ -197,13 +197,15 @@ def test_non_finite_pixels_are_never_marked_complete(tmp_path, store, monkeypatc
     the job ends incomplete and the output is never marked complete."""
     from distributed import Client
 
-    import pipeline.reconstruct as module
-    from stages.methods import RateReconstructor
+    import pipeline.jobs.reconstruct as module
+    from stages.reconstruction.methods import RateReconstructor
 
     def nan_rate(packed, width, reset):
         return np.full((packed.shape[1], width), np.nan, np.float32)
 
-    monkeypatch.setattr(module, "reconstructor", lambda *args, **kwargs: RateReconstructor("tfp", nan_rate))
+    import pipeline.jobs.reconstruct_tasks as tasks  # what the job's workers run
+
+    monkeypatch.setattr(tasks, "reconstructor", lambda *args, **kwargs: RateReconstructor("tfp", nan_rate))
     out = tmp_path / "o.zarr"
     with Client(processes=False, n_workers=1, threads_per_worker=1, dashboard_address=":0") as client:
         with pytest.raises(module.JobIncomplete, match="not finite"):

@@ -111,7 +111,7 @@ def test_help_still_works_and_a_usage_error_exits_1_from_the_installed_command(c
 # --- info of a zero-frame store --------------------------------------------------------------------
 
 def test_info_of_a_zero_frame_spike_store_is_one_line(cli, tmp_path):
-    from pipeline.spike_store import SpikeMeta, SpikeStoreWriter
+    from pipeline.stores.spike_store import SpikeMeta, SpikeStoreWriter
 
     path = tmp_path / "empty.zarr"
     writer = SpikeStoreWriter(str(path), SpikeMeta(HEIGHT, WIDTH, "rggb"), 0, chunk_frames=10)
@@ -171,7 +171,7 @@ def test_resuming_from_a_damaged_checkpoint_names_it(cli, tmp_path, damage, said
 
 
 def test_a_damaged_portable_part_and_a_damaged_init_file_are_named(cli, tmp_path):
-    from cscsr.weights_io import default_weights
+    from cscsr.weights.weights_io import default_weights
 
     run = tmp_path / "carried"
     run.mkdir()
@@ -221,7 +221,7 @@ def test_worker_logs_drop_per_task_tracebacks_of_a_full_disk_only(capfd):
     log nothing (the job names the cause once); any other OSError still logs its traceback."""
     from distributed import wait
 
-    from pipeline.cluster import dask_client
+    from pipeline.compute.cluster import dask_client
 
     def write(code: int) -> None:
         raise OSError(code, os.strerror(code))
@@ -241,7 +241,7 @@ def test_worker_logs_drop_per_task_tracebacks_of_a_full_disk_only(capfd):
 
 
 def test_a_job_that_fails_for_one_cause_names_it_once():
-    from pipeline.reconstruct import JobIncomplete
+    from pipeline.jobs.reconstruct import JobIncomplete
 
     full = "[Errno 28] No space left on device"
     every = JobIncomplete("/full/out.zarr", {i: f"tile ({i % 2}, 0): {full}" for i in range(30)}, 30)
@@ -279,7 +279,7 @@ def test_requests_in_flight_at_exit_end_quietly():
     created in a different Context" with its traceback."""
     code = """
 import asyncio, time
-import pipeline.storage
+import pipeline.stores.storage
 from aiobotocore.context import start_as_current_context
 from zarr.core.sync import _get_loop
 
@@ -358,7 +358,7 @@ def test_a_watcher_without_its_inbox_creates_nothing(cli, tmp_path):
 
 
 def test_a_watcher_whose_weights_are_missing_or_damaged_does_not_start(cli, tmp_path):
-    from cscsr.weights_io import default_weights
+    from cscsr.weights.weights_io import default_weights
 
     inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
     inbox.mkdir()
@@ -376,8 +376,8 @@ def test_a_watcher_whose_weights_are_missing_or_damaged_does_not_start(cli, tmp_
 def test_settle_zero_never_takes_a_file_still_being_written(tmp_path):
     """--settle 0: a capture still growing is left for a later pass (its size changes between two looks a
     second apart); one written just before the pass and finished is taken in that pass."""
-    from pipeline.ledger import Ledger
-    from pipeline.watch import WatchOptions, watch_once
+    from pipeline.inbox.ledger import Ledger
+    from pipeline.inbox.watch import WatchOptions, watch_once
 
     inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
     inbox.mkdir()

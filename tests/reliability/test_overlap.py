@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 
 from cscsr import samples
-from pipeline.ingest import IngestOptions, ingest
-from pipeline.reconstruct import ReconstructOptions, reconstruct
-from pipeline.simulate import SimulateOptions, simulate
-from pipeline.storage import check_apart
+from pipeline.jobs.ingest import IngestOptions, ingest
+from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct
+from pipeline.jobs.simulate import SimulateOptions, simulate
+from pipeline.stores.storage import check_apart
 from stages.errors import InputError
 from tests.conftest import integrate_and_fire, smooth_rate, write_dat
 from tests.test_simulate import picture

@@ -6,7 +6,7 @@ unrelated regular file: each is refused in one line (``error: ...``, exit 1) and
 test's folder changes. A store of ours of the other kind is refused too: ``reconstruct`` never replaces
 a spike store (a recording), nor ``ingest``/``simulate`` a video store. Our own previous outputs are
 still replaced; a run that fails late (a capture with a value of 2 in its last frame) leaves the old
-complete output as it was, or a warning names where it is kept (pipeline/outputs.py)."""
+complete output as it was, or a warning names where it is kept (pipeline/stores/outputs.py)."""
 
 import errno
 import json
@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 import zarr
 
-from pipeline.ingest import IngestOptions, ingest
-from pipeline.reconstruct import ReconstructOptions, reconstruct
+from pipeline.jobs.ingest import IngestOptions, ingest
+from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct
 from tests.reliability.test_overlap import snapshot
 from tests.test_simulate import picture
 
@@ -156,8 +156,8 @@ def test_our_own_outputs_are_still_replaced(cli, world, tmp_path, client):
 
 def test_make_testset_replaces_only_a_test_set(world, tmp_path, monkeypatch):
     """make-testset --overwrite onto a test set of ours (simulation stubbed: the claim is what is tested)."""
-    import pipeline.testset as testset
-    from pipeline.outputs import TESTSET, mark_folder
+    import pipeline.jobs.testset as testset
+    from pipeline.stores.outputs import TESTSET, mark_folder
 
     def fake_simulate(source, store, options, **kwargs):
         ingest(str(world / "c.npy"), store, IngestOptions(cfa="rggb"), progress=False)
@@ -212,7 +212,7 @@ def test_a_failed_reconstruct_overwrite_keeps_both(world, tmp_path, client):
     import glob
     import shutil
 
-    from pipeline.reconstruct import JobIncomplete
+    from pipeline.jobs.reconstruct import JobIncomplete
 
     recording, video = str(tmp_path / "s.zarr"), str(tmp_path / "v.zarr")
     shutil.copytree(world / "s.zarr", recording)
@@ -245,7 +245,7 @@ def test_a_failed_reconstruct_overwrite_keeps_both(world, tmp_path, client):
 def test_a_failed_restore_says_where_the_old_output_is(tmp_path, monkeypatch, caplog):
     """If the new output cannot be removed and the old one cannot be renamed back, a warning names where the
     old one is kept (it was silent)."""
-    import pipeline.outputs as outputs
+    import pipeline.stores.outputs as outputs
 
     out = tmp_path / "v.mp4"
     out.write_bytes(b"\x00\x00\x00\x18ftypisom old video")
@@ -274,7 +274,7 @@ def test_a_failed_restore_says_where_the_old_output_is(tmp_path, monkeypatch, ca
 def test_any_complete_output_removes_what_a_killed_run_set_aside(tmp_path):
     """A run killed during an --overwrite leaves the old output as .NAME.old-<id>; the next job that completes
     an output at NAME removes it, --overwrite or not (docs/reliability.md, Known gaps)."""
-    from pipeline.outputs import new_output
+    from pipeline.stores.outputs import new_output
 
     (tmp_path / ".v.mp4.old-0123456789ab").write_bytes(b"\x00\x00\x00\x18ftypisom old video")
     (tmp_path / ".v.mp4.other").write_text("not set aside by cscsr\n")

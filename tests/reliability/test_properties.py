@@ -12,12 +12,12 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from stages.bits import count_spikes, pack_rows, packed_width, unpack_rows
-from stages.dat import HEAD_SIDES, DatLayout, dat_to_packed, packed_to_dat
+from stages.capture.bits import count_spikes, pack_rows, packed_width, unpack_rows
+from stages.capture.dat import HEAD_SIDES, DatLayout, dat_to_packed, packed_to_dat
 from stages.errors import InputError
-from stages.sensor import UNITS, SensorModel, fire, increments, initial_state, pixel_thresholds
-from stages.tfi import tfi_rate
-from stages.tfp import tfp_rate, undo_zero_reset
+from stages.simulation.sensor import UNITS, SensorModel, fire, increments, initial_state, pixel_thresholds
+from stages.reconstruction.tfi import tfi_rate
+from stages.reconstruction.tfp import tfp_rate, undo_zero_reset
 from tests.conftest import write_dat
 
 FAST = settings(max_examples=60, deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow])
@@ -33,7 +33,7 @@ def spike_frames(draw, max_frames=12, max_height=6, max_width=37, min_frames=1):
     return draw(hnp.arrays(np.uint8, (n, h, w), elements=st.integers(0, 1)))
 
 
-# --- stages.bits ----------------------------------------------------------------------------
+# --- stages.capture.bits ----------------------------------------------------------------------------
 
 @FAST
 @given(spike_frames())
@@ -61,7 +61,7 @@ def test_count_spikes_is_popcount_for_any_length(raw):
     assert count_spikes(raw) == expected
 
 
-# --- stages.tfp / stages.tfi ----------------------------------------------------------------
+# --- stages.reconstruction.tfp / stages.reconstruction.tfi ----------------------------------------------------------------
 
 @FAST
 @given(spike_frames(max_frames=41))
@@ -125,7 +125,7 @@ def test_tfi_recovers_a_periodic_pixel(period, phase, n, w):
     np.testing.assert_allclose(tfi_rate(packed, w, "zero"), 1 / (period - 0.5), rtol=1e-6)
 
 
-# --- stages.sensor --------------------------------------------------------------------------
+# --- stages.simulation.sensor --------------------------------------------------------------------------
 
 def _fire_constant(alpha, intensity, n, h, w, reset, seed):
     model = SensorModel(brightness=alpha, threshold=1.0, noise="none", reset=reset, seed=seed)
@@ -194,7 +194,7 @@ def test_fire_does_not_depend_on_chunking(data, noise, reset):
         assert (whole.state >= 0).all() and (whole.state < UNITS).all()
 
 
-# --- stages.dat -----------------------------------------------------------------------------
+# --- stages.capture.dat -----------------------------------------------------------------------------
 
 @FAST
 @given(bits=spike_frames(max_frames=5, max_height=5, max_width=34), head=st.integers(0, 17), flip=st.booleans(),

@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 import zarr
 
-from pipeline.info import summarize
-from pipeline.reconstruct import JobIncomplete, ReconstructOptions, reconstruct
-from pipeline.reconstruct_plan import MADE_FROM
-from pipeline.spike_store import SpikeMeta, SpikeStoreWriter, open_spike_store, store_identity
+from pipeline.jobs.info import summarize
+from pipeline.jobs.reconstruct import JobIncomplete, ReconstructOptions, reconstruct
+from pipeline.jobs.reconstruct_plan import MADE_FROM
+from pipeline.stores.spike_store import SpikeMeta, SpikeStoreWriter, open_spike_store, store_identity
 from tests.conftest import integrate_and_fire, smooth_rate
 from tests.test_bad_input import assert_refused
 
@@ -125,7 +125,7 @@ def weights_files(tmp_path_factory):
     """The shipped lite weights, and a valid file of other weights (one tensor nudged)."""
     import torch
 
-    from cscsr.weights_io import default_weights, load_model, save_weights
+    from cscsr.weights.weights_io import default_weights, load_model, save_weights
 
     folder = tmp_path_factory.mktemp("weights")
     shipped = folder / "shipped.safetensors"

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from pipeline.ledger import _SCHEMA
+from pipeline.inbox.ledger import _SCHEMA
 from stages.errors import InputError
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -74,8 +74,8 @@ def test_the_scheduler_is_published_on_loopback_only():
 def test_inbox_links_that_leave_the_inbox_are_refused_and_nothing_is_read_through_them(tmp_path, caplog):
     """A symbolic link in INBOX (the recording, a file inside a Zarr store, or a sidecar) whose real path
     is elsewhere: recorded as failed with its reason; nothing copied, ingested or exported."""
-    from pipeline.ledger import Ledger
-    from pipeline.watch import WatchOptions, watch_once
+    from pipeline.inbox.ledger import Ledger
+    from pipeline.inbox.watch import WatchOptions, watch_once
 
     inbox, outbox, elsewhere = tmp_path / "inbox", tmp_path / "outbox", tmp_path / "private"
     inbox.mkdir()
@@ -118,7 +118,7 @@ def test_a_local_cluster_listens_on_loopback_only_dashboard_included():
     nannies) is bound to 127.0.0.1, and the dashboard link says where it really is."""
     import psutil
 
-    from pipeline.cluster import dashboard_link, dask_client
+    from pipeline.compute.cluster import dashboard_link, dask_client
 
     def listening(process):
         return {(c.laddr.ip, c.laddr.port) for c in process.net_connections(kind="inet") if c.status == psutil.CONN_LISTEN}
@@ -146,7 +146,7 @@ def test_a_ledger_is_opened_only_if_it_is_ours_and_status_never_writes(tmp_path,
     nothing added beside it. Our own ledger, with or without the marker, is read by ``status`` untouched."""
     import sqlite3
 
-    from pipeline.ledger import APPLICATION_ID, Ledger
+    from pipeline.inbox.ledger import APPLICATION_ID, Ledger
     from tests.test_bad_input import assert_refused
 
     foreign = tmp_path / "foreign"

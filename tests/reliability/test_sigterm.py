@@ -2,7 +2,7 @@
 
 It ended the process at once: a PNG export left a folder of a few frames that a rerun called "already exists",
 the mp4 encoder kept running orphaned, and its temporary mp4 was left behind. SIGTERM now does what Ctrl-C does
-(``pipeline.stopping``): the clean-up runs, the command says ``error: terminated (SIGTERM)`` and exits 143.
+(``pipeline.compute.stopping``): the clean-up runs, the command says ``error: terminated (SIGTERM)`` and exits 143.
 
 Each test starts ``cscsr`` as a user does, with a ``TMPDIR`` of its own, waits until it is working (its output
 appearing), sends SIGTERM once and checks: the process ends within seconds, non-zero, with that one line; no
@@ -109,7 +109,7 @@ def tmpdir_of_its_own(tmp_path):
 @pytest.fixture(scope="module")
 def video(tmp_path_factory) -> str:
     """A complete video store of 120 frames of 256x256 noise: a few seconds to export."""
-    from pipeline.video_store import TileWriter, create_video_store
+    from pipeline.stores.video_store import TileWriter, create_video_store
 
     path = str(tmp_path_factory.mktemp("sigterm") / "v.zarr")
     create_video_store(path, centres=list(range(20, 1220, 10)), hr_size=(256, 256), tile_hr=(256, 256), tiles=(1, 1),

@@ -36,9 +36,9 @@ def assert_untouched(folder) -> None:
 
 def checkpoint_at(run, step: int) -> None:
     """A training folder whose checkpoint is at ``step`` (random weights, no optimiser step: no training)."""
-    from cscsr.network import CSCSR
-    from cscsr.train import TrainOptions
-    from cscsr.training_state import save_checkpoint
+    from cscsr.network.model import CSCSR
+    from cscsr.training.train import TrainOptions
+    from cscsr.training.training_state import save_checkpoint
 
     run.mkdir(exist_ok=True)
     options = TrainOptions()
@@ -48,7 +48,7 @@ def checkpoint_at(run, step: int) -> None:
 
 
 def test_export_weights_onto_an_existing_file_is_refused_unless_overwrite(cli, tmp_path):
-    from cscsr.weights_io import read_metadata
+    from cscsr.weights.weights_io import read_metadata
 
     run, dest = tmp_path / "run", tmp_path / "x.safetensors"
     checkpoint_at(run, 3)
@@ -88,7 +88,7 @@ def test_export_weights_portable_onto_existing_parts_is_refused_unless_overwrite
 # --- evaluate: an existing --out -------------------------------------------------------------------
 
 def test_evaluate_onto_an_existing_out_is_refused_unless_overwrite(cli, tmp_path, store):
-    from pipeline.outputs import EVALUATION, mark_folder
+    from pipeline.stores.outputs import EVALUATION, mark_folder
 
     out = tmp_path / "ev"
     mark_folder(str(out), EVALUATION)  # an earlier evaluation
@@ -119,8 +119,8 @@ def test_evaluate_testset_onto_an_existing_out_is_refused_unless_overwrite(cli, 
     Only the claim is tested: no evaluation runs (the cluster is stubbed to stop the job once OUT is claimed)."""
     import shutil
 
-    import pipeline.testset as testset
-    from pipeline.outputs import EVALUATION, mark_folder
+    import pipeline.jobs.testset as testset
+    from pipeline.stores.outputs import EVALUATION, mark_folder
 
     tset = tmp_path / "set"  # a test set of one item: the 100-frame store
     tset.mkdir()
@@ -156,7 +156,7 @@ def test_evaluate_testset_onto_an_existing_out_is_refused_unless_overwrite(cli, 
 
 def video_store(path, state: str = "complete"):
     """A 4-frame video store of 2x1 tiles (16x8 HR pixels each), every tile written and committed."""
-    from pipeline.video_store import TileWriter, create_video_store
+    from pipeline.stores.video_store import TileWriter, create_video_store
 
     create_video_store(str(path), centres=[20, 30, 40, 50], hr_size=(16, 16), tile_hr=(16, 8), tiles=(1, 2),
                        attrs={"method": "tfp", "every": 10, "window": 41}, fps=2000.0)
@@ -226,7 +226,7 @@ def test_train_numbers_refused_before_out_exists(cli, tmp_path, args, fragment):
 
 
 def test_train_options_are_checked_in_the_python_api_too():
-    from cscsr.train import TrainOptions
+    from cscsr.training.train import TrainOptions
     from stages.errors import InputError
 
     for change, message in (({"learning_rate": float("nan")}, "learning_rate must be >= 0"),

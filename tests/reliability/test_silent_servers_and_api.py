@@ -165,7 +165,7 @@ def test_reconstruct_refuses_a_silent_s3_endpoint_within_the_users_own_timeouts(
 def test_s3_timeouts_default_under_the_users_settings(monkeypatch):
     import fsspec
 
-    from pipeline.storage import S3_TIMEOUTS, storage_options
+    from pipeline.stores.storage import S3_TIMEOUTS, storage_options
 
     assert storage_options("/a/path") == {} and storage_options("memory://x") == {}
     assert storage_options("s3://b/k")["config_kwargs"] == S3_TIMEOUTS

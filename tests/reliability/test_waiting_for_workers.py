@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from distributed import LocalCluster
 
-from pipeline.cluster import QUIET_WAIT, dask_client, workers_timeout
+from pipeline.compute.cluster import QUIET_WAIT, dask_client, workers_timeout
 from stages.errors import InputError
 from tests.conftest import CSCSR
 from tests.reliability.test_silent_servers_and_api import store  # noqa: F401 - a fixture

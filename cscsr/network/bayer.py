@@ -1,0 +1,55 @@
+"""The CFA phase as tensors: colour masks and the four half-resolution channels.
+
+The network never guesses the pattern: every clip comes with its CFA string, turned here
+into masks that the representation multiplies the spikes with. A crop, flip or shift that
+changes the phase changes the string, and so the masks, with it.
+"""
+
+import torch
+import torch.nn.functional as F
+
+from stages.reconstruction.cfa import BAYER_PATTERNS
+from stages.errors import InputError
+
+# The four half-resolution channels of the joint motion estimation (supplement, Fig. 3a):
+# G1 is the green on the red row, G2 the green on the blue row.
+HALF_CHANNELS = ("r", "g1", "g2", "b")
+
+
+def check_bayer(cfa: str) -> str:
+    name = str(cfa).lower()
+    if name not in BAYER_PATTERNS:
+        raise InputError(f"the CSCSR network needs a Bayer CFA ({', '.join(BAYER_PATTERNS)}), got {cfa!r}")
+    return name
+
+
+def positions(cfa: str) -> dict[str, tuple[int, int]]:
+    """(row, column) inside the 2x2 cell of R, G1, G2 and B."""
+    cell = {(0, 0): cfa[0], (0, 1): cfa[1], (1, 0): cfa[2], (1, 1): cfa[3]}
+    red = next(p for p, c in cell.items() if c == "r")
+    blue = next(p for p, c in cell.items() if c == "b")
+    return {"r": red, "g1": (red[0], 1 - red[1]), "g2": (blue[0], 1 - blue[1]), "b": blue}
+
+
+def cell_masks(cfas: list[str], height: int, width: int, device=None) -> torch.Tensor:
+    """(B, 4, H, W) float 0/1 masks of R, G1, G2, B for each clip's pattern."""
+    masks = torch.zeros(len(cfas), 4, height, width, device=device)
+    for b, cfa in enumerate(cfas):
+        for c, (dy, dx) in enumerate(positions(check_bayer(cfa)).values()):
+            masks[b, c, dy::2, dx::2] = 1
+    return masks
+
+
+def colour_masks(cells: torch.Tensor) -> torch.Tensor:
+    """(B, 4, H, W) R, G1, G2, B masks -> (B, 3, H, W) R, G, B masks (G1 and G2 together)."""
+    return torch.stack([cells[:, 0], cells[:, 1] + cells[:, 2], cells[:, 3]], dim=1)
+
+
+def split_half(spikes: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
+    """(B, T, H, W) spikes -> (B, 4, T, H/2, W/2): each of R, G1, G2, B with no missing pixels.
+
+    The supplement's "split": multiply by the channel's mask, then 2x2 max pooling.
+    """
+    b, t, h, w = spikes.shape
+    masked = spikes[:, None] * cells[:, :, None]  # (B, 4, T, H, W)
+    return F.max_pool2d(masked.reshape(b * 4 * t, 1, h, w), 2).reshape(b, 4, t, h // 2, w // 2)

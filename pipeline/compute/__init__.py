@@ -1,0 +1,1 @@
+"""The cluster, the executor and placement: local clusters and schedulers, GPU workers, a bounded window of tasks and segments on fresh clusters, progress bars, signals, fault-test holds, what a job costs on N workers. Imports: nothing of the pipeline's other rooms."""

@@ -1,0 +1,227 @@
+"""Running a job's tasks on Dask; what the tasks are is the job's plan, frozen data made elsewhere.
+
+- **A bounded window.** At most a few tasks per worker are in flight (``in_bounded_window``,
+  ``submitted``): a recording of millions of frames never becomes one graph of millions of
+  tasks, and tasks are made from the plan only as the window moves.
+- **Nothing a lost worker takes with it.** Everything a task needs travels in the task itself (the
+  plan is a few hundred bytes), never as scattered data: a task whose worker dies, even the
+  cluster's only worker, is rerun by Dask on whichever worker is there or joins later. A task
+  the cluster drops is submitted again (``idempotent`` tasks) and a failure says whether it was
+  the task's own error or a cluster fault (``failure``).
+- **Outcomes as they happen.** ``submitted`` yields each task of the plan with its finished future,
+  in the order they finish, for the job to count (progress bars) or to report.
+- **Segments.** A job that starts its own local cluster runs its tasks ``size`` at a time in a
+  child process that starts the cluster (scheduler and workers), runs them, and exits
+  (``in_segments``); the parent keeps only the plan, the progress bar and the lease. Dask keeps
+  a little memory per task for good in every process that touches it (measured: ~0.5 KiB per
+  task in the client and scheduler, ~0.2-1 KiB in a worker; part of it is
+  ``dask.utils.key_split``'s cache of every task key, the rest we could not attribute; it is not
+  released by ``malloc_trim`` or by closing the cluster): a million-task job would carry hundreds
+  of MB of it. Outcomes stream back over a queue as they happen, so progress and failure reports
+  are as live as in one process. The child dies with its parent (``PR_SET_PDEATHSIG``), so a
+  killed job leaves no segment writing behind it, and ``--resume`` finds the output as the last
+  committed task left it.
+"""
+
+import ctypes
+import itertools
+import logging
+import multiprocessing
+import queue
+import signal
+import sys
+from collections.abc import Callable, Iterable, Iterator
+from typing import TypeVar
+
+from distributed import Future, as_completed
+from distributed.scheduler import KilledWorker
+
+from pipeline.compute.stopping import interrupt_on, quiet_finalizers
+from stages.errors import InputError, describe
+
+T = TypeVar("T")
+log = logging.getLogger("cscsr.executor")
+
+
+def submitted(client, tasks: Iterable[T], submit: Callable[[T], Future], *,
+              idempotent: bool = False) -> Iterator[tuple[T, Future]]:
+    """``submit(task)`` for each task of a plan, a bounded window at a time; yield (task, future) as
+    each finishes (its result or error is the caller's to read: :func:`failure`).
+
+    A task whose worker dies is rerun by Dask itself (its inputs travel in the task, never as scattered
+    data, which a lost worker takes with it). ``idempotent`` tasks (whole chunks written, the same bytes
+    each time) are also submitted again when the cluster drops them (a future cancelled under the job,
+    e.g. by a scheduler restart), up to :data:`ATTEMPTS` submissions in all. A task that finished but
+    whose result was lost with its worker before it was read here is waited for again (Dask reruns it)."""
+    task_of, attempt_of = {}, {}  # future key -> task, -> how many times it was submitted
+
+    def start(task: T, attempt: int) -> Future:
+        future = submit(task)
+        task_of[future.key], attempt_of[future.key] = task, attempt
+        return future
+
+    def again(future: Future) -> Future | None:
+        if future.status in ("lost", "pending"):  # finished, but its result died with a worker: Dask is
+            return future  # computing it again (it waited here, unread); wait for that
+        if (not idempotent or future.status != "cancelled" or attempt_of[future.key] >= ATTEMPTS
+                or client.status != "running"):
+            return None
+        return start(task_of.pop(future.key), attempt_of.pop(future.key) + 1)
+
+    futures = (start(task, 1) for task in tasks)
+    for future in in_bounded_window(futures, window_size(client), again=again):
+        attempt_of.pop(future.key)
+        yield task_of.pop(future.key), future
+
+
+ATTEMPTS = 3  # submissions of an idempotent task the cluster keeps dropping, before it is reported failed
+
+
+def failure(future: Future) -> str | None:
+    """Why a finished future has no result, in one line: the task's own error, or what the cluster did
+    to it (a task run on workers that all died, a task the cluster dropped); None if it has one."""
+    if future.status == "finished":
+        return None
+    if future.status == "error":
+        error = future.exception()
+        if isinstance(error, KilledWorker):  # a cluster fault, not the task's: say so
+            return (f"cluster fault: every worker that ran this task died (KilledWorker; Dask gives up after "
+                    f"distributed.scheduler.allowed-failures deaths): {describe(error)}")
+        return describe(error)
+    return (f"cluster fault: the task was {future.status} by the cluster (workers lost or the scheduler "
+            f"restarted) and not finished")
+
+
+def in_bounded_window(futures: Iterator[Future], limit: int, *,
+                      again: Callable[[Future], Future | None] = lambda future: None) -> Iterator[Future]:
+    """Pull futures from ``futures`` (which submits as it is pulled); yield each once finished, unless
+    ``again(future)`` gives a future to wait for instead (a resubmission)."""
+    done = as_completed()
+
+    def next_finished() -> Future:
+        while True:
+            future = next(done)
+            if (replacement := again(future)) is None:
+                return future
+            done.add(replacement)
+
+    in_flight = 0
+    for future in futures:
+        done.add(future)
+        in_flight += 1
+        while in_flight >= limit:
+            yield next_finished()
+            in_flight -= 1
+    for _ in range(in_flight):
+        yield next_finished()
+
+
+def window_size(client) -> int:
+    """A few tasks per worker: enough to keep every worker busy, few enough to stay small."""
+    return 4 * max(1, len(client.scheduler_info()["workers"])) + 4
+
+
+_END, _FAILED, _OUTCOME = "end", "failed", "outcome"
+
+
+def in_segments(run: Callable[..., Iterator[T]], items: Iterable, size: int, *, workers: int | None,
+                show_dashboard: bool) -> Iterator[T]:
+    """``run(client, segment)`` for each ``size`` items in turn, each in its own process on its own local
+    cluster of ``workers`` (items are drawn one segment at a time; ``run`` must pickle). The first segment
+    prints the dashboard link if ``show_dashboard``, unless ``cscsr --quiet``; with ``cscsr --verbose`` each
+    segment's cluster lets Dask's own warnings through, as a cluster in this process would."""
+    from pipeline.compute.progress import is_quiet
+
+    context = multiprocessing.get_context("spawn")  # a fresh interpreter: nothing carried over
+    show_dashboard = show_dashboard and not is_quiet()
+    verbose = log.isEnabledFor(logging.DEBUG)  # a spawned child starts with logging unset: it is told
+    items = iter(items)
+    for number in itertools.count():
+        segment = list(itertools.islice(items, size))
+        if not segment:
+            return
+        log.debug("segment %d: %d tasks, in a process of its own on a fresh local cluster (%s)", number, len(segment),
+                  f"{workers} workers" if workers is not None else "a worker per core")
+        messages = context.Queue()
+        child = context.Process(target=_segment, name=f"cscsr-segment-{number}",
+                                args=(run, segment, workers, show_dashboard and number == 0, messages, verbose))
+        child.start()
+        try:
+            yield from _relay(messages, child)
+        except BaseException:  # the job stops early (an error, Ctrl-C, SIGTERM, its caller stops reading)
+            _stop(child)
+            raise
+        child.join()  # its outcomes are all in: it is exiting on its own
+
+
+SEGMENT_STOP_SECONDS = 15  # for a segment asked to stop to close its cluster (workers, their folders)
+
+
+def _stop(child) -> None:
+    """Stop the segment process of a job that stops early: SIGTERM, on which it closes its cluster, then SIGKILL if it
+    has not ended within :data:`SEGMENT_STOP_SECONDS`."""
+    if child.is_alive():
+        child.terminate()
+        child.join(SEGMENT_STOP_SECONDS)
+        if child.is_alive():
+            log.warning("the segment process %s did not stop within %d s of SIGTERM: killed", child.name,
+                        SEGMENT_STOP_SECONDS)
+            child.kill()
+    child.join()
+
+
+def _relay(messages, child) -> Iterator:
+    while True:
+        try:
+            message = messages.get(timeout=1.0)
+        except queue.Empty:
+            if child.is_alive():
+                continue
+            try:  # it may have finished between the two checks
+                message = messages.get(timeout=1.0)
+            except queue.Empty:
+                raise RuntimeError(f"the segment process stopped (exit code {child.exitcode}) without finishing: "
+                                   "its committed tasks are kept; run again with --resume") from None
+        if message[0] == _END:
+            return
+        if message[0] == _FAILED:
+            kind, text = message[1], message[2]
+            raise (InputError if kind == "InputError" else RuntimeError)(text)
+        yield message[1]
+
+
+def _segment(run, items, workers, show_dashboard, messages, verbose=False) -> None:
+    """Child: start a cluster, run the segment, send each outcome, exit (and all its memory with it). Stopped
+    (SIGTERM from its job, Ctrl-C at the terminal), it closes its cluster on the way out and says nothing: the job
+    reports."""
+    _die_with_parent()
+    interrupt_on(signal.SIGTERM, signal.SIGINT)
+    from pipeline.compute.cluster import dashboard_link, dask_client
+
+    if verbose:  # what the cluster's log level is chosen by (cluster._dask_log_level)
+        logging.getLogger("cscsr").setLevel(logging.DEBUG)
+
+    try:
+        try:
+            with dask_client(workers=workers) as client:
+                if show_dashboard and (link := dashboard_link(client)):
+                    print(f"dashboard: {link}", file=sys.stderr)
+                for outcome in run(client, items):
+                    messages.put((_OUTCOME, outcome))
+            messages.put((_END,))
+        except Exception as error:  # reported by the parent, which owns the user's terminal and exit code
+            messages.put((_FAILED, type(error).__name__, describe(error)))
+        messages.close()
+        messages.join_thread()
+    except KeyboardInterrupt:  # the job stopped: it reads no more outcomes, so none is waited on to be sent
+        quiet_finalizers()
+        messages.cancel_join_thread()
+
+
+def _die_with_parent() -> None:
+    """Ask Linux to SIGKILL this process when its parent dies (no-op elsewhere)."""
+    if sys.platform.startswith("linux"):
+        try:
+            ctypes.CDLL(None).prctl(1, signal.SIGKILL)  # 1 = PR_SET_PDEATHSIG
+        except (OSError, AttributeError):
+            pass

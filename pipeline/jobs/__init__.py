@@ -1,0 +1,1 @@
+"""The jobs and their plans: ingest, simulate, reconstruct (with its priced dry run), evaluate and the test set, export, info, preview. Plans are frozen data; the executor runs them. Imports: pipeline.stores, pipeline.compute, cscsr, stages."""

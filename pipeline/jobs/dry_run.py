@@ -1,0 +1,251 @@
+"""``cscsr reconstruct --dry-run``: the plan of a checked job, priced by some of its own tasks run for real on the
+workers that would run them, into a temporary store that is not OUT's (a new folder under the temporary folder
+where every worker reaches it, else each worker's memory); nothing is created near OUT (``pipeline.compute.estimate``
+turns the measured tasks into hours and bytes).
+"""
+
+import contextlib
+import dataclasses
+import functools
+import itertools
+import os
+import shutil
+import tempfile
+import time
+import uuid
+from collections.abc import Iterator
+
+import numpy as np
+
+from pipeline.compute.estimate import hours, hours_table, output_bytes
+from pipeline.compute.executor import in_segments, submitted
+from pipeline.jobs.reconstruct_plan import (
+    SEGMENT_TASKS,
+    Part,
+    Placement,
+    Plan,
+    task_count,
+    task_groups,
+)
+from pipeline.jobs.reconstruct_tasks import _opened, _reconstruct_tiles
+from pipeline.stores.storage import remove, resolve
+from pipeline.stores.video_store import VIDEO, create_video_store
+from stages.errors import InputError
+from stages.reconstruction.methods import NETWORKS
+from stages.reconstruction.tiles import Tile
+
+
+def plan_job(plan: Plan, part: Part, grid: list[list[Tile]], blocks: list, batch: int, done: np.ndarray,
+             hr_size: tuple[int, int], where: Placement, *, client=None, workers: int | None = None,
+             resources: dict | None = None, store: str | None = None, segment_tasks: int = SEGMENT_TASKS) -> dict:
+    """The plan of a checked job, priced by some of its own tasks run for real on the workers that would run
+    them, all busy at once, into a temporary store that is not ``out``'s (:func:`_measured`, :func:`_scratch`): on
+    the job's cluster, or, for a job that would start its own local cluster, in a segment alike (its own process
+    and local cluster), whose fixed cost each of the job's segments pays too.
+    Their time and compressed bytes give the hours on 1, 8 and 64 such workers, this job's time on its
+    workers, and the output's size (``pipeline.compute.estimate``)."""
+    centres = part.centres
+    tasks = task_count(len(centres), batch, len(blocks), part.first)
+    to_run = tasks if not done.any() else sum(1 for _ in task_groups(len(centres), batch, blocks, done, part.first))
+    job = (plan, part, grid, blocks, batch, hr_size, resources)
+    if client is not None:
+        measured = _measured(client, *job, seconds=SAMPLE_SECONDS)
+        start_up, segments, on = 0.0, 1, "of the cluster"
+    else:  # the job would start a local cluster of its own per segment: measured in a segment alike, whose fixed
+        began = time.perf_counter()  # cost (a fresh process and cluster, started, warmed and stopped) each pays
+        measured, = in_segments(functools.partial(_measured_here, job=job, seconds=SAMPLE_SECONDS), [None], 1,
+                                workers=workers, show_dashboard=False)
+        start_up = max(0.0, time.perf_counter() - began - measured["seconds"] - measured["seconds_per_task"])
+        segments, on = -(-to_run // segment_tasks), "local"
+    count = measured["of"]  # the workers the job runs on (measured on at most TRIAL_WORKERS of them)
+    total = len(centres) * hr_size[0] * hr_size[1]  # HR pixels of the output
+    # tasks differ in size (edge tiles, a range's part-full first and last groups): the time per HR pixel of the
+    # tasks measured, over the pixels of the job's average task
+    per_task = measured["seconds_per_task"] / (measured["hr_pixels"] / measured["tasks"]) * total / tasks
+    runs_on = ("GPU workers" if where.gpus else "CPU workers") if plan.method in NETWORKS else "any worker"
+    return {
+        "store": store, "out": plan.out, "method": plan.method, "weights": plan.weights,
+        "runs_on": runs_on, "precision": plan.precision, "backend": plan.backend,
+        "frames": len(centres), "spike_frames": f"{centres[0]}..{centres[-1]}", "every": plan.every,
+        "window": plan.window, "start": plan.start, "stop": plan.stop, "region": list(plan.region),
+        "hr_height": hr_size[0], "hr_width": hr_size[1], "scale": plan.scale, "gain": plan.gain,
+        "tile_lr": plan.tile, "tiles_per_frame": len(grid) * len(grid[0]),
+        "frames_per_task": batch, "tiles_per_task": max(map(len, blocks)),
+        "tasks": tasks, "tasks_to_run": to_run,
+        "measured_on": (f"{measured['workers']} {'local ' if on == 'local' else ''}{'GPU ' if where.gpus else ''}"
+                        f"worker{'s' if measured['workers'] > 1 else ''}{' of the cluster' if on != 'local' else ''}"),
+        "measured": measured,
+        "seconds_per_task": per_task,  # on one worker while every worker is busy
+        "output_bytes": output_bytes(measured["bytes"], measured["hr_pixels"], total),
+        "hours": hours_table(per_task, to_run),
+        # this job on the workers it will run on: its tasks, and a fresh local cluster per segment (measured)
+        "workers": count, "segment_start_seconds": start_up,
+        "job_seconds": hours(per_task, to_run, count) * 3600 + segments * start_up if to_run else 0.0,
+    }
+
+
+def _sampled(plan: Plan, frames: tuple[tuple[int, int], ...], tiles: tuple[tuple[int, int, Tile], ...]) -> dict:
+    """Task of a dry run: a task of the job, written into the dry run's temporary store (:func:`_scratch`) -> the
+    compressed bytes and HR pixels of video it wrote, which it then drops (a sample holds one task's output at a
+    time)."""
+    _reconstruct_tiles(plan, frames, tiles)
+    video = _opened(plan.spikes, plan.out, plan.run)[1].video
+    fs, root = resolve(f"{plan.out}/{VIDEO}")
+    written = pixels = 0
+    for index, _ in frames:
+        for ty, tx, tile in tiles:
+            path = f"{root}/{video.metadata.encode_chunk_key((index, ty, tx, 0))}"
+            try:  # a task of a small job may run twice at once on a worker of several threads: counted once
+                written += fs.size(path)
+                fs.rm_file(path)
+            except FileNotFoundError:
+                continue
+            pixels += (tile.y1 - tile.y0) * (tile.x1 - tile.x0) * plan.scale ** 2
+    return {"bytes": written, "hr_pixels": pixels}
+
+
+def _trial_store(url: str, attrs: dict | None = None, layout: dict | None = None, keep: bool = False) -> None:
+    """Create the dry run's video store at ``url`` (``memory://``: this process's memory), or (no ``attrs``) remove
+    it, unless ``keep`` (a store that others remove), and forget its writer."""
+    if attrs is not None:
+        create_video_store(url, attrs=attrs, **layout)
+        return
+    if not keep:
+        remove(url.rsplit("/", 1)[0] if url.startswith("memory://") else url)
+    _opened.cache_clear()  # the writer of a store that is gone
+
+
+@contextlib.contextmanager
+def _scratch(client, workers: list[str]) -> Iterator[str]:
+    """Where a dry run's tasks write, never at or beside OUT (a dry run creates nothing there, nor a folder above
+    it, nor a key in its bucket): a store in a new folder under this machine's temporary folder where every one of
+    ``workers`` can write it (a local cluster's: they pay a write to disk, as the job's tasks do), else (a
+    cluster's workers that share no folder with us) a ``memory://`` store in each worker process's memory
+    (:func:`_measured` creates and removes it there); the folder is removed after either way. Each chunk is
+    encoded as the job's is: the bytes per pixel are the job's."""
+    folder = tempfile.mkdtemp(prefix="cscsr-dry-run-")
+    try:
+        if all(client.run(_writable, folder, workers=workers).values()):
+            yield os.path.join(folder, "out.zarr")
+        else:
+            yield f"memory://cscsr-dry-run-{uuid.uuid4().hex}/out.zarr"
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+_TOKEN = uuid.uuid4().hex  # this process's, drawn once (a process forked later has a pid of its own)
+
+
+def _process() -> tuple[int, str]:
+    """This process, unlike any other on any machine (pids repeat across machines and containers)."""
+    return os.getpid(), _TOKEN
+
+
+def _writable(folder: str) -> bool:
+    """Whether this process (a worker) can write in ``folder``."""
+    return os.path.isdir(folder) and os.access(folder, os.W_OK | os.X_OK)
+
+
+TRIAL_WORKERS = 64  # the most workers a dry run measures on
+
+
+SAMPLE_SECONDS = 3.0  # about how long a dry run keeps them busy after a task each to warm them
+
+
+MOST_TASKS = 100  # a worker, in that time (tasks of milliseconds)
+
+
+def _measured(client, plan: Plan, part: Part, grid: list[list[Tile]], blocks: list, batch: int,
+              hr_size: tuple[int, int], resources: dict | None, *, seconds: float = SAMPLE_SECONDS) -> dict:
+    """Run tasks of the job (from its middle on) on every worker that would run them (at most
+    ``TRIAL_WORKERS``), all at once as the job keeps them busy (workers that share a machine share its
+    cores, caches and memory bandwidth: one worker measured alone runs up to twice as fast as in the job),
+    into a temporary store (:func:`_scratch`: a folder of this machine that they all reach, else each worker's
+    memory), removed after: one task per worker to warm them (the method built, the stores opened, code compiled, as a
+    worker's first task does once), then tasks submitted as the job submits them (a bounded window,
+    ``pipeline.compute.executor.submitted``) for about ``seconds``.
+    -> {"workers" measured on, "of" how many would run the job's tasks, "tasks" timed, "seconds" until the
+    last workers went idle, "seconds_per_task" on one worker (that time over the tasks each ran: the
+    client's and scheduler's work included, and the workers' waits for it), "bytes" and "hr_pixels" of video
+    they wrote}."""
+    workers = client.scheduler_info()["workers"]
+    able = [address for address, worker in workers.items()
+            if all((worker.get("resources") or {}).get(k, 0) >= v for k, v in (resources or {}).items())]
+    if not able:
+        raise InputError("the cluster has no worker that would run this job's tasks: add workers, then plan again")
+    of, able = len(able), able[:TRIAL_WORKERS]
+    with _scratch(client, able) as url:
+        return _measured_into(client, url, able, of, plan, part, grid, blocks, batch, hr_size, resources, seconds)
+
+
+def _measured_into(client, url: str, able: list[str], of: int, plan: Plan, part: Part, grid: list[list[Tile]],
+                   blocks: list, batch: int, hr_size: tuple[int, int], resources: dict | None,
+                   seconds: float) -> dict:
+    """:func:`_measured` on the workers ``able`` (of ``of``), its tasks writing into the store at ``url``."""
+    shared = not url.startswith("memory://")  # one store that every worker reaches, else one in each worker process
+    # workers that share a process (a client's in-process workers) share its memory: the store made once there
+    owners = list({process: address for address, process in client.run(_process, workers=able).items()}.values())
+    trial = dataclasses.replace(plan, out=url, run=uuid.uuid4().hex)
+    first = grid[0][0]
+    layout = {"centres": part.centres, "hr_size": hr_size, "tiles": (len(grid), len(grid[0])),
+              "tile_hr": ((first.y1 - first.y0) * plan.scale, (first.x1 - first.x0) * plan.scale)}
+    groups = _from_the_middle(len(part.centres), batch, blocks, part.first)
+
+    def submit(group, where: list[str] = able):
+        frames, block = group
+        return client.submit(_sampled, trial, tuple((i, part.centres[i]) for i in frames),
+                             tuple((ty, tx, grid[ty][tx]) for ty, tx in block), pure=False, workers=where,
+                             allow_other_workers=False, resources=resources)
+
+    most = _most_sampled(task_count(len(part.centres), batch, len(blocks), part.first), len(able))
+
+    def sample() -> Iterator:  # for about ``seconds``, and 3 tasks a worker at least
+        for n, group in enumerate(groups):
+            if n >= most or (n >= 3 * len(able) and time.perf_counter() - began >= seconds):
+                return
+            yield group
+
+    if shared:
+        _trial_store(url, trial.attrs(), layout)
+    else:
+        client.run(_trial_store, url, trial.attrs(), layout, workers=owners)
+    try:
+        client.gather([submit(group, [address]) for address, group in zip(able, groups)])  # warm
+        began, finished, results = time.perf_counter(), [], []
+        for _, future in submitted(client, sample(), submit):  # as the job submits them: a bounded window
+            results.append(future.result())
+            finished.append(time.perf_counter())
+    finally:
+        client.run(_trial_store, url, None, None, shared, workers=owners)
+        if shared:
+            _trial_store(url)
+    # until the last workers go idle: the time of the task that leaves one task a worker to finish
+    counted = max(1, len(finished) - len(able) + 1)
+    seconds = finished[counted - 1] - began
+    return {"workers": len(able), "of": of, "tasks": len(results), "seconds": seconds,
+            "seconds_per_task": seconds * len(able) / counted, "bytes": sum(r["bytes"] for r in results),
+            "hr_pixels": sum(r["hr_pixels"] for r in results)}
+
+
+def _measured_here(client, items, *, job: tuple, seconds: float) -> Iterator[dict]:
+    """:func:`_measured` as a segment of :func:`pipeline.compute.executor.in_segments` runs it (in its own process and
+    local cluster, as each segment of the job runs its tasks)."""
+    yield _measured(client, *job, seconds=seconds)
+
+
+def _from_the_middle(n_frames: int, batch: int, blocks: list, first: int) -> Iterator[tuple[range, tuple]]:
+    """The job's tasks (frames, block) from its middle frames on, round and round for ever: the sample a dry run
+    measures (the ends of a recording are often dark, or still)."""
+    starts = range(-(first % batch), n_frames, batch)  # as task_groups cuts them
+    middle = (n_frames // 2 + first % batch) // batch
+    while True:
+        for k in itertools.chain(range(middle, len(starts)), range(middle)):
+            for block in blocks:
+                yield range(max(starts[k], 0), min(starts[k] + batch, n_frames)), block
+
+
+def _most_sampled(job_tasks: int, workers: int) -> int:
+    """The most tasks a dry run times after the warm-up round (one task a worker): no more than the job has, the
+    warm-up counted, in whole rounds of a task a worker, but 3 rounds at least (a job of a few tasks is priced on a
+    few rounds of them), and :data:`MOST_TASKS` a worker at most."""
+    return min(MOST_TASKS, max(3, job_tasks // workers - 1)) * workers

@@ -1,0 +1,526 @@
+"""``cscsr ingest``: a raw capture into a new spike store, in this process or over Dask; resumable.
+
+**Tasks.** The capture is cut into tasks, runs of ``task_frames`` whole frames (a whole number of the
+store's chunks, about :data:`BLOCK_BYTES` of packed spikes; ``--task-frames``): task ``i`` is frames
+``[i * task_frames, (i + 1) * task_frames)``. A task packs its frames, writes their chunks of ``spikes``
+(no two tasks share a chunk), then records itself committed: ``committed[i]`` = the spikes it counted
+(``pipeline.stores.spike_store``). The job writes the metadata first (``state: "writing"``, every task -1 in
+``committed``, whose attributes record the capture's fingerprint and the options), and finishes the store
+(spike count, identity, consolidated metadata, ``state: "complete"``) only once every task is committed.
+
+**Where.** Without ``--workers``, a scheduler (``--scheduler``, ``DASK_SCHEDULER_ADDRESS``) or a client the tasks
+run in this process, one stream read ahead of the writes: the reference, whose bytes every other way
+reproduces. With them each task is
+a Dask task that reads its frames by byte range (ranged captures, ``.dat`` and ``.npy``: a ``.npz`` is one
+stream) wherever it runs; tasks are idempotent (the same chunks, the same bytes), so a lost worker's
+tasks run again (``pipeline.compute.executor``). A local cluster runs in a child process that dies with the job
+(``in_segments``), so a killed ingest leaves nothing writing.
+
+**Resume.** ``--resume`` checks that the capture is the one the store was ingested from (its size and a
+SHA-256 of its first and last MiB: two range reads, even at a terabyte), with the same options and task
+size, then runs only the tasks not committed and finishes the store. A failed parallel ingest keeps
+what it committed for ``--resume``; a failed one-process ingest is removed, as before.
+
+**Dry run.** :func:`plan_ingest` checks everything a run would, creates nothing, and measures one task
+(read, pack, compress into memory) for the store's size at rest and the hours on 1, 8, 64 workers.
+"""
+
+import contextlib
+import functools
+import logging
+import sys
+import time
+import uuid
+from collections.abc import Iterable, Iterator
+from dataclasses import asdict, dataclass
+from typing import NamedTuple
+
+import numpy as np
+import zarr
+
+from pipeline.stores.captures import RANGED_KINDS, default_layout, open_capture
+from pipeline.compute.cluster import (check_in_memory, check_scheduler, check_workers, dashboard_link, dask_client,
+                              scheduler_address)
+from pipeline.compute.estimate import hours_table
+from pipeline.compute.executor import failure, in_segments, submitted
+from pipeline.compute.hold import hold_point
+from pipeline.stores.lease import check_free, claimed, held
+from pipeline.stores.outputs import SPIKE_STORE, check_existing, new_output
+from pipeline.compute.progress import is_quiet, progress_bar
+from pipeline.stores.spike_store import (CODEC_LEVEL, COMMITTED, WRITE_CONFIG, SpikeMeta, SpikeStore, SpikeStoreWriter,
+                                  chunk_frames_for, ingest_task_arrays, open_spike_store)
+from pipeline.stores.storage import check_apart, exists, recorded, remove
+from stages.capture.bits import count_spikes, packed_width
+from stages.reconstruction.cfa import check_cfa, flip_vertically
+from stages.errors import InputError
+from stages.numbers import as_float, check_flag, check_number, check_text
+from stages.prefetch import prefetched
+from stages.simulation.sensor import check_reset
+from stages.capture.sps100 import CaptureDamaged, check_layout
+
+BLOCK_BYTES = 64 * 2**20  # packed bytes per task (and per block read): bounds memory, amortises I/O
+SEGMENT_TASKS = 10_000  # tasks per segment of a local cluster (a terabyte is ~16,000 tasks)
+COMMITTED_UNITS = "spikes in the task's frames, written once they are stored; -1 = not committed"
+log = logging.getLogger("cscsr.ingest")  # DEBUG lines (cscsr --verbose): the job's plan, each task's outcome
+
+
+@dataclass(frozen=True)
+class IngestOptions:
+    height: int | None = None
+    width: int | None = None
+    cfa: str = "mono"
+    fps: float = 20000.0
+    flip: bool = False
+    head_columns: int = 0
+    key: str | None = None
+    reset: str = "subtract"
+    overwrite: bool = False
+    resume: bool = False
+    task_frames: int | None = None  # frames per task, rounded up to whole chunks (default: ~BLOCK_BYTES)
+    layout: str | None = None  # a raw capture's layout (stages.capture.sps100.LAYOUTS); None: by extension
+
+    def __post_init__(self):
+        object.__setattr__(self, "fps", as_float(self.fps))  # fps=20000 records the bytes --fps 20000 does
+
+    def check(self) -> None:
+        """Every check of the options that needs no capture, types first (only the Python API can get them
+        wrong: ``flip="no"`` is a true string, ``height="16"`` no number). The capture and the store's
+        metadata check the sizes and ``fps`` against the recording."""
+        for name in ("height", "width"):
+            if getattr(self, name) is not None:
+                check_number(f"--{name}", getattr(self, name), integer=True)
+        check_text("--cfa", self.cfa)
+        check_number("--fps", self.fps, above=0)
+        check_flag("--flip", self.flip)
+        check_number("--head-columns", self.head_columns, integer=True)
+        check_text("--key", self.key, optional=True)
+        check_text("--reset", self.reset)
+        check_flag("--overwrite", self.overwrite)
+        check_flag("--resume", self.resume)
+        if self.task_frames is not None:
+            check_number("--task-frames", self.task_frames, at_least=1, integer=True)
+        check_text("--layout", self.layout, optional=True)
+        if self.layout is not None:
+            check_layout(self.layout)
+        check_cfa(self.cfa)
+        check_reset(self.reset)
+        if self.resume and self.overwrite:
+            raise InputError("--resume and --overwrite contradict each other: choose one")
+
+
+JOB_FIELDS = ("overwrite", "resume", "task_frames")  # how a capture is ingested, not what it is taken to be
+
+
+def capture_fields(options: IngestOptions) -> dict:
+    """What the capture is taken to be (every field but :data:`JOB_FIELDS`): the watcher keys its work on these.
+    ``layout`` only when one is named: by extension (None), the fields are those before it existed, so the
+    watcher's keys of earlier recordings stay as they were."""
+    fields = asdict(options)
+    for name in JOB_FIELDS:
+        del fields[name]
+    if fields["layout"] is None:
+        del fields["layout"]
+    return fields
+
+
+@dataclass(frozen=True)
+class IngestPlan:
+    """What every task needs, a few hundred bytes travelling in each task: the capture as workers open it
+    (absolute, or a URL), the store, and the cut into tasks."""
+
+    src: str
+    dest: str
+    height: int | None
+    width: int | None
+    flip: bool
+    head_columns: int
+    key: str | None
+    n_frames: int
+    task_frames: int
+    run: str  # this job's id: workers open the capture and the store once per job
+    layout: str | None = None  # as IngestOptions.layout
+
+    @property
+    def n_tasks(self) -> int:
+        return -(-self.n_frames // self.task_frames)
+
+    def frames(self, index: int) -> tuple[int, int]:
+        """Frames ``[start, stop)`` of task ``index``."""
+        start = index * self.task_frames
+        return start, min(start + self.task_frames, self.n_frames)
+
+    def open_capture(self):
+        return open_capture(self.src, height=self.height, width=self.width, flip=self.flip,
+                            head_columns=self.head_columns, key=self.key, layout=self.layout)
+
+
+@dataclass
+class _Job:
+    """An ingest checked and cut into tasks, before anything is written."""
+
+    capture: object
+    meta: SpikeMeta
+    chunk: int
+    plan: IngestPlan
+    record: dict  # the attributes of ``committed``: what --resume compares
+    counts: np.ndarray  # the spike counts of its tasks, -1: not committed (of the store to resume, when checked)
+
+
+def task_frames_for(chunk: int, frame_bytes: int, asked: int | None = None) -> int:
+    """Frames per task: ``asked`` rounded up to whole chunks, else about :data:`BLOCK_BYTES` of packed frames."""
+    if asked is not None:
+        return chunk * -(-asked // chunk)
+    return chunk * max(1, BLOCK_BYTES // (chunk * frame_bytes))
+
+
+def _prepare(src: str, dest: str, options: IngestOptions, *, parallel: bool, client) -> _Job:
+    """Every check of an ingest that writes nothing: the options, the places, the capture, whether it can be
+    read in parallel, and for ``--resume`` the store to finish (:func:`_check_resumable`)."""
+    options.check()
+    check_apart(dest, src)
+    if options.resume and not exists(dest):
+        raise InputError(f"cannot resume: {dest} does not exist")
+    if parallel:  # a client whose workers are in this process shares its memory://
+        check_in_memory((src, dest), client=client, instead=", or ingest without --workers or --scheduler")
+    capture = open_capture(src, height=options.height, width=options.width, flip=options.flip,
+                           head_columns=options.head_columns, key=options.key, layout=options.layout)
+    if parallel and not capture.ranged:
+        raise InputError(f"{src}: a .npz is read as one stream, and parallel ingest (--workers, --scheduler, "
+                         f"DASK_SCHEDULER_ADDRESS) reads "
+                         f"a capture by frame range ({', '.join(RANGED_KINDS)}): ingest it without them, or save "
+                         f"the array as .npy")
+    sensor_cfa = check_cfa(options.cfa, capture.height, capture.width)
+    meta = SpikeMeta(
+        height=capture.height, width=capture.width,
+        cfa=flip_vertically(sensor_cfa, capture.height) if options.flip else sensor_cfa,
+        fps=options.fps, source=recorded(src), flipped=options.flip, head_columns=options.head_columns, reset=options.reset,
+    )
+    chunk = chunk_frames_for(meta, capture.n_frames)
+    resumed = _resumed(dest) if options.resume else None
+    found = resumed[1] if resumed else {}
+    asked = options.task_frames
+    if asked is None and isinstance(found.get("task_frames"), int) and found["task_frames"] > 0:
+        asked = found["task_frames"]  # resumed as it was cut
+    task_frames = task_frames_for(chunk, capture.height * packed_width(capture.width), asked)
+    record = {"units": COMMITTED_UNITS, "task_frames": task_frames, "capture": capture.fingerprint(),
+              "options": {"height": capture.height, "width": capture.width, "cfa": sensor_cfa, "fps": options.fps,
+                          "flip": options.flip, "head_columns": options.head_columns,
+                          "key": getattr(capture, "key", None), "reset": options.reset,
+                          "layout": options.layout or default_layout(src)}}
+    plan = IngestPlan(recorded(src), recorded(dest), options.height, options.width, options.flip, options.head_columns,
+                      options.key, capture.n_frames, task_frames, uuid.uuid4().hex, options.layout)
+    job = _Job(capture, meta, chunk, plan, record, np.full(plan.n_tasks, -1, np.int64))
+    if options.resume:
+        job.counts = _check_resumable(dest, src, job, resumed)
+    return job
+
+
+def _resumed(dest: str) -> tuple[SpikeStore, dict]:
+    """The store to resume and the attributes of its ``committed`` record; refuses a store that has none."""
+    store = open_spike_store(dest, allow_incomplete=True)  # a video store, a folder, ...: refused by name
+    if COMMITTED not in store.group or not isinstance(store.group[COMMITTED], zarr.Array):
+        raise InputError(f"cannot resume {dest}: it holds no record of ingest tasks (a simulated store, or one "
+                         f"ingested by cscsr before resumable ingest): ingest it again with --overwrite")
+    return store, dict(store.group[COMMITTED].attrs)
+
+
+def _check_resumable(dest: str, src: str, job: _Job, resumed: tuple[SpikeStore, dict] | None = None) -> np.ndarray:
+    """Refuse to resume ``dest`` (``resumed``: as :func:`_resumed` opened it, else opened now) from another
+    capture, with other options or another cut into tasks; -> the spike counts of its tasks (-1: not
+    committed). Reads, never writes."""
+    store, found = resumed or _resumed(dest)
+    was, now = found.get("capture") or {}, job.record["capture"]
+    if was != now:
+        why = (f"{was.get('bytes')} bytes -> {now['bytes']} bytes" if was.get("bytes") != now["bytes"]
+               else "the same size, but its first or last MiB differ")
+        raise InputError(f"cannot resume {dest}: {src} is not the capture it was ingested from ({why}): give that "
+                         f"capture, or start again with --overwrite")
+    options = dict(found.get("options") or {})
+    options.setdefault("layout", default_layout(src))  # recorded before layouts: read by extension, as now
+    changed = [f"{k} {options.get(k)!r} -> {v!r}" for k, v in job.record["options"].items() if options.get(k) != v]
+    if found.get("task_frames") != job.plan.task_frames:
+        changed.append(f"task_frames {found.get('task_frames')!r} -> {job.plan.task_frames!r}")
+    if changed:
+        raise InputError(f"cannot resume {dest}: it was ingested with other options ({', '.join(changed)}): give "
+                         f"those, or start again with --overwrite")
+    committed = store.group[COMMITTED]
+    if (store.n_frames != job.plan.n_frames or store.spikes.chunks[0] != job.chunk
+            or committed.shape != (job.plan.n_tasks,)):
+        raise InputError(f"cannot resume {dest}: its arrays do not match the capture ({store.n_frames} frames in "
+                         f"chunks of {store.spikes.chunks[0]}, {committed.shape[0]} tasks): start again with "
+                         f"--overwrite")
+    return committed[:].astype(np.int64)
+
+
+def on_dask(client, workers: int | None, scheduler: str | None) -> bool:
+    """Whether the tasks run on Dask: a client, ``--workers``, or a scheduler named by ``--scheduler``,
+    ``DASK_SCHEDULER_ADDRESS`` or Dask's ``scheduler-address``, as for every other job (so an ingest under
+    ``deploy/slurm.py`` runs on its cluster, not on the login node)."""
+    return client is not None or workers is not None or scheduler_address(scheduler) is not None
+
+
+def _one_local_task(plan: IngestPlan, client, scheduler: str | None) -> bool:
+    """Whether a parallel ingest would start a local cluster (``--workers``, no client or scheduler) for one task:
+    then it runs in this process, one stream, the same bytes sooner (a cluster of a long-lived scheduler is
+    used whatever the tasks: an ingest under ``deploy/slurm.py`` never runs on the login node)."""
+    return plan.n_tasks <= 1 and client is None and scheduler_address(scheduler) is None
+
+
+def ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *, progress: bool = True,
+           workers: int | None = None, scheduler: str | None = None, client=None) -> dict:
+    """Copy ``src`` into a spike store at ``dest``; return the store's final attributes (:func:`run_ingest`)."""
+    return run_ingest(src, dest, options, progress=progress, workers=workers, scheduler=scheduler,
+                      client=client)["attrs"]
+
+
+def run_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *, progress: bool = True,
+               workers: int | None = None, scheduler: str | None = None, client=None) -> dict:
+    """Copy ``src`` into a spike store at ``dest`` (``options.resume``: finish the one there); return
+    ``attrs`` (the store's final attributes), ``frames``, ``tasks``, ``tasks_run``, ``tasks_skipped``.
+
+    In this process unless ``client``, ``workers`` or ``scheduler`` is given (then on Dask, as the other
+    jobs: the client, else the named scheduler or ``DASK_SCHEDULER_ADDRESS``, else a local cluster of
+    ``workers``). ``options.cfa`` is the pattern as recorded by the sensor; with ``flip`` the store
+    records the pattern of the upright image it holds.
+    """
+    check_workers(workers)
+    check_text("--scheduler", scheduler, optional=True)
+    parallel = on_dask(client, workers, scheduler)
+    job = _prepare(src, dest, options, parallel=parallel, client=client)
+    if parallel and _one_local_task(job.plan, client, scheduler):
+        parallel = False
+        log.info("%s: one task of %d frames: ingested in this process (a local cluster of --workers would only add "
+                 "its start-up)", src, job.plan.n_frames)
+    if parallel and client is None:
+        check_scheduler(scheduler)  # a named scheduler answers (within seconds) before DEST is claimed or replaced
+    plan = job.plan
+    with contextlib.ExitStack() as stack:
+        if parallel and client is None and scheduler_address(scheduler):  # a long-lived cluster: connect once
+            client = stack.enter_context(dask_client(scheduler=scheduler))
+        stack.enter_context(claimed(dest))  # one job per store, taken atomically before DEST is touched
+        if options.resume:
+            check_free(dest)  # and no live lease (a job on a machine that shares no claim file with us)
+        stack.enter_context(new_output(dest, overwrite=options.overwrite, kind=SPIKE_STORE,
+                                       flag="--resume or --overwrite", resume=options.resume, keep_partial=parallel))
+        if not options.resume:
+            stack.enter_context(_removed_if_damaged(dest))  # a damaged capture leaves nothing: --resume cannot help
+        if options.resume:
+            counts = _check_resumable(dest, src, job)  # again, under the claim
+            writer = SpikeStoreWriter.reopened(dest)
+            complete = writer.group.attrs.get("state") == "complete"
+        else:
+            writer = SpikeStoreWriter(dest, job.meta, plan.n_frames, chunk_frames=job.chunk)
+            writer.add_array(COMMITTED, (plan.n_tasks,), (1,), np.int64, ("task",), job.record, fill_value=-1)
+            counts, complete = np.full(plan.n_tasks, -1, np.int64), False
+        todo = [index for index in range(plan.n_tasks) if counts[index] < 0]
+        log.debug("%s -> %s: %d frames of %dx%d, cfa %s; %d tasks of %d frames, %d committed already; %s", src, dest,
+                  plan.n_frames, job.meta.height, job.meta.width, job.meta.cfa, plan.n_tasks, plan.task_frames,
+                  plan.n_tasks - len(todo), "in this process, one stream" if not parallel else
+                  f"on the cluster at {client.scheduler.address}" if client is not None else
+                  f"on local clusters of {workers or 'a worker per core'} workers, {SEGMENT_TASKS} tasks each")
+        if todo:
+            damaged = {}
+            with held(dest), progress_bar(f"ingest {src}", plan.n_frames, enabled=progress) as advance:
+                advance(plan.n_frames - sum(plan.frames(i)[1] - plan.frames(i)[0] for i in todo))
+                if parallel:
+                    failed, damaged = _run_on_cluster(plan, todo, counts, advance, client=client, workers=workers,
+                                                      progress=progress)
+                else:
+                    failed = _run_here(job.capture, writer, plan, counts, advance)
+            if damaged:  # the first in the capture: the tasks after a dropped packet are all out of sequence
+                raise CaptureDamaged(damaged[min(damaged)])
+            if failed:
+                raise IngestIncomplete(dest, plan, failed)
+        if not complete:
+            writer.finish(spike_count=int(counts.sum()))
+    if unread := job.capture.unread_bytes:  # checked with the last frames (captures.RawCapture._packed): cut short
+        log.warning("%s: its last %d bytes, after frame %d, are a frame cut short (its packets in sequence): not read",
+                    src, unread, plan.n_frames - 1)
+    return {"attrs": dict(writer.group.attrs), "frames": plan.n_frames, "tasks": plan.n_tasks,
+            "tasks_run": len(todo), "tasks_skipped": plan.n_tasks - len(todo)}
+
+
+def _run_here(capture, writer: SpikeStoreWriter, plan: IngestPlan, counts: np.ndarray, advance) -> dict:
+    """The tasks not committed, in this process: one stream of blocks read ahead of the writes."""
+    committed = writer.group[COMMITTED]
+    skip = {plan.frames(index)[0] for index in range(plan.n_tasks) if counts[index] >= 0}
+    for start, packed in prefetched(capture.blocks(plan.task_frames, skip)):
+        hold_point()  # inert unless a fault test asks (pipeline.compute.hold)
+        writer.write(start, packed)
+        index = start // plan.task_frames
+        counts[index] = count_spikes(packed)
+        committed[index] = counts[index]
+        log.debug("task %d (frames %d-%d): %d spikes, committed", index, start, start + packed.shape[0] - 1,
+                  counts[index])
+        advance(packed.shape[0])
+    return {}
+
+
+@contextlib.contextmanager
+def _removed_if_damaged(dest: str):
+    """A capture found damaged (``stages.capture.sps100.CaptureDamaged``) mid-ingest removes the new store, even a
+    parallel ingest's, which keeps its committed tasks for ``--resume`` on any other failure."""
+    try:
+        yield
+    except CaptureDamaged:
+        remove(dest)
+        raise
+
+
+class Outcome(NamedTuple):
+    """One finished task: its index, the spikes it counted, or its error (``damaged``: the capture's own, in
+    its layout's words: :class:`stages.capture.sps100.CaptureDamaged`)."""
+
+    index: int
+    spikes: int | None
+    error: str | None
+    damaged: bool = False
+
+
+def _run_on_cluster(plan: IngestPlan, todo: list[int], counts: np.ndarray, advance, *, client, workers: int | None,
+                    progress: bool) -> tuple[dict[int, str], dict[int, str]]:
+    """The tasks ``todo`` on ``client`` (else in segments, each on a fresh local cluster of ``workers``); their
+    counts into ``counts``; -> ({task: error} of those that failed, {task: error} of those that found the
+    capture damaged)."""
+    work = functools.partial(run_tasks, plan=plan)
+    if client is not None:
+        if progress and not is_quiet() and (link := dashboard_link(client)):
+            print(f"dashboard: {link}", file=sys.stderr)  # never mixed with results on stdout
+        outcomes = work(client, todo)
+    else:
+        outcomes = in_segments(work, todo, SEGMENT_TASKS, workers=workers, show_dashboard=progress)
+    failed, damaged = {}, {}
+    for outcome in outcomes:
+        start, stop = plan.frames(outcome.index)
+        log.debug("task %d (frames %d-%d): %s", outcome.index, start, stop - 1, f"failed: {outcome.error}"
+                  if outcome.error is not None else f"{outcome.spikes} spikes, committed")
+        if outcome.error is not None:
+            (damaged if outcome.damaged else failed)[outcome.index] = outcome.error
+            continue
+        counts[outcome.index] = outcome.spikes
+        advance(stop - start)
+    return failed, damaged
+
+
+def run_tasks(client, tasks: Iterable[int], *, plan: IngestPlan) -> Iterator[Outcome]:
+    """Run ingest tasks on ``client`` (``pipeline.compute.executor``: a bounded window, lost workers survived, tasks the
+    cluster drops submitted again); yield each outcome as it finishes."""
+    def submit(index: int):  # the plan travels in each task
+        return client.submit(_ingest_task, plan, index, pure=False)
+
+    for index, future in submitted(client, tasks, submit, idempotent=True):
+        error = failure(future)
+        result = None if error else future.result()
+        if isinstance(result, str):  # the capture is damaged: said, not raised (_ingest_task)
+            yield Outcome(index, None, result, damaged=True)
+        else:
+            yield Outcome(index, None if error else int(result), error)
+
+
+@functools.lru_cache(maxsize=4)
+def _opened(plan: IngestPlan):
+    """The capture and the store's arrays, opened once per worker process and job."""
+    capture = plan.open_capture()
+    if capture.n_frames != plan.n_frames:
+        raise InputError(f"{plan.src} changed since the ingest started: {capture.n_frames} frames, not {plan.n_frames}")
+    return (capture, *ingest_task_arrays(plan.dest))
+
+
+def _ingest_task(plan: IngestPlan, index: int) -> int | str:
+    """Task: read frames of task ``index`` by byte range, pack them, write their chunks, record the task
+    committed (its spike count); -> that count, or the line saying how its frames are damaged (checked before
+    anything is written; the job then removes the store). Idempotent: run again, it writes the same bytes."""
+    hold_point()  # inert unless a fault test asks (pipeline.compute.hold)
+    capture, spikes, committed = _opened(plan)
+    start, stop = plan.frames(index)
+    try:
+        packed = capture.read(start, stop)
+    except CaptureDamaged as error:
+        return str(error)
+    with zarr.config.set(WRITE_CONFIG):
+        spikes[start:stop] = packed
+    count = count_spikes(packed)
+    committed[index] = count
+    return count
+
+
+class IngestIncomplete(RuntimeError):
+    """Some tasks failed: which frames are missing and why; the rest is committed in the store."""
+
+    def __init__(self, dest: str, plan: IngestPlan, failed: dict[int, str]):
+        indices = sorted(failed)
+        ranges = [f"{plan.frames(i)[0]}..{plan.frames(i)[1] - 1}" for i in indices]
+        shown = ", ".join(ranges[:4]) + (", ..." if len(ranges) > 4 else "")
+        causes = set(failed.values())
+        cause = (f"each: {causes.pop()}" if len(causes) == 1 and len(indices) > 1  # one cause (a full disk): once
+                 else f"frames {ranges[0]}: {failed[indices[0]]}")
+        super().__init__(f"{len(indices)} of {plan.n_tasks} ingest tasks failed (frames {shown}; {cause}); the other "
+                         f"tasks are committed in {dest}: fix the cause and run again with --resume")
+        self.failed = failed
+
+
+def plan_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *, workers: int | None = None,
+                scheduler: str | None = None, client=None) -> dict:
+    """``ingest --dry-run``: every check a run makes, nothing created, and the plan: frames, the capture's bytes,
+    tasks, chunks, the store's size at rest and the hours on 1, 8 and 64 workers, both from one task read,
+    packed and compressed into memory here (the middle task; the first of a ``.npz``)."""
+    check_workers(workers)
+    check_text("--scheduler", scheduler, optional=True)
+    parallel = on_dask(client, workers, scheduler)
+    job = _prepare(src, dest, options, parallel=parallel, client=client)
+    if parallel and client is None:
+        check_scheduler(scheduler)
+    if options.resume:  # _prepare checked the store: as resumable
+        check_free(dest)
+    else:  # what new_output would refuse, refused now
+        check_existing(dest, overwrite=options.overwrite, kind=SPIKE_STORE, flag="--resume or --overwrite")
+    plan, meta, counts = job.plan, job.meta, job.counts
+    seconds, stored, measured = _measure(job)
+    todo = int((counts < 0).sum())
+    task_frames = min(plan.task_frames, plan.n_frames)  # a task holds no more frames than the capture has
+    per_task = seconds * task_frames / measured  # a whole task's worth
+    pixels = plan.n_frames * meta.height * meta.width
+    estimate = stored * plan.n_frames / measured
+    here = not parallel or _one_local_task(plan, client, scheduler)
+    where = ("this process" if here else "the given client" if client is not None
+             else f"scheduler {scheduler_address(scheduler)}" if scheduler_address(scheduler)
+             else f"a local cluster of {workers} workers")
+    return {
+        "source": str(src), "store": str(dest), "runs_on": where, "resume": options.resume,
+        "frames": plan.n_frames, "height": meta.height, "width": meta.width,
+        "capture_bytes": job.record["capture"]["bytes"],
+        "chunk_frames": job.chunk, "chunks": -(-plan.n_frames // job.chunk),
+        "task_frames": task_frames, "tasks": plan.n_tasks, "tasks_committed": plan.n_tasks - todo,
+        "tasks_to_run": todo,
+        "store_bytes_estimate": int(round(estimate)), "bits_per_pixel_estimate": 8 * estimate / pixels,
+        "measured_frames": measured, "seconds_per_task": per_task,
+        "hours": hours_table(per_task, todo),
+    }
+
+
+def _measure(job: _Job) -> tuple[float, int, int]:
+    """One task read and packed from the capture, then written to an in-memory array chunked and compressed as
+    the store's: -> (seconds, compressed bytes of its chunks, frames)."""
+    plan, capture = job.plan, job.capture
+    index = plan.n_tasks // 2 if capture.ranged else 0
+
+    def write(packed: np.ndarray) -> int:
+        memory = zarr.storage.MemoryStore()
+        array = zarr.create_array(memory, shape=packed.shape, chunks=(job.chunk, *packed.shape[1:]), dtype=np.uint8,
+                                  fill_value=0, compressors=zarr.codecs.ZstdCodec(level=CODEC_LEVEL),
+                                  config={"write_empty_chunks": True})
+        with zarr.config.set(WRITE_CONFIG):
+            array[:] = packed
+        count_spikes(packed)
+        return sum(len(value) for key, value in memory._store_dict.items() if key.startswith("c/"))
+
+    began = time.perf_counter()
+    if capture.ranged:
+        packed = capture.read(*plan.frames(index))
+    else:
+        packed = next(iter(capture.blocks(plan.task_frames)))[1]
+    read = time.perf_counter() - began
+    write(packed[: min(len(packed), job.chunk)])  # warm-up: the codec and Zarr's threads
+    began = time.perf_counter()
+    stored = write(packed)
+    return read + time.perf_counter() - began, stored, packed.shape[0]

@@ -1,0 +1,384 @@
+"""``cscsr reconstruct``: spike store -> HR video store, over a Dask cluster.
+
+Output frame j is centred on spike frame ``c_j = W//2 + j*K`` and made from frames
+``[c_j - W//2, c_j + W//2]``. A task is a few consecutive output frames (the method's
+``batch``) of one tile; it reads its windows and halo straight from Zarr (no overlap graph),
+reconstructs, crops the halo and writes one chunk per (frame, tile), each then recorded in
+``committed``. The plan (``pipeline.jobs.reconstruct_plan``) is frozen data; ``pipeline.compute.executor`` submits
+its tasks in a bounded window. The reconstructor (a model, for
+``cscsr``) is built once per worker process and reused. A job that starts its own local
+cluster runs its tasks in segments, each in a fresh process and cluster
+(``pipeline.compute.executor``), so that memory stays bounded over millions of tasks.
+
+GPU workers: when the cluster has workers that advertise the ``GPU`` resource (one per GPU,
+``pipeline.compute.cluster``), network tasks ask for a share of one (``GPU_SHARE``), so they run there and
+only there, several at once: one on the device while the others read and write. On GPU workers
+the default weights are ``full`` (``lite`` on CPUs), and the default tile is the largest that the
+GPU's memory holds (the whole frame where it fits, several frames a pass), else tasks take
+several tiles of the same shape (``gpu_batch`` windows in all) as one batch; classic tasks run
+anywhere. Without such workers tasks are cut and placed as above.
+
+The gain is fixed for the whole recording before any task runs (``--gain``, else the store's,
+else automatic exposure of the whole recording's middle window), so tiles and frames agree with each
+other, and a part of a recording with a whole run.
+
+A part (``--start``/``--stop``, ``--region``; ``reconstruct_plan.job_part``): the output frames of the whole
+recording whose centre lies in [start, stop), each read from its whole window (outside the range where the
+window reaches past it); tiles cut inside the region, their halo read from outside it where the recording
+has pixels. The output records the part (``start``, ``stop``, ``region``), and ``--resume`` checks it.
+
+``--dry-run`` (:func:`plan_job`): every check of a real run, nothing created; a few of the job's tasks run
+for real on its workers, all busy at once, into a temporary store that is not OUT's (in a new folder under this
+machine's temporary folder where every worker reaches it, else in each worker's memory), price the job
+(``pipeline.compute.estimate``).
+"""
+
+import contextlib
+import dataclasses
+import functools
+import logging
+import sys
+import uuid
+import weakref
+from collections.abc import Iterable, Iterator
+from typing import NamedTuple
+
+import numpy as np
+
+from pipeline.compute.cluster import (
+    GPU,
+    GPU_SHARE,
+    check_in_memory,
+    check_scheduler,
+    check_workers,
+    dashboard_link,
+    dask_client,
+    scheduler_address,
+    visible_gpus,
+)
+from pipeline.compute.executor import failure, in_segments, submitted
+from pipeline.compute.progress import is_quiet, progress_bar
+from pipeline.jobs.dry_run import plan_job
+from pipeline.jobs.reconstruct_plan import (
+    DEFAULT_TILE,
+    DEFAULT_WEIGHTS,
+    GPU_BATCH,
+    MADE_FROM,
+    Placement,
+    Plan,
+    ReconstructOptions,
+    job_part,
+    made_from,
+    task_groups,
+    tile_blocks,
+)
+from pipeline.jobs.reconstruct_tasks import _auto_gain, _reconstruct_tiles, reconstructor
+from pipeline.stores.lease import check_free, claimed, held
+from pipeline.stores.outputs import VIDEO_STORE, check_existing, new_output
+from pipeline.stores.spike_store import SpikeStore, open_spike_store
+from pipeline.stores.storage import check_apart, exists, recorded, remove_partial_writes
+from pipeline.stores.video_store import VIDEO, committed_mask, create_video_store, open_video_store
+from stages.errors import InputError
+from stages.reconstruction.methods import NETWORKS, Reconstructor, output_centres
+from stages.reconstruction.tiles import Tile, device_tile, tile_grid
+
+log = logging.getLogger("cscsr.reconstruct")  # DEBUG lines (cscsr --verbose): the job's plan, each task's outcome
+_DASHBOARDS_SHOWN: "weakref.WeakSet" = weakref.WeakSet()  # the clients whose dashboard link is printed already
+
+
+def _show_dashboard_once(client) -> None:
+    """Print ``client``'s dashboard link on standard error (never mixed with results on stdout), once per client:
+    jobs that share a client (the demo's, evaluate's methods) do not repeat it."""
+    if client in _DASHBOARDS_SHOWN:
+        return
+    _DASHBOARDS_SHOWN.add(client)
+    if link := dashboard_link(client):
+        print(f"dashboard: {link}", file=sys.stderr)
+
+
+def check_options(options: ReconstructOptions, n_frames: int) -> None:
+    options.check()
+    if options.window > n_frames:
+        raise InputError(f"--window {options.window} is longer than the recording ({n_frames} frames)")
+
+
+def network_options(options: ReconstructOptions) -> tuple[str | None, str | None]:
+    """(precision, backend) of a network job; (None, None) for the classic methods, which have neither."""
+    return (options.precision, options.backend) if options.method in NETWORKS else (None, None)
+
+
+def checked_method(store: SpikeStore, options: ReconstructOptions) -> tuple[int, Reconstructor]:
+    """Every check of a job on ``store`` that needs no output: the options against the recording, the
+    scale (``--scale``, else the store's, else 4) and the method, its weights loaded (on the CPU: this
+    process only checks them; without ``--weights``, those for CPU workers). -> (scale, method)."""
+    check_options(options, store.n_frames)
+    scale = options.scale if options.scale is not None else int(store.attrs.get("scale", 4))
+    weights = options.weights or (DEFAULT_WEIGHTS["cpu"] if options.method in NETWORKS else None)
+    method = reconstructor(options.method, weights, *network_options(options), device="cpu")  # loads and checks them
+    method.check(options.window, scale, store.meta.cfa)
+    return scale, method
+
+
+def placement(options: ReconstructOptions, client) -> Placement:
+    """On ``client``'s GPU workers if it has any, else (no client: a local cluster) on this machine's GPUs."""
+    if options.method not in NETWORKS or options.backend != "torch":
+        return Placement(False, None)
+    if client is None:
+        gpus = visible_gpus()
+        if not gpus:
+            return Placement(False, None)
+        import torch
+
+        return Placement(True, min(torch.cuda.get_device_properties(i).total_memory for i in range(gpus)))
+    addresses = [address for address, worker in client.scheduler_info()["workers"].items()
+                 if (worker.get("resources") or {}).get(GPU, 0) >= 1]
+    if not addresses:
+        return Placement(False, None)
+    sizes = [size for size in client.run(gpu_memory_bytes, workers=addresses).values() if size]
+    return Placement(True, min(sizes) if sizes else None)
+
+
+def gpu_memory_bytes() -> int | None:
+    """Run on a GPU worker: the memory of its GPU (pinned, it sees only its own, as device 0); None without one."""
+    import torch
+
+    return torch.cuda.get_device_properties(0).total_memory if torch.cuda.is_available() else None
+
+
+def placed(options: ReconstructOptions, where: Placement, recorded: dict) -> ReconstructOptions:
+    """The options with the weights that depend on where the network runs filled in: ``--weights``, else
+    what a resumed output records, else ``full`` on GPU workers and ``lite`` on CPUs. Chosen once per
+    job; the output records it."""
+    if options.method not in NETWORKS or options.weights:
+        return options
+    return dataclasses.replace(options, weights=recorded.get("weights") or DEFAULT_WEIGHTS["gpu" if where.gpus else "cpu"])
+
+
+def sized(options: ReconstructOptions, where: Placement, method: Reconstructor, shape: tuple[int, int],
+          recorded: dict) -> ReconstructOptions:
+    """The options with the tile and the windows per pass filled in: ``--tile`` (else what a resumed output
+    records), ``--gpu-batch``; else on GPUs of known memory what the smallest holds
+    (:func:`stages.reconstruction.tiles.device_tile`: the whole frame where it fits), and otherwise ``DEFAULT_TILE`` and
+    ``GPU_BATCH``."""
+    tile, batch = options.tile or recorded.get("tile_lr"), options.gpu_batch
+    if where.gpus and where.memory and (tile is None or batch is None):
+        from cscsr.inference.device_memory import bytes_per_lr_pixel, usable_bytes
+
+        fitted = device_tile(*shape, method.halo, usable_bytes(where.memory),
+                             bytes_per_lr_pixel(method.model.config.name, options.precision), GPU_BATCH)
+        tile, batch = tile or fitted[0], batch or fitted[1]
+    return dataclasses.replace(options, tile=tile or DEFAULT_TILE, gpu_batch=batch or GPU_BATCH)
+
+
+def _recorded_attrs(out: str) -> dict:
+    """What the output to resume records, or nothing if it cannot be read as a video store (the resume's
+    own checks then refuse it, in their words)."""
+    try:
+        return dict(open_video_store(out).attrs)
+    except Exception:  # noqa: BLE001 - refused later, with the reason, by new_output and _prepare_output
+        return {}
+
+
+def reconstruct(store_url: str, out: str, options: ReconstructOptions = ReconstructOptions(), *,
+                workers: int | None = None, scheduler: str | None = None, client=None, progress: bool = True,
+                dry_run: bool = False) -> dict:
+    """Reconstruct the recording at ``store_url`` (or the part ``options`` name) into an HR video store at ``out``.
+
+    Runs on ``client`` if given, else on the scheduler named by ``scheduler`` (or the environment),
+    else in segments of ``options.segment_tasks`` tasks, each on a fresh local cluster of
+    ``workers`` (see :mod:`pipeline.compute.executor`). Returns
+    counts: output frames, tasks run now, tasks found already committed. ``dry_run``: every check, nothing
+    created; returns the plan, priced by a few of its tasks run for real (:func:`plan_job`).
+    """
+    check_workers(workers)
+    options.check()
+    check_apart(out, store_url, options.weights)
+    check_in_memory((store_url, out, options.weights), client=client)  # workers read and write them
+    store = open_spike_store(store_url)
+    meta = store.meta
+    checked_method(store, options)  # the options and the weights given, before any cluster
+    part = job_part(options, store.n_frames, meta.fps, meta.height, meta.width, meta.cfa)  # --start/--stop/--region
+    if options.resume and not exists(out):
+        raise InputError(f"cannot resume: {out} does not exist")
+    if client is None:
+        check_scheduler(scheduler)  # a named scheduler answers (within seconds) before OUT is claimed or replaced
+
+    with contextlib.ExitStack() as stack:
+        if client is None and scheduler_address(scheduler):  # a long-lived cluster: connect once, before any output
+            client = stack.enter_context(dask_client(scheduler=scheduler))
+        where = placement(options, client)
+        found = _recorded_attrs(out) if options.resume else {}
+        options = placed(options, where, found)
+        scale, method = checked_method(store, options)  # the weights by where the network runs
+        y0, y1, x0, x1 = part.region
+        options = sized(options, where, method, (y1 - y0, x1 - x0), found)
+        precision, backend = network_options(options)
+        centres = part.centres
+        grid = tile_grid(meta.height, meta.width, options.tile, method.halo, part.region)
+        if dry_run:
+            _check_output(out, options)  # what the claim and new_output below refuse, creating nothing
+        else:
+            stack.enter_context(claimed(out))  # one job per output, taken atomically before OUT is touched
+            if options.resume:
+                check_free(out)  # and no live lease (a job on a machine that shares no claim file with us)
+            # only one of our stores is replaced, and kept aside until the new one is complete (pipeline.stores.outputs); a
+            # failed job's new store stays for --resume
+            stack.enter_context(new_output(out, overwrite=options.overwrite, kind=VIDEO_STORE,
+                                           flag="--resume or --overwrite", resume=options.resume, keep_partial=True))
+        gain = options.gain or meta.gain
+        if gain is None:  # one window: on the cluster if there is one, else here (not worth a cluster of its own)
+            whole = output_centres(store.n_frames, options.window, options.every)  # the same gain for any part
+            args = (store_url, whole[len(whole) // 2], options.window, meta.reset)
+            gain = client.submit(_auto_gain, *args).result() if client else _auto_gain(*args)
+        # the spike store as workers find it, whatever their working directory (and as the output records it)
+        plan = Plan(recorded(store_url), out, options.method, method.weights, options.window, options.every, float(gain),
+                    scale, meta.cfa, meta.reset, options.tile, uuid.uuid4().hex, precision, options.gpu_batch, backend,
+                    fast_gpu=options.fast_gpu and where.gpus if options.method in NETWORKS else None,
+                    **made_from(store, method.weights_sha256),  # what --resume checks beside the paths
+                    start=part.start, stop=part.stop, region=part.region)
+        batch = method.batch
+        hr_size = ((y1 - y0) * scale, (x1 - x0) * scale)
+        blocks = tile_blocks(grid, max(1, options.gpu_batch // batch) if where.gpus else 1)
+        resources = {GPU: GPU_SHARE} if where.gpus else None
+        if dry_run:
+            done = (_check_resumable(plan, open_video_store(out), centres) if options.resume
+                    else np.zeros((len(centres), len(grid), len(grid[0])), bool))
+            return plan_job(plan, part, grid, blocks, batch, done, hr_size, where, client=client, workers=workers,
+                            resources=resources, store=store_url, segment_tasks=options.segment_tasks)
+        done = _prepare_output(plan, options.resume, centres, grid, hr_size, fps=meta.fps / options.every)
+        groups = task_groups(len(centres), batch, blocks, done, part.first)
+        work = functools.partial(run_groups, plan=plan, centres=centres, grid=grid, resources=resources)
+        log.debug("%s -> %s: %s%s, %d output frames x %d tiles of %d LR pixels (x%d), gain %.4g; %d of %d tiles "
+                  "committed already; on %s", store_url, out, options.method,
+                  f" (weights {method.weights})" if method.weights else "", len(centres), len(grid) * len(grid[0]),
+                  options.tile, scale, gain, int(done.sum()), done.size,
+                  f"the cluster at {client.scheduler.address}" if client else
+                  f"local clusters of {workers or 'a worker per core'} workers, {options.segment_tasks} tasks each")
+        with held(out), progress_bar(f"reconstruct {options.method}", len(centres), enabled=progress) as advance:
+            if client:
+                if progress and not is_quiet():
+                    _show_dashboard_once(client)
+                outcomes = work(client, groups)
+            else:  # our own local cluster: a fresh one per segment keeps memory bounded
+                outcomes = in_segments(work, groups, options.segment_tasks, workers=workers, show_dashboard=progress)
+            failed = _tally(outcomes, done, advance)
+        if failed:
+            raise JobIncomplete(out, failed, len(centres))
+        remove_partial_writes(out)  # a worker killed mid-write leaves its temporary file
+        open_video_store(out, writable=True).attrs["state"] = "complete"  # still under the claim
+    skipped = int(done.sum())
+    return {"frames": len(centres), "tasks_run": done.size - skipped, "tasks_skipped": skipped}
+
+
+def _check_output(out: str, options: ReconstructOptions) -> None:
+    """For a dry run: what a real run refuses about ``out`` once it has claimed it (another live job writing it;
+    an output that exists and is not ours, or that we were not asked to resume or replace), creating nothing.
+    (A job that has claimed ``out`` and not yet started writing it holds no lease yet: it is not seen.)"""
+    if options.resume:  # it exists: checked before
+        check_free(out)
+    else:
+        check_existing(out, overwrite=options.overwrite, kind=VIDEO_STORE, flag="--resume or --overwrite")
+
+
+class JobIncomplete(RuntimeError):
+    """Some tasks raised: which output frames are missing and why; the rest is committed."""
+
+    def __init__(self, out: str, failed: dict[int, str], n_frames: int):
+        frames = sorted(failed)
+        shown = ", ".join(map(str, frames[:20])) + (", ..." if len(frames) > 20 else "")
+        first = failed[frames[0]]
+        causes = {why.split("): ", 1)[-1] if why.startswith("tile (") else why for why in failed.values()}
+        if len(causes) == 1 and len(frames) > 1:  # one cause (a full disk): named once, not per tile
+            first = f"each: {causes.pop()}"
+        else:
+            first = f"frame {frames[0]}: {first}"
+        rest = (f"the other frames are committed in {out}" if len(frames) < n_frames
+                else f"what was written is kept in {out}")
+        super().__init__(f"{len(frames)} of {n_frames} output frames failed (frames {shown}; {first}); {rest}: "
+                         f"fix the cause and run again with --resume")
+        self.failed = failed
+
+
+class Outcome(NamedTuple):
+    """One finished task: output frames ``start:stop`` of tile (ty, tx), and its error if it raised."""
+
+    start: int
+    stop: int
+    ty: int
+    tx: int
+    error: str | None
+
+
+def run_groups(client, groups: Iterable, *, plan: Plan, centres: list[int], grid,
+               resources: dict | None = None) -> Iterator[Outcome]:
+    """Run the plan's ``groups`` on ``client`` (``pipeline.compute.executor``), each task needing ``resources``
+    (e.g. ``{"GPU": 1}``: only workers that advertise them run it); yield the outcome of each of a
+    group's tiles as it finishes."""
+    def submit(group):  # the plan travels in each task (scattered data dies with the workers holding it)
+        frames, block = group
+        return client.submit(_reconstruct_tiles, plan, tuple((i, centres[i]) for i in frames),
+                             tuple((ty, tx, grid[ty][tx]) for ty, tx in block), pure=False, resources=resources)
+
+    for (frames, block), future in submitted(client, groups, submit, idempotent=True):
+        error = failure(future)  # the task raised, or the cluster failed it: report it, go on with the others
+        for ty, tx in block:
+            yield Outcome(frames.start, frames.stop, ty, tx, error)
+
+
+def _tally(outcomes: Iterable[Outcome], done: np.ndarray, advance) -> dict[int, str]:
+    """Count finished tiles per output frame (a frame is done when all its tiles are); -> {frame: error}."""
+    failed = {}
+    remaining = done.shape[1] * done.shape[2] - done.sum(axis=(1, 2))  # (frames,) tiles still to come
+    advance(int((remaining == 0).sum()))
+    for outcome in outcomes:
+        frames = range(outcome.start, outcome.stop)
+        log.debug("output frames %d-%d, tile (%d, %d): %s", outcome.start, outcome.stop - 1, outcome.ty, outcome.tx,
+                  "committed" if outcome.error is None else f"failed: {outcome.error}")
+        if outcome.error is not None:
+            failed.update({index: f"tile ({outcome.ty}, {outcome.tx}): {outcome.error}" for index in frames})
+            continue
+        for index in frames:
+            if not done[index, outcome.ty, outcome.tx]:
+                remaining[index] -= 1
+                if remaining[index] == 0:
+                    advance(1)
+    return failed
+
+
+def _prepare_output(plan: Plan, resume: bool, centres: list[int], grid: list[list[Tile]], hr_size: tuple[int, int],
+                    fps: float | None = None):
+    """Create the output (metadata first), or check a resumed one matches; return the commit mask."""
+    tiles = (len(grid), len(grid[0]))
+    first = grid[0][0]
+    tile_hr = ((first.y1 - first.y0) * plan.scale, (first.x1 - first.x0) * plan.scale)
+    if resume:
+        return _check_resumable(plan, open_video_store(plan.out, writable=True), centres, adopt=True)
+    create_video_store(plan.out, centres=centres, hr_size=hr_size, tile_hr=tile_hr, tiles=tiles,
+                       attrs=plan.attrs(), fps=fps)
+    return np.zeros((len(centres), *tiles), bool)
+
+
+def _check_resumable(plan: Plan, group, centres: list[int], *, adopt: bool = False) -> np.ndarray:
+    """Refuse to resume ``group`` (the output) with ``plan`` unless it was made from the same data with the same
+    parameters (the part of the recording included); -> its commit mask. ``adopt``: an output from before the
+    record of what it was made from gets it now (a dry run leaves it as it is)."""
+    expected = plan.attrs()
+    if other := plan.other_data(dict(group.attrs)):  # the same paths, another recording or other weights
+        raise InputError(f"cannot resume {plan.out}: {other}")
+    network = plan.method in NETWORKS  # stores from before --precision and --backend:
+    before = {"precision": "fp32" if network else None, "backend": "torch" if network else None,
+              "fast_gpu": False if network else None, **plan.whole()}  # and before parts: all of the recording
+    # stores from before the record of what they were made from: resumed on the paths alone, as they were
+    # then, and the record added now (a later resume checks it)
+    adopted = {k: expected[k] for k in MADE_FROM if k not in group.attrs}
+    before.update(adopted)
+    found = {k: group.attrs.get(k, before.get(k)) for k in expected}
+    if isinstance(found["source"], str):  # stores from before sources were absolute: as seen from here
+        found["source"] = recorded(found["source"])
+    changed = [k for k in expected if found[k] != expected[k]]
+    if changed or group[VIDEO].shape[0] != len(centres):
+        what = ", ".join(f"{k} {found[k]!r} -> {expected[k]!r}" for k in changed) or "frame count"
+        raise InputError(f"cannot resume {plan.out}: it was made with other parameters ({what})")
+    if adopted and adopt:
+        group.attrs.update(adopted)
+    return committed_mask(group)

@@ -1,0 +1,280 @@
+"""Lazy simulation (``cscsr.lazy``, issue #45): HR scene frames -> lazy spikes (:func:`simulate`), and lazy spikes
+-> a spike store (:func:`to_spikes`).
+
+:func:`simulate` computes nothing: it returns the spikes of the ``simulate`` job as a dask graph, per time chunk of
+the frames
+
+    frames -> mosaics -> increments (parallel over chunks)
+      -> fire (a chain: chunk k fires on from the integrator state chunk k - 1 left, exactly)
+      -> unpacked spikes (one block of the output)
+
+with the sensor's fixed draws (dark current, threshold mismatch, initial state) made once, one task each. The
+accumulator is an integer and every noise draw is keyed by frame index (``stages.simulation.sensor``), so the spikes are the
+job's bytes whatever the chunking. :func:`to_spikes` writes spikes (from :func:`simulate`,
+``pipeline.lazy.spikes.open_spikes`` or any stage that keeps the convention) as the jobs write a store: claimed,
+metadata first, then one task per run of whole chunks, each recorded in ``committed`` once stored, so a failed
+run is resumed (``resume=True``) where it stopped; on the active scheduler (a ``distributed.Client`` if one is
+active, else Dask's default).
+"""
+
+import operator
+
+import dask.array as da
+import dask.local
+import dask.threaded
+import numpy as np
+import xarray as xr
+import zarr
+from dask.base import get_scheduler, tokenize
+from dask.highlevelgraph import HighLevelGraph
+from distributed import Client
+
+from pipeline.compute.cluster import check_in_memory
+from pipeline.stores.frame_sources import FrameSource
+from pipeline.compute.hold import hold_point
+from pipeline.jobs.ingest import COMMITTED_UNITS, task_frames_for
+from pipeline.lazy.spikes import as_spikes, check_spikes, unpacked_bits
+from pipeline.stores.lease import check_free, claimed, held
+from pipeline.stores.outputs import SPIKE_STORE, check_existing, new_output
+from pipeline.jobs.simulate import SimulateOptions, check_options, fire_chunk, simulated_meta, state_after
+from pipeline.stores.spike_store import (COMMITTED, SPIKES, SpikeMeta, SpikeStoreWriter, chunk_frames_for,
+                                  open_spike_store, write_region)
+from pipeline.stores.storage import check_apart, exists
+from stages.simulation import sensor
+from stages.capture.bits import count_spikes, pack_rows, packed_width
+from stages.errors import InputError, InputTypeError, describe
+from stages.simulation.intensities import to_unit_rgb
+from stages.numbers import check_flag, check_number, check_text
+
+FRAME_DIMS = ("t", "y", "x", "rgb")  # HR scene frames: one per spike frame
+CHANNELS = (1, 3, 4)  # grey, RGB, RGBA: what stages.simulation.intensities.to_unit_rgb takes
+READ_FROM = "store"  # the attribute naming the store lazy spikes were read from (lazy_spikes.open_spikes): not recorded
+IN_THIS_PROCESS = (dask.threaded.get, dask.local.get_sync)  # Dask's schedulers that run tasks in this process
+RESUME_FLAG = "resume=True or overwrite=True"  # how a caller finishes or replaces an existing store (as ingest says it)
+
+
+# ---- simulate ----
+
+def simulate(frames: xr.DataArray, *, scale: int = 4, cfa: str = "rggb", brightness: float = 0.6,
+             threshold: float = 1.0, seed: int = 0, noise: str = "none", reset: str = "zero",
+             fps: float = 20000.0) -> xr.DataArray:
+    """HR scene frames ``(t, s*H, s*W, rgb)`` (uint8, uint16 or float in [0, 1]; grey, RGB or RGBA) -> lazy spikes
+    ``(t, H, W)`` bool, one spike frame per scene frame, chunked along ``t`` as ``frames`` is; nothing computed.
+
+    The bytes of ``cscsr simulate --interp linear`` on a video of as many frames as it simulates (spike frame ``t``
+    is then scene frame ``t``), with the same options; the attributes it records (``source``: the frames' own
+    ``source`` attribute, else ""). Refuses, in one line and before any graph exists, what the job refuses
+    (``pipeline.jobs.simulate.check_options``) and frames of other dims or dtype.
+    """
+    n_frames, hr_height, hr_width, _ = _checked_frames(frames).shape
+    options = SimulateOptions(scale=scale, cfa=cfa, brightness=brightness, threshold=threshold, frames=n_frames,
+                              seed=seed, noise=noise, reset=reset, interp="linear", fps=fps)
+    # the job's checks; of its source they read the frame count and size only
+    height, width = check_options(options, FrameSource("frames", "array", n_frames, hr_height, hr_width))
+    source = frames.attrs.get("source")
+    meta = simulated_meta(options, height, width, source if isinstance(source, str) else "")
+    scene = frames.data
+    if not isinstance(scene, da.Array):  # in memory: chunks of Dask's size, whole frames
+        scene = da.from_array(scene, chunks=("auto", -1, -1, -1))
+    scene = scene.rechunk({1: -1, 2: -1, 3: -1})  # whole frames per block
+    return as_spikes(_fired_spikes(scene, options, height, width), meta.attrs())
+
+
+def _checked_frames(frames) -> xr.DataArray:
+    """``frames`` if they are HR scene frames :func:`simulate` takes, else one line naming what is wrong."""
+    if not isinstance(frames, xr.DataArray):
+        raise InputTypeError(f"frames must be an xarray.DataArray of HR scene frames with dims {FRAME_DIMS}, got "
+                             f"{type(frames).__name__}")
+    if frames.dims != FRAME_DIMS:
+        raise InputError(f"frames must have dims {FRAME_DIMS} (time, HR rows, HR columns, colour), got {frames.dims}")
+    if not (np.issubdtype(frames.dtype, np.unsignedinteger) or np.issubdtype(frames.dtype, np.floating)):
+        raise InputError(f"frames must be unsigned integers (uint8, uint16: 0 to their maximum) or floats in [0, 1], "
+                         f"got {frames.dtype}")
+    if frames.sizes["rgb"] not in CHANNELS:
+        raise InputError(f"frames must be grey, RGB or RGBA: rgb of size 1, 3 or 4, got {frames.sizes['rgb']}")
+    return frames
+
+
+def _fired_spikes(scene: da.Array, options: SimulateOptions, height: int, width: int) -> da.Array:
+    """The graph: ``scene`` (t, s*H, s*W, c), whole frames per block -> spikes (t, H, W) bool, block k fired on from
+    the integrator state block k - 1 left (module docstring)."""
+    token = tokenize(scene.name, options)
+    name = f"simulated-spikes-{token}"
+    model = options.sensor_model()
+    dark, thresholds, state = (f"{name}-dark", f"{name}-thresholds", f"{name}-initial-state")
+    layer = {dark: (sensor.dark_increments, model, height, width),
+             thresholds: (sensor.pixel_thresholds, model, height, width),
+             state: (sensor.initial_state, model, height, width)}
+    first_frame = 0
+    for k, n_frames in enumerate(scene.chunks[0]):
+        increments, fired = (f"{name}-increments", k), (f"{name}-fired", k)
+        layer[increments] = (_increments, (scene.name, k, 0, 0, 0), first_frame, options, dark)
+        layer[fired] = (fire_chunk, increments, state, options.reset, thresholds)
+        state = (f"{name}-state", k)  # what block k + 1 fires on
+        layer[state] = (state_after, fired)
+        layer[(name, k, 0, 0)] = (unpacked_bits, (operator.attrgetter("packed"), fired), width)
+        first_frame += n_frames
+    graph = HighLevelGraph.from_collections(name, layer, dependencies=[scene])
+    return da.Array(graph, name, chunks=(scene.chunks[0], (height,), (width,)), meta=np.empty((0, 0, 0), bool))
+
+
+def _increments(frames: np.ndarray, first_frame: int, options: SimulateOptions, dark: np.ndarray | None) -> np.ndarray:
+    """Task: scene frames (n, s*H, s*W, c) of spike frames ``first_frame``.. -> their increments (n, H, W) int32,
+    through the job's stages: intensities, area downsampling, the colour filter, the sensor's gain and noise."""
+    n_frames, hr_height, hr_width = frames.shape[:3]
+    mosaics = np.empty((n_frames, hr_height // options.scale, hr_width // options.scale), np.float32)
+    for i, frame in enumerate(frames):
+        mosaics[i] = sensor.cfa_sample(sensor.area_downsample(to_unit_rgb(frame), options.scale), options.cfa)
+    return sensor.increments(options.sensor_model(), mosaics, first_frame, dark=dark)
+
+
+# ---- to_spikes ----
+
+class SpikesIncomplete(RuntimeError):
+    """Some :func:`to_spikes` tasks failed: the others are committed in the store, for ``resume=True``."""
+
+
+def to_spikes(spikes: xr.DataArray, url: str, *, chunk_frames: int | None = None, task_frames: int | None = None,
+              overwrite: bool = False, resume: bool = False) -> dict:
+    """Write lazy ``spikes`` (t, y, x) bool (the convention of ``pipeline.lazy.spikes``) into a new spike store at
+    ``url``, computed on the active scheduler; -> ``attrs`` (the store's final attributes), ``frames``, ``spikes``
+    (their count), ``tasks``, ``tasks_run``, ``tasks_skipped``.
+
+    The store records ``spikes.attrs`` (the recording's settings: ``pipeline.stores.spike_store.SpikeMeta``) and is chunked
+    by ``chunk_frames`` frames (default: about 4 MiB packed). Each task packs and writes ``task_frames`` frames (whole
+    chunks; default: one chunk) and records them in ``committed``. A failed run raises :class:`SpikesIncomplete` and
+    keeps what it committed; ``resume=True`` runs only the tasks not committed, cut as the store was (it refuses a
+    store of other attributes, frame count or chunking; that the spikes are the same data is the caller's word).
+    Everything is checked, in one line, before anything is written.
+    """
+    plan = _ToSpikes.checked(spikes, url, chunk_frames, task_frames, overwrite, resume)
+    with claimed(url):  # one job per store, taken atomically before the store is touched
+        if resume:
+            check_free(url)  # and no live lease (a job on a machine that shares no claim file with us)
+        with new_output(url, overwrite=overwrite, kind=SPIKE_STORE, flag=RESUME_FLAG, resume=resume,
+                        keep_partial=True):
+            if resume:
+                counts = plan.resumable()  # again, under the claim
+                writer = SpikeStoreWriter.reopened(url)
+            else:
+                writer = SpikeStoreWriter(url, plan.meta, plan.n_frames, chunk_frames=plan.chunk)
+                writer.add_array(COMMITTED, (plan.n_tasks,), (1,), np.int64, ("task",),
+                                 {"units": COMMITTED_UNITS, "task_frames": plan.task_frames}, fill_value=-1)
+                counts = np.full(plan.n_tasks, -1, np.int64)
+            todo = [index for index in range(plan.n_tasks) if counts[index] < 0]
+            if todo:
+                with held(url):
+                    counts[todo] = plan.run(spikes.data, todo)
+            if writer.group.attrs.get("state") != "complete":
+                writer.finish(spike_count=int(counts.sum()))
+    return {"attrs": dict(writer.group.attrs), "frames": plan.n_frames, "spikes": int(counts.sum()),
+            "tasks": plan.n_tasks, "tasks_run": len(todo), "tasks_skipped": plan.n_tasks - len(todo)}
+
+
+class _ToSpikes:
+    """A :func:`to_spikes` checked and cut into tasks, before anything is written: the store's chunks of ``chunk``
+    frames, task ``i`` its frames ``[i * task_frames, (i + 1) * task_frames)``."""
+
+    def __init__(self, url: str, meta: SpikeMeta, n_frames: int, chunk_frames: int | None, task_frames: int | None):
+        self.url, self.meta, self.n_frames = url, meta, n_frames
+        self.asked = (chunk_frames, task_frames)  # as the caller gave them (None: the default, or the store's cut)
+        self.cut(chunk_frames or chunk_frames_for(meta, n_frames), task_frames)
+
+    def cut(self, chunk: int, task_frames: int | None) -> None:
+        """Chunks of ``chunk`` frames, tasks of ``task_frames`` rounded up to whole chunks (None: one chunk)."""
+        self.chunk = chunk
+        frame_bytes = self.meta.height * packed_width(self.meta.width)
+        self.task_frames = task_frames_for(chunk, frame_bytes, task_frames or chunk)
+        self.n_tasks = -(-self.n_frames // self.task_frames)
+
+    @classmethod
+    def checked(cls, spikes, url, chunk_frames, task_frames, overwrite, resume) -> "_ToSpikes":
+        """Every check of the arguments, the output and (``resume``) the store to finish; reads, never writes."""
+        check_spikes(spikes)
+        check_text("url", url)
+        check_flag("overwrite", overwrite)
+        check_flag("resume", resume)
+        for label, value in (("chunk_frames", chunk_frames), ("task_frames", task_frames)):
+            if value is not None:
+                check_number(label, value, at_least=1, integer=True)
+        if resume and overwrite:
+            raise InputError("resume=True and overwrite=True contradict each other: choose one")
+        n_frames, height, width = spikes.shape
+        if n_frames == 0:
+            raise InputError("spikes hold no frames: a spike store records at least one")
+        try:  # a store's count, state and identity are dropped as that store's own
+            meta = SpikeMeta.from_attrs({k: v for k, v in spikes.attrs.items() if k != READ_FROM})
+        except InputError as error:
+            raise InputError(f"spikes: {error}") from None
+        if (meta.height, meta.width) != (height, width):
+            raise InputError(f"spikes are {height}x{width} pixels, but their attributes record "
+                             f"{meta.height}x{meta.width}: keep the attrs of the spikes they were computed from")
+        # never over the store they are read from, nor what that was made from
+        check_apart(url, *(place for name in (READ_FROM, "source") if isinstance(place := spikes.attrs.get(name), str)))
+        scheduler = get_scheduler(collections=[spikes.data])
+        if scheduler not in IN_THIS_PROCESS:  # a memory:// store is this process's alone
+            client = getattr(scheduler, "__self__", None)
+            check_in_memory((url,), client=client if isinstance(client, Client) else None,
+                            instead=", or compute with Dask's threads")
+        if resume and not exists(url):
+            raise InputError(f"cannot resume: {url} does not exist")
+        if not resume:
+            check_existing(url, overwrite=overwrite, kind=SPIKE_STORE, flag=RESUME_FLAG)
+        plan = cls(url, meta, n_frames, chunk_frames, task_frames)
+        if resume:
+            plan.resumable()
+        return plan
+
+    def resumable(self) -> np.ndarray:
+        """Cut as the unfinished store at ``url`` was (a cut the caller gives must be that one); refuse a store of
+        other attributes or frames; -> the spike counts of its tasks (-1: not committed). Reads, never writes."""
+        store = open_spike_store(self.url, allow_incomplete=True)  # a video store, a folder, ...: refused by name
+        committed = store.group[COMMITTED] if COMMITTED in store.group else None
+        if not isinstance(committed, zarr.Array):
+            raise InputError(f"cannot resume {self.url}: it holds no record of its tasks (a store written by a job "
+                             f"that records none): write it again with overwrite=True")
+        was, now = store.meta.attrs(), self.meta.attrs()
+        if changed := [f"{k} {was.get(k)!r} -> {now.get(k)!r}" for k in sorted(was | now) if was.get(k) != now.get(k)]:
+            raise InputError(f"cannot resume {self.url}: it records other attributes ({', '.join(changed)}): give "
+                             f"the spikes it was written from, or write it again with overwrite=True")
+        asked_chunk, asked_task = self.asked
+        recorded_task = committed.attrs.get("task_frames")
+        recorded_ok = isinstance(recorded_task, int) and not isinstance(recorded_task, bool) and recorded_task > 0
+        self.cut(store.spikes.chunks[0], asked_task or (recorded_task if recorded_ok else None))
+        if (store.n_frames != self.n_frames or asked_chunk not in (None, self.chunk) or not recorded_ok
+                or self.task_frames != recorded_task or committed.shape != (self.n_tasks,)):
+            raise InputError(f"cannot resume {self.url}: it holds {store.n_frames} frames in chunks of {self.chunk}, "
+                             f"{committed.shape[0]} tasks of {recorded_task} frames; these spikes: {self.n_frames} "
+                             f"frames{'' if asked_chunk is None else f', chunk_frames={asked_chunk}'}"
+                             f"{'' if asked_task is None else f', task_frames={asked_task}'}: give those, or write "
+                             f"it again with overwrite=True")
+        return committed[:].astype(np.int64)
+
+    def run(self, bits: da.Array, todo: list[int]) -> np.ndarray:
+        """Tasks ``todo`` of ``bits`` (t, y, x) bool on the active scheduler; -> their spike counts. Raises
+        :class:`SpikesIncomplete` if any fails (what the others committed stays)."""
+        blocks = bits.rechunk((self.task_frames, -1, -1))
+        name = f"to-spikes-{tokenize(blocks.name, self.url, todo)}"
+        layer = {(name, j): (_write_task, (blocks.name, index, 0, 0), self.url, index * self.task_frames, index)
+                 for j, index in enumerate(todo)}
+        graph = HighLevelGraph.from_collections(name, layer, dependencies=[blocks])
+        counts = da.Array(graph, name, chunks=((1,) * len(todo),), meta=np.empty((0,), np.int64))
+        try:
+            return counts.compute()
+        except Exception as error:
+            store = open_spike_store(self.url, allow_incomplete=True)
+            done = int((store.group[COMMITTED][:] >= 0).sum())
+            raise SpikesIncomplete(f"to_spikes {self.url}: {done} of {self.n_tasks} tasks committed, the others not "
+                                   f"({describe(error)}): fix the cause and call to_spikes again with "
+                                   f"resume=True") from error
+
+
+def _write_task(bits: np.ndarray, url: str, start: int, index: int) -> np.ndarray:
+    """Task ``index``: pack frames ``[start, start + n)`` (n, y, x) bool, write their chunks of ``spikes``, then record
+    the task committed (its spike count); -> that count, shape (1,). Run again, it writes the same bytes."""
+    hold_point()  # inert unless a fault test asks (pipeline.compute.hold)
+    packed = pack_rows(bits)
+    write_region(url, SPIKES, start, packed)
+    count = np.array([count_spikes(packed)], np.int64)
+    write_region(url, COMMITTED, index, count)
+    return count

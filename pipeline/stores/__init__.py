@@ -1,0 +1,1 @@
+"""The store formats and storage: URLs to stores, outputs claimed and replaced safely, leases, the spike store, the video store, a simulated store's ground truth, captures and simulation sources read, images. Imports: stages, pipeline.compute."""

@@ -1,0 +1,1 @@
+"""The classic reconstructions and colour: the reconstructor interface and window centres (methods), TFP, TFI, exposure/demosaic/upsampling (colour), CFA patterns, tiles and halos, the parts of a recording (ranges). Imports: stages.capture and stages' own errors, numbers."""

@@ -1,0 +1,1 @@
+"""The sensor and its simulation: source frames as intensities, integrate-and-fire, camera paths with exact flow, frame interpolation, latent frames. Imports: stages.reconstruction (CFA patterns), stages.capture, stages' own errors, numbers."""
