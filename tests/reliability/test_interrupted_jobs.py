@@ -31,7 +31,8 @@ import zarr
 
 from pipeline.compute.stopping import COMMAND_LINE
 from tests.conftest import CSCSR
-from tests.reliability.test_sigterm import assert_stopped, terminated_mid_work, tmpdir_of_its_own  # noqa: F401
+from tests.reliability.test_sigterm import (assert_stopped, ctrl_c_as_at_a_terminal, terminated_mid_work,  # noqa: F401
+                                           tmpdir_of_its_own)
 from tests.test_bad_input import assert_refused
 
 
@@ -86,7 +87,7 @@ def imports(env: dict, *args: str) -> subprocess.CompletedProcess:
     main module; prints whether SIGINT still raises KeyboardInterrupt."""
     code = "import signal, pipeline.cli; print(signal.getsignal(signal.SIGINT) is signal.default_int_handler)"
     return subprocess.run([sys.executable, "-X", "importtime", "-c", code, *args], capture_output=True, text=True,
-                          env={**os.environ, **env}, timeout=60)
+                          env={**os.environ, **env}, timeout=60, preexec_fn=ctrl_c_as_at_a_terminal)
 
 
 def test_a_worker_of_the_command_ignores_ctrl_c_before_its_slow_imports():

@@ -8,8 +8,8 @@ Each test starts ``cscsr`` as a user does, with a ``TMPDIR`` of its own, waits u
 appearing), sends SIGTERM once and checks: the process ends within seconds, non-zero, with that one line; no
 process it started (recorded from the process table while it ran) is left; ``TMPDIR`` holds nothing but Dask's
 shared lock files (what a finished run leaves too); beside OUT nothing reads as complete, and the same command
-run again without ``--overwrite`` succeeds (``--resume`` for ``reconstruct``, whose unfinished store is kept for
-it).
+run again without ``--overwrite`` succeeds (``--resume`` for ``reconstruct`` and a parallel ``ingest``, whose
+unfinished store is kept for it; the next ``watch --once`` for the ``watch`` service).
 """
 
 import os
@@ -31,12 +31,23 @@ DASK_LOCKS = {"dask-scratch-space", "dask-scratch-space/global.lock", "dask-scra
 Stopped = tuple[subprocess.CompletedProcess, float]  # the command's result, seconds from the signal to its exit
 
 
-def terminated_mid_work(args: list, ready, *, cwd, tmpdir, ctrl_c: bool = False) -> Stopped:
-    """Run ``cscsr -q ARGS`` in ``cwd`` with ``TMPDIR=tmpdir``, SIGTERM it once ``ready()`` holds (``ctrl_c``: SIGINT
-    to its whole process group, as a terminal's Ctrl-C); -> (its result, seconds from the signal to its exit), once
-    every process it started (its descendants, sampled while it ran) is gone."""
-    process = subprocess.Popen([CSCSR, "-q", *map(str, args)], cwd=cwd, env={**os.environ, "TMPDIR": str(tmpdir)},
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+def ctrl_c_as_at_a_terminal() -> None:
+    """In a child before it runs: SIGINT at its default, as a terminal's shell starts a command (a shell that runs
+    this suite in the background, as `nohup make test &` does, starts it with SIGINT ignored, and Python keeps that)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def terminated_mid_work(args: list, ready, *, cwd, tmpdir, ctrl_c: bool = False, env: dict | None = None,
+                        release=None) -> Stopped:
+    """Run ``cscsr -q ARGS`` in ``cwd`` with ``TMPDIR=tmpdir`` (and ``env`` added to its environment), SIGTERM it once
+    ``ready()`` holds (``ctrl_c``: SIGINT to its whole process group, as a terminal's Ctrl-C), then create the file
+    ``release`` if given (tasks held by :func:`held` go on: a task takes a while, not for ever); -> (its result,
+    seconds from the signal to its exit), once every process it started (its descendants, sampled while it ran) is
+    gone."""
+    process = subprocess.Popen([CSCSR, "-q", *map(str, args)], cwd=cwd,
+                               env={**os.environ, **(env or {}), "TMPDIR": str(tmpdir)},
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                               preexec_fn=ctrl_c_as_at_a_terminal)
     try:
         started, descendants = psutil.Process(process.pid), set()
         deadline = time.monotonic() + 120
@@ -51,6 +62,8 @@ def terminated_mid_work(args: list, ready, *, cwd, tmpdir, ctrl_c: bool = False)
         else:
             process.send_signal(signal.SIGTERM)
         sent = time.monotonic()
+        if release is not None:
+            open(release, "w").close()
         stdout, stderr = process.communicate(timeout=60)
         seconds = time.monotonic() - sent
     finally:  # a failed test leaves nothing running
@@ -199,3 +212,123 @@ def test_sigterm_during_simulate_closes_its_cluster_and_removes_the_store(tmp_pa
 
     again = subprocess.run([CSCSR, "-q", *map(str, args)], cwd=work, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0, again.stderr
+
+
+def held(tmp_path, after: int = 3) -> dict:
+    """The environment that holds a job's tasks after the ``after``-th of each process (pipeline.compute.hold) until
+    the file ``tmp_path/release`` exists (``terminated_mid_work(release=...)`` creates it after the signal): the signal
+    lands mid-job on any machine, under any load."""
+    from pipeline.compute.hold import hold_environment
+
+    return hold_environment(after, tmp_path / "release")
+
+
+@pytest.mark.parametrize("workers", [None, 2], ids=["one-process", "workers-2"])
+def test_sigterm_during_ingest_removes_or_keeps_its_store_for_resume(tmp_path, tmpdir_of_its_own, workers):
+    """A one-process ingest removes its unfinished store (a rerun succeeds); a parallel one keeps what it committed,
+    never "complete", and ``--resume`` finishes it. 8 tasks of 2340 frames of 128x112. The parallel one's held tasks
+    are never released: a task still running at the signal, for longer than the workers' nannies wait, which kill
+    them; their ``worker-*.dirlock`` files in Dask's scratch space were left (purged after the cluster now)."""
+    from pipeline.stores.spike_store import open_spike_store
+    from tests.test_parallel_ingest import random_dat
+
+    random_dat(tmp_path / "c.dat", 16384, 128 * 128 // 8, seed=1)
+    work = tmp_path / "work"
+    work.mkdir()
+    args = ["ingest", tmp_path / "c.dat", "s.zarr", "--height", 128, "--width", 112, "--head-columns", 16, "--flip",
+            "--cfa", "gbrg", "--task-frames", 2340, *(["--workers", workers] if workers else [])]
+    result, seconds = terminated_mid_work(args, lambda: committed_tasks(work / "s.zarr") >= 3, cwd=work,
+                                          tmpdir=tmpdir_of_its_own, env=held(tmp_path),
+                                          release=None if workers else tmp_path / "release")
+    assert_stopped(result, seconds)
+    assert temporary_files(tmpdir_of_its_own) == set()
+    if workers:
+        assert os.listdir(work) == ["s.zarr"]  # kept for --resume, no claim left beside it
+        assert open_spike_store(str(work / "s.zarr"), allow_incomplete=True).attrs["state"] == "writing"
+        args.append("--resume")
+    else:
+        assert os.listdir(work) == []  # the unfinished store removed
+    again = subprocess.run([CSCSR, "-q", *map(str, args)], cwd=work, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stderr
+    assert open_spike_store(str(work / "s.zarr")).attrs["state"] == "complete"
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory) -> str:
+    """A small simulated spike store with ground truth: 250 frames of 32x32 LR pixels, 6 truth frames."""
+    import imageio.v3 as iio
+
+    from pipeline.jobs.simulate import SimulateOptions, simulate
+    from tests.test_simulate import picture
+
+    folder = tmp_path_factory.mktemp("sigterm-simulated")
+    iio.imwrite(folder / "scene.png", picture("coffee", 128))
+    simulate(str(folder / "scene.png"), str(folder / "scene.zarr"),
+             SimulateOptions(scale=4, frames=250, motion="random", speed=0.3), workers=1, progress=False)
+    return str(folder / "scene.zarr")
+
+
+def test_sigterm_during_evaluate_removes_its_out_folder(simulated, tmp_path, tmpdir_of_its_own):
+    work = tmp_path / "work"
+    work.mkdir()
+    args = ["evaluate", simulated, "--methods", "tfp,tfi", "--out", "ev", "--workers", 2]
+    # 6 tasks (truth frames) of tfp: each worker holds after its 1st
+    result, seconds = terminated_mid_work(args, lambda: committed_tasks(work / "ev" / "tfp.zarr") >= 2, cwd=work,
+                                          tmpdir=tmpdir_of_its_own, env=held(tmp_path, after=1),
+                                          release=tmp_path / "release")
+    assert_stopped(result, seconds)
+    assert os.listdir(work) == []  # no --out folder, no claim beside it
+    assert temporary_files(tmpdir_of_its_own) == set()
+
+    again = subprocess.run([CSCSR, "-q", *map(str, args)], cwd=work, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stderr  # not "already exists"
+    assert {"metrics.csv", "summary.csv", "comparison.png"} <= set(os.listdir(work / "ev"))
+
+
+def test_sigterm_during_watch_leaves_the_recording_resumable_and_the_next_pass_finishes_it(simulated, tmp_path,
+                                                                                           tmpdir_of_its_own):
+    """The service (no ``--once``) SIGTERMed while it reconstructs: its ledger keeps the recording to retry, no video
+    reads as made, and ``watch --once`` finishes it."""
+    import shutil
+
+    from pipeline.inbox.ledger import Ledger
+    from tests.test_watch import _ledger_state, settled
+
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    shutil.copytree(simulated, inbox / "scene.zarr")
+    settled(inbox)
+    args = ["watch", inbox, outbox, "--interval", "1s", "--workers", 2, "--every", 5, "--tile", 8, "--settle", 0]
+    result, seconds = terminated_mid_work(args, lambda: (_ledger_state(outbox, "scene") == "running"
+                                                         and committed_tasks(outbox / "scene.zarr") >= 3),
+                                          cwd=tmp_path, tmpdir=tmpdir_of_its_own, env=held(tmp_path),
+                                          release=tmp_path / "release")
+    assert_stopped(result, seconds)
+    assert temporary_files(tmpdir_of_its_own) == set()
+    assert _ledger_state(outbox, "scene") == "running"  # as after a kill: the next pass takes it up again
+    assert sorted(os.listdir(outbox)) == [".watch.lock", "ledger.sqlite", "scene.zarr"]  # no video that reads as made
+    assert zarr.open_group(str(outbox / "scene.zarr"), mode="r").attrs["state"] == "writing"
+
+    again = subprocess.run([CSCSR, "-q", *map(str, args), "--once"], capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stderr
+    assert [(row.name, row.state, row.attempts) for row in Ledger(outbox).rows()] == [("scene", "done", 2)]
+    assert os.path.getsize(outbox / "scene.mp4") > 0
+
+
+def test_sigterm_during_make_testset_removes_the_folder_and_its_claim(tmp_path, tmpdir_of_its_own):
+    """Stopped in its first picture's simulation (each store has a cluster of its own, with a task or two per worker:
+    every task held from the first, the first store created): no folder, no claim; made again in full (nine stores,
+    about half a minute) without ``--overwrite``."""
+    work = tmp_path / "work"
+    work.mkdir()
+    args = ["make-testset", "set", "--workers", 2]
+    result, seconds = terminated_mid_work(args, lambda: os.path.isdir(work / "set" / "astronaut_a0.6.zarr" / "spikes"),
+                                          cwd=work, tmpdir=tmpdir_of_its_own, env=held(tmp_path, after=0),
+                                          release=tmp_path / "release")
+    assert_stopped(result, seconds)
+    assert os.listdir(work) == []  # the unfinished test set removed, its claim released
+    assert temporary_files(tmpdir_of_its_own) == set()
+
+    again = subprocess.run([CSCSR, "-q", *map(str, args)], cwd=work, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stderr
+    assert len([name for name in os.listdir(work / "set") if name.endswith(".zarr")]) == 9
