@@ -348,3 +348,23 @@ def test_channels_last_trains_the_same_network_within_rounding(tmp_path):
                             log=lambda line: None))[0]
     for (name, a), (_, b) in zip(default.state_dict().items(), nhwc.state_dict().items()):
         assert torch.allclose(a, b, atol=1e-5), name
+
+
+def test_an_interrupted_checkpoint_save_leaves_no_partial_file(tmp_path, monkeypatch):
+    """Ctrl-C or SIGTERM while a checkpoint is written: the interrupt goes on, and no half-written file stays."""
+    import safetensors.torch
+
+    from cscsr.network.config import named
+    from cscsr.network.model import CSCSR
+    from cscsr.training.training_state import save_checkpoint
+
+    def interrupted(tensors, filename, metadata=None):
+        open(filename, "wb").write(b"half a checkpoint")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(safetensors.torch, "save_file", interrupted)
+    model = CSCSR(named("lite"))
+    with pytest.raises(KeyboardInterrupt):
+        save_checkpoint(tmp_path / "checkpoint.safetensors", model, torch.optim.Adam(model.parameters()), 1,
+                        TrainOptions(**TINY))
+    assert list(tmp_path.iterdir()) == []

@@ -36,8 +36,12 @@ def save_checkpoint(path: Path, model: CSCSR, optimiser: torch.optim.Optimizer, 
     metadata = {"step": str(step), "options": json.dumps(asdict(options), sort_keys=True),
                 "config": model.config.to_json(), "param_groups": json.dumps(state["param_groups"])}
     partial = path.with_suffix(".partial")
-    save_file(tensors, str(partial), metadata=metadata)
-    os.replace(partial, path)  # a killed run never leaves half a checkpoint
+    try:
+        save_file(tensors, str(partial), metadata=metadata)
+        os.replace(partial, path)  # a killed run never leaves half a checkpoint
+    except BaseException:  # an interrupt (Ctrl-C, SIGTERM) mid-save: nothing half-written left behind either
+        partial.unlink(missing_ok=True)
+        raise
 
 
 def read_checkpoint(path: Path) -> tuple[dict, dict]:

@@ -332,3 +332,23 @@ def test_sigterm_during_make_testset_removes_the_folder_and_its_claim(tmp_path, 
     again = subprocess.run([CSCSR, "-q", *map(str, args)], cwd=work, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0, again.stderr
     assert len([name for name in os.listdir(work / "set") if name.endswith(".zarr")]) == 9
+
+
+def test_sigterm_during_train_keeps_its_checkpoint_and_resume_goes_on(tmp_path, tmpdir_of_its_own):
+    """A training run (a long job on one machine) stopped once it has checkpointed: exit 143, no half-written
+    checkpoint or weights file, and --resume goes on from the checkpoint it kept."""
+    work = tmp_path / "work"
+    work.mkdir()
+    args = ["train", "run", "--steps", "400", "--batch", "2", "--lr-side", "16", "--checkpoint-every", "2",
+            "--validate-every", "100", "--warmup", "2", "--pool", "4"]
+    checkpoint = work / "run" / "checkpoint.safetensors"
+    stopped, seconds = terminated_mid_work(args, checkpoint.exists, cwd=work, tmpdir=tmpdir_of_its_own)
+    assert_stopped(stopped, seconds)
+    assert checkpoint.exists() and not list(work.rglob("*.partial"))
+    # torch's compile cache (torchinductor_USER) is kept by every run, interrupted or not: a cache, not a leftover
+    assert not {name for name in temporary_files(tmpdir_of_its_own) if not name.startswith("torchinductor_")}
+    assert not (work / "run" / "cscsr-lite.safetensors").exists()  # no final weights of a run that did not end
+    again = subprocess.run([CSCSR, "-q", *args[:3], "10", *args[4:], "--resume"], cwd=work, capture_output=True,
+                           text=True, timeout=300)
+    assert again.returncode == 0, again.stderr
+    assert (work / "run" / "cscsr-lite.safetensors").exists()
