@@ -36,7 +36,7 @@ from collections.abc import Iterable, Iterator, Sequence
 import dask
 from distributed import Client, LocalCluster, Nanny, WorkerPlugin
 
-from pipeline.compute.stopping import start_resource_tracker
+from pipeline.compute.stopping import purge_stale_worker_folders, start_resource_tracker
 from stages.errors import InputError, describe
 from stages.numbers import check_number
 
@@ -320,7 +320,7 @@ def dask_client(*, workers: int | None = None, scheduler: str | None = None,
         specs = gpu_worker_specs(workers, gpus, _devices(min(workers, gpus)))
         options["worker_class"] = functools.partial(_pinned_nanny, specs)
     with contextlib.ExitStack() as stack:
-        stack.callback(_purge_stale_worker_folders)  # after the cluster closed, however it ended
+        stack.callback(purge_stale_worker_folders)  # after the cluster closed, however it ended
         with dask.config.set(_PRE_SPAWN), \
                 LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host=LOOPBACK,
                              dashboard_address=os.environ.get(DASHBOARD_VARIABLE) or f"{LOOPBACK}:0",
@@ -328,19 +328,6 @@ def dask_client(*, workers: int | None = None, scheduler: str | None = None,
                 Client(cluster) as client:
             client.register_plugin(_QuietWorkerLogs())  # our own workers only: a shared cluster's logs are its owner's
             yield client
-
-
-def _purge_stale_worker_folders() -> None:
-    """Remove what the local cluster's workers left in Dask's scratch space when their nanny had to kill them (a
-    task still running when the job was stopped: SIGTERM, Ctrl-C): their ``worker-*.dirlock`` files, which Dask
-    itself purges only when a worker next starts there. Dask's own purge: it takes only locks no live process holds."""
-    import tempfile
-
-    from distributed.diskutils import WorkSpace
-
-    base = dask.config.get("temporary-directory", default=None) or tempfile.gettempdir()
-    with contextlib.suppress(Exception):  # best effort, never the job's error
-        WorkSpace(os.path.join(base, "dask-scratch-space"))._purge_leftovers()
 
 
 def _pinned_nanny(specs: list[dict], scheduler: str, *, name, env: dict | None = None, **options) -> Nanny:

@@ -6,6 +6,7 @@ clusters stopped, temporary files removed). SIGTERM's default ends the process a
 the command line's process and each segment process raise :class:`Terminated`, a ``KeyboardInterrupt``, instead.
 """
 
+import contextlib
 import os
 import signal
 import sys
@@ -83,3 +84,17 @@ def start_resource_tracker() -> None:
 
 
 ignore_ctrl_c_while_spawned()  # at import: pipeline.cli imports this module first, before anything slow to import
+
+
+def purge_stale_worker_folders() -> None:
+    """Remove what the local cluster's workers left in Dask's scratch space when their nanny had to kill them (a
+    task still running when the job was stopped: SIGTERM, Ctrl-C): their ``worker-*.dirlock`` files, which Dask
+    itself purges only when a worker next starts there. Dask's own purge: it takes only locks no live process holds."""
+    import tempfile
+
+    import dask
+    from distributed.diskutils import WorkSpace
+
+    base = dask.config.get("temporary-directory", default=None) or tempfile.gettempdir()
+    with contextlib.suppress(Exception):  # best effort, never the job's error
+        WorkSpace(os.path.join(base, "dask-scratch-space"))._purge_leftovers()
