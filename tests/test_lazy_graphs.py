@@ -25,25 +25,13 @@ from distributed import Client, LocalCluster, get_task_stream
 
 from cscsr import lazy
 from pipeline.compute.cluster import GPU, GPU_SHARE
-from pipeline.jobs.ingest import IngestOptions, ingest
 from pipeline.lazy import video as lazy_video
 from pipeline.lazy.video import MARGIN
 from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct
 from pipeline.stores.spike_store import SPIKES, SpikeMeta, SpikeStoreWriter
 from stages.errors import InputError, InputTypeError
 from tests.test_gpu_workers import cluster, names
-from tests.test_ranges_and_regions import FPS, moving_scene
-
-HEIGHT, WIDTH, FRAMES = 48, 64, 200  # LR, RGGB, 1000 fps; automatic exposure (no gain recorded)
-
-
-@pytest.fixture(scope="module")
-def recording(tmp_path_factory) -> str:
-    folder = tmp_path_factory.mktemp("lazy")
-    np.save(folder / "scene.npy", moving_scene(HEIGHT, WIDTH, FRAMES))
-    store = str(folder / "scene.zarr")
-    ingest(str(folder / "scene.npy"), store, IngestOptions(cfa="rggb", fps=FPS), progress=False)
-    return store
+from tests.test_ranges_and_regions import FPS, FRAMES, HEIGHT, WIDTH, recording  # noqa: F401 - the fixture: 200 frames
 
 
 def threaded():
