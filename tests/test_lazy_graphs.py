@@ -25,7 +25,7 @@ from distributed import Client, LocalCluster, get_task_stream
 
 from cscsr import lazy
 from pipeline.compute.cluster import GPU, GPU_SHARE
-from pipeline.lazy import video as lazy_video
+from pipeline.lazy import written as lazy_written
 from pipeline.lazy.video import MARGIN
 from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct
 from pipeline.stores.spike_store import SPIKES, SpikeMeta, SpikeStoreWriter
@@ -179,7 +179,7 @@ def test_threads_processes_and_a_killed_worker_give_one_result(recording, tmp_pa
 
 def test_a_failed_to_video_resumes_to_the_bytes_of_one_run(recording, tmp_path, monkeypatch):
     """Written 4 blocks a round (12 blocks: 3 rows of 4 tiles): the first row's round is committed, the second's fails."""
-    monkeypatch.setattr(lazy_video, "BLOCKS_AT_ONCE", 4)
+    monkeypatch.setattr(lazy_written, "BLOCKS_AT_ONCE", 4)
     failing = tmp_path / "fail"
 
     def grey(window):  # refuses the windows of the frame's second tile row (32 rows with its halo) while flagged
@@ -243,10 +243,11 @@ def test_bad_input_is_the_jobs_one_line_before_anything_is_written(recording, tm
     spikes = lazy.open_spikes(recording)
     refusals = {
         "must have dims": lambda: lazy.windows(spikes.transpose("y", "t", "x")),
-        "--window 301 is longer than the recording": lambda: lazy.windows(spikes, length=301),
-        "--window must be a positive odd number": lambda: lazy.windows(spikes, length=40),
-        r"--region 0:48,0:72 is outside the recording \(48x64": lambda: lazy.windows(spikes, region="0:48,0:72"),
-        "--start 300 is outside the recording": lambda: lazy.windows(spikes, start=300),
+        "length=301 is longer than the recording": lambda: lazy.windows(spikes, length=301),  # Python words
+        "length must be a positive odd number": lambda: lazy.windows(spikes, length=40),
+        r"region=0:48,0:72 is outside the recording \(48x64": lambda: lazy.windows(spikes, region="0:48,0:72"),
+        "start=300 is outside the recording": lambda: lazy.windows(spikes, start=300),
+        "tile must be a positive multiple of 8": lambda: lazy.tfp(lazy.windows(spikes), tile=12),
         "unknown method 'tfx'": lambda: lazy.reconstruct(lazy.windows(spikes), method="tfx"),
         "more than the windows keep": lambda: lazy.apply(lazy.windows(spikes, region="16:32,16:32", margin=0),
                                                           lambda w: w, scale=4, halo=8),

@@ -9,26 +9,59 @@ is read and unpacked only when something downstream computes it.
 """
 
 import functools
+import os
+from typing import NamedTuple
 
 import dask.array as da
+import dask.local
+import dask.threaded
 import numpy as np
 import xarray as xr
 
+from pipeline.compute.cluster import check_in_memory
 from pipeline.stores.storage import recorded
 from pipeline.stores.spike_store import SPIKES, open_spike_store, read_frames, store_identity
 from stages.capture.bits import packed_width, unpack_rows
 from stages.errors import InputError, InputTypeError
 
 DIMS = ("t", "y", "x")
+IN_THIS_PROCESS = (dask.threaded.get, dask.local.get_sync)  # Dask's schedulers that run tasks in this process
 
 
-def open_spikes(url: str) -> xr.DataArray:
+def url_text(url, what: str = "url") -> str:
+    """``url`` (a string or a ``pathlib.Path``, as the jobs take it) as text, or one line: not a path, or empty."""
+    if isinstance(url, os.PathLike):
+        url = os.fspath(url)
+    if not isinstance(url, str):
+        raise InputTypeError(f"{what} must be a path or URL (a string or pathlib.Path), got {url!r}")
+    if not url.strip():
+        raise InputError(f"{what} is empty: give a path or URL (an empty one is not the current folder)")
+    return url
+
+
+def check_here(urls, *collections) -> None:
+    """Refuse, in one line, a ``memory://`` store among ``urls`` where the scheduler that would compute
+    ``collections`` (the active one if none) runs its tasks in other processes, which cannot see it (the jobs'
+    ``check_in_memory``)."""
+    from dask.base import get_scheduler
+
+    scheduler = get_scheduler(collections=list(collections) or None)
+    if scheduler in IN_THIS_PROCESS or scheduler is None:
+        return
+    client = getattr(scheduler, "__self__", None)
+    from distributed import Client
+
+    check_in_memory(urls, client=client if isinstance(client, Client) else None,
+                    instead=", or compute with Dask's threads (dask.config.set(scheduler='threads'))")
+
+
+def open_spikes(url) -> xr.DataArray:
     """The spike store at ``url`` as lazy spikes ``(t, y, x)`` bool, one dask chunk per stored chunk (whole frames),
     nothing read but metadata. Refuses, in one line, what every job refuses: no store, an incomplete one (its
     writer did not finish), a damaged or contradictory one. A chunk lost from the store is refused when a
     computation reads it, naming its frames (never read as zeros)."""
-    if not isinstance(url, str):
-        raise InputTypeError(f"url must be a spike store's path or URL as a string, got {url!r}")
+    url = url_text(url)
+    check_here([url])
     store = open_spike_store(url)
     frames, height, width = store.shape
     packed = da.from_array(_PackedFrames(url, store_identity(store), (frames, height, packed_width(width))),
@@ -47,6 +80,56 @@ def as_spikes(bits: da.Array, attrs: dict, first_frame: int = 0) -> xr.DataArray
     return xr.DataArray(bits, dims=DIMS, name=SPIKES, attrs=dict(attrs),
                         coords={"t": ("t", frame / float(attrs["fps"]), {"units": "s"}), "frame": ("t", frame),
                                 "y": np.arange(bits.shape[1]), "x": np.arange(bits.shape[2])})
+
+
+class Selection(NamedTuple):
+    """Which part of its recording a ``DataArray`` of spikes holds: spike frames ``[f0, f1)`` and LR pixels ``box``
+    (y0, y1, x0, x1) of a recording of ``shape`` (frames, height, width), all in the recording's numbers (the
+    ``frame``, ``y`` and ``x`` coordinates)."""
+
+    f0: int
+    f1: int
+    box: tuple[int, int, int, int]
+    shape: tuple[int, int, int]
+
+    @property
+    def whole(self) -> bool:
+        return (self.f0, self.f1, self.box) == (0, self.shape[0], (0, self.shape[1], 0, self.shape[2]))
+
+
+def run_of(values, dim: str, what: str) -> tuple[int, int]:
+    """``[first, last + 1)`` of coordinate ``values`` if they are a contiguous increasing run (a step of 1), else
+    one line naming the selection that is not, and how to select instead."""
+    values = np.asarray(values)
+    if values.size == 0:
+        raise InputError(f"{what} select no {dim}: select at least one")
+    if not np.issubdtype(values.dtype, np.integer):
+        raise InputError(f"{what} have {dim} numbers {values[:3].tolist()}... that are not whole: keep the "
+                         f"coordinates lazy.open_spikes gives")
+    steps = np.diff(values)
+    if steps.size and not (steps == 1).all():
+        bad = int(np.argmax(steps != 1))
+        kind = ("repeats" if steps[bad] == 0 else "runs backwards" if steps[bad] < 0
+                else f"skips (a step of {steps[bad]})")
+        raise InputError(f"{what} are a selection whose {dim} {kind} at {dim} {int(values[bad])}, "
+                         f"{int(values[bad + 1])}: only a contiguous increasing run is honoured "
+                         f"(isel({'t' if dim == 'frame' else dim}=slice(a, b)))")
+    return int(values[0]), int(values[-1]) + 1
+
+
+def selection(spikes: xr.DataArray, what: str = "spikes") -> Selection:
+    """The part of its recording ``spikes`` (the convention) holds, from its coordinates; one line if they are not
+    a contiguous increasing run along each dim, or lie outside the recording its attributes describe."""
+    f0, f1 = run_of(spikes.coords["frame"].values, "frame", what)
+    y0, y1 = run_of(spikes.coords["y"].values, "y", what) if "y" in spikes.coords else (0, spikes.shape[1])
+    x0, x1 = run_of(spikes.coords["x"].values, "x", what) if "x" in spikes.coords else (0, spikes.shape[2])
+    attrs = spikes.attrs
+    shape = tuple(int(attrs[k]) if isinstance(attrs.get(k), (int, np.integer)) else end
+                  for k, end in (("frames", f1), ("height", y1), ("width", x1)))
+    if f0 < 0 or y0 < 0 or x0 < 0 or f1 > shape[0] or y1 > shape[1] or x1 > shape[2]:
+        raise InputError(f"{what} hold frames {f0}..{f1 - 1}, y {y0}..{y1 - 1}, x {x0}..{x1 - 1}, outside their "
+                         f"recording of {shape[0]} frames of {shape[1]}x{shape[2]} (its attrs frames, height, width)")
+    return Selection(f0, f1, (y0, y1, x0, x1), shape)
 
 
 def check_spikes(spikes, what: str = "spikes") -> xr.DataArray:

@@ -1,0 +1,206 @@
+"""Lazy reconstructions written and read back: :func:`to_video` writes ``hr`` (t, y, x, rgb) as the ``reconstruct``
+job's video store (``pipeline.stores.video_store``: the same layout, record and commit per block, so the job, ``info``,
+``export`` and ``evaluate`` read it and each can resume the other's), each block checked against its chunk;
+:func:`open_video` gives a written store back as the ``hr`` that wrote it.
+
+A selection of ``hr`` is written exactly (its output frames as ``start``/``stop``, its whole LR pixels as ``region``)
+or refused in one line before anything exists.
+"""
+
+import functools
+import uuid
+
+import dask
+import dask.array as da
+import numpy as np
+import xarray as xr
+from dask.base import tokenize
+
+from pipeline.compute.progress import progress_bar
+from pipeline.lazy.spikes import check_here, run_of, url_text
+from pipeline.lazy.video import VIDEO_DIMS
+from pipeline.lazy.windows import _output_part
+from pipeline.stores.lease import claimed, held
+from pipeline.stores.outputs import VIDEO_STORE, new_output
+from pipeline.stores.storage import check_place, exists, remove_partial_writes
+from pipeline.stores.video_store import COMMITTED, TileWriter, committed_mask, create_video_store, open_video_store
+from stages.errors import InputError, InputTypeError
+from stages.numbers import check_flag
+
+BLOCKS_AT_ONCE = 256  # blocks of video to_video computes and writes per round: the graph in memory stays bounded
+
+
+def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = False,
+             progress: bool = False) -> dict:
+    """Write ``hr`` (t, y, x, rgb) uint8 as a video store at ``url`` (the job's format: ``video`` one chunk per
+    (frame, tile) of ``hr``'s chunks, ``frames``, ``committed``, the attributes, ``state``), computed on the active
+    ``distributed`` client if there is one, else on dask's default scheduler, ``BLOCKS_AT_ONCE`` blocks a round. Each
+    block is checked against its chunk (shape, uint8), written, then committed; ``resume=True`` continues a store a
+    failed or killed call left, computing only the blocks not committed (the same bytes as one uninterrupted call),
+    and refuses one written by another graph (``committed``'s ``graph``: the token of ``hr``'s graph, which covers
+    every function in it where Dask can hash it). -> {frames, tasks_run, tasks_skipped}.
+
+    ``hr`` may be a selection (``isel``/``sel``) of a reconstruction: a contiguous increasing run of output frames
+    (recorded as its ``start``/``stop``) and of whole LR pixels (HR rows and columns in multiples of the scale,
+    recorded as its ``region``). Anything else (repeated, reversed, skipped frames; steps; a cut through an LR
+    pixel) is refused in one line before anything is written.
+    """
+    hr = _check_video(hr)
+    url = url_text(url)
+    check_flag("overwrite", overwrite)
+    check_flag("resume", resume)
+    if resume and overwrite:
+        raise InputError("resume=True and overwrite=True contradict each other: choose one")
+    if resume and not exists(url):
+        raise InputError(f"cannot resume: {url} does not exist")
+    check_place(url)
+    check_here([url, hr.attrs.get("source")], hr.data)
+    if resume:
+        _open_to_resume(url)
+    attrs = {**hr.attrs, **_selected_part(hr)}
+    data = _tiled(hr.data)
+    n, height, width, _ = data.shape
+    tile_hr = (data.chunks[1][0], data.chunks[2][0])
+    tiles = (len(data.chunks[1]), len(data.chunks[2]))
+    centres = [int(c) for c in hr.coords["frame"].values]
+    gain = hr.coords["gain"].data if "gain" in hr.coords else None
+    attrs["gain"] = None if gain is None else float(dask.compute(gain)[0])
+    fps = attrs.get("fps")
+    graph = graph_token(hr.data)
+    with claimed(url), new_output(url, overwrite=overwrite, kind=VIDEO_STORE, flag="resume=True or overwrite=True",
+                                  resume=resume, keep_partial=True):
+        if resume:
+            done = _resumable(url, attrs, n, tiles, graph)
+        else:
+            group = create_video_store(url, centres=centres, hr_size=(height, width), tile_hr=tile_hr, tiles=tiles,
+                                       attrs={k: v for k, v in attrs.items() if k != "fps"}, fps=fps)
+            group[COMMITTED].attrs["graph"] = graph  # what made its blocks: a resume must be that graph
+            done = np.zeros((n, *tiles), bool)
+        starts = np.cumsum((0, *data.chunks[0]))
+        blocks = [(b, ty, tx) for b in range(len(data.chunks[0])) for ty in range(tiles[0]) for tx in range(tiles[1])
+                  if data.chunks[0][b] and not done[starts[b]:starts[b + 1], ty, tx].all()]
+        # one task per block of ``hr``: check it against its chunk, write its frames' chunks of its tile, commit them
+        written = data.map_blocks(_write_block, url, uuid.uuid4().hex, tuple(int(s) for s in starts), tile_hr,
+                                  chunks=tuple((1,) * len(c) for c in data.chunks), dtype=np.int64,
+                                  meta=np.empty((0, 0, 0, 0), np.int64), name=f"write-{uuid.uuid4().hex}")
+        with held(url), progress_bar(f"to_video {url}", len(blocks), unit="blocks", enabled=progress) as advance:
+            for at in range(0, len(blocks), BLOCKS_AT_ONCE):
+                chosen = blocks[at : at + BLOCKS_AT_ONCE]
+                dask.compute(*(written.blocks[b, ty, tx, 0] for b, ty, tx in chosen),
+                             optimize_graph=not _annotated(data))
+                advance(len(chosen))
+        remove_partial_writes(url)
+        open_video_store(url, writable=True).attrs["state"] = "complete"
+    return {"frames": n, "tasks_run": len(blocks), "tasks_skipped": int(done.sum())}
+
+
+def graph_token(data: da.Array) -> str:
+    """What identifies ``data``'s graph: its name, which Dask derives from every layer's function and arguments
+    (a function by its code and closure, where Dask can hash them; one it cannot is a new token each time)."""
+    return tokenize(data.name, data.chunks)
+
+
+def _open_to_resume(url: str) -> None:
+    """Refuse, in one line, resuming what is not a video store (a file, a folder, a spike store)."""
+    try:
+        open_video_store(url)
+    except InputError as error:
+        raise InputError(f"cannot resume {url}: {error}") from None
+    except (OSError, ValueError, TypeError) as error:
+        raise InputError(f"cannot resume {url}: it is not a video store ({type(error).__name__}): give the store a "
+                         f"to_video call left, or another url") from None
+
+
+def _selected_part(hr: xr.DataArray) -> dict:
+    """The ``start``/``stop`` and ``region`` a selection of a reconstruction holds (none where it is all of it, or
+    ``hr`` does not say what it was made of); one line for a selection that cannot be written as one."""
+    attrs, changed = hr.attrs, {}
+    if all(isinstance(attrs.get(k), int) for k in ("every", "window")) and attrs.get("source_shape"):
+        part = _output_part(hr.coords["frame"].values, {**attrs, "frames": attrs["source_shape"][0]}, "hr")
+        changed.update({k: part[k] for k in ("start", "stop")})
+    else:
+        frames = np.asarray(hr.coords["frame"].values)
+        if frames.size > 1 and not (np.diff(frames) > 0).all():
+            raise InputError("hr's output frames repeat or run backwards (coordinate frame): only increasing "
+                             "frames are written")
+    scale, region = attrs.get("scale"), attrs.get("region")
+    if isinstance(scale, int) and region is not None and "y" in hr.coords and "x" in hr.coords:
+        box = []
+        for dim in ("y", "x"):
+            a, b = run_of(hr.coords[dim].values, dim, "hr")
+            if a % scale or b % scale:
+                raise InputError(f"hr is a selection of HR {dim} {a}:{b}, which cuts through LR pixels (scale={scale}):"
+                                 f" select whole ones ({dim} a multiple of {scale} at both ends)")
+            box += [a // scale, b // scale]
+        changed["region"] = box
+    return {k: v for k, v in changed.items() if attrs.get(k) != v}
+
+
+def _check_video(hr) -> xr.DataArray:
+    if not isinstance(hr, xr.DataArray):
+        raise InputTypeError(f"hr must be an xarray.DataArray (t, y, x, rgb) uint8, got {type(hr).__name__}")
+    if hr.dims != VIDEO_DIMS or hr.dtype != np.uint8 or hr.shape[3] != 3:
+        raise InputError(f"hr must be (t, y, x, rgb) uint8 with 3 colours, got {hr.dims} {hr.dtype} {hr.shape}")
+    if not isinstance(hr.data, da.Array):
+        raise InputError("hr must be dask-backed (a lazy reconstruction, or .chunk() a DataArray in memory)")
+    if "frame" not in hr.coords or hr.shape[0] == 0:
+        raise InputError("hr needs its output frames' centre spike frames (coordinate frame, as lazy.reconstruct "
+                         "gives) and at least one frame")
+    return hr
+
+
+def _tiled(data: da.Array) -> da.Array:
+    """``data`` with tiles of one size (but the last row and column): as they are if so, else rechunked."""
+    def regular(chunks: tuple[int, ...]) -> bool:
+        return all(c == chunks[0] for c in chunks[:-1]) and chunks[-1] <= chunks[0]
+
+    if regular(data.chunks[1]) and regular(data.chunks[2]) and len(data.chunks[3]) == 1:
+        return data
+    return data.rechunk({1: data.chunks[1][0], 2: data.chunks[2][0], 3: -1})
+
+
+def _annotated(data: da.Array) -> bool:
+    """Whether a layer of the graph asks for resources (GPU workers): then computed unoptimised, since fusing
+    blockwise layers drops their annotations."""
+    return any(getattr(layer, "annotations", None) for layer in data.__dask_graph__().layers.values())
+
+
+def _resumable(url: str, attrs: dict, n: int, tiles: tuple[int, int], graph: str) -> np.ndarray:
+    """The commit mask of the store to resume, refused unless it was made with the same attributes and layout, by
+    the same graph (where it records one: a job's store records none, its attributes say all)."""
+    group = open_video_store(url, writable=True)
+    changed = [k for k, v in attrs.items() if k != "fps" and group.attrs.get(k) != v]
+    if changed or group[COMMITTED].shape != (n, *tiles):
+        what = ", ".join(f"{k} {group.attrs.get(k)!r} -> {attrs[k]!r}" for k in changed) or "layout"
+        raise InputError(f"cannot resume {url}: it was made with other parameters ({what})")
+    if group[COMMITTED].attrs.get("graph", graph) != graph:
+        raise InputError(f"cannot resume {url}: hr is not the graph that wrote it (a function, a selection or an "
+                         f"input changed; or a function holds something Dask cannot hash): write it again with "
+                         f"overwrite=True")
+    return committed_mask(group)
+
+
+@functools.lru_cache(maxsize=4)
+def _writer(url: str, run: str) -> TileWriter:
+    """The output store opened once per worker process and call (``run``)."""
+    return TileWriter(url)
+
+
+def _write_block(block: np.ndarray, url: str, run: str, starts: tuple[int, ...], tile_hr: tuple[int, int],
+                 block_info=None) -> np.ndarray:
+    """Task: check one block against its chunk (shape, uint8), write its frames (its tile of output frames
+    ``starts[b]``, ...; a chunk each), then commit them. -> (1, 1, 1, 1): how many frames."""
+    b, ty, tx, _ = block_info[0]["chunk-location"]
+    expected = tuple(stop - start for start, stop in block_info[0]["array-location"])
+    if not isinstance(block, np.ndarray) or block.shape != expected or block.dtype != np.uint8:
+        got = f"{block.dtype} {block.shape}" if isinstance(block, np.ndarray) else type(block).__name__
+        raise InputError(f"hr's block of output frames {starts[b]}..{starts[b] + expected[0] - 1}, tile {ty},{tx} "
+                         f"computed {got} where its chunk is uint8 {expected}: a function between stages "
+                         f"(map_blocks) must give each block its chunk's shape and dtype")
+    _writer(url, run).write_frames(starts[b], (ty, tx), (ty * tile_hr[0], tx * tile_hr[1]), list(block))
+    return np.full((1, 1, 1, 1), len(block), np.int64)
+
+
+def open_video(url) -> xr.DataArray:
+    """placeholder"""
+    raise NotImplementedError
