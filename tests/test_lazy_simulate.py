@@ -63,8 +63,9 @@ def test_equals_the_simulate_job_whatever_the_chunking(job, chunk):
     stored = open_spike_store(store)
     np.testing.assert_array_equal(pack_rows(spikes.values), stored.spikes[:])
     assert 0.05 < spikes.values.mean() < 0.6  # spikes to compare, not a blank
-    assert {k: v for k, v in spikes.attrs.items() if k != "source"} == \
+    assert {k: v for k, v in spikes.attrs.items() if k not in JOB_ONLY} == \
         {k: v for k, v in stored.attrs.items() if k not in JOB_ONLY}
+    assert spikes.attrs["frames"] == N_FRAMES  # the recording's length, which a selection of it keeps
     np.testing.assert_allclose(spikes.t.values, np.arange(N_FRAMES) / 20000.0)
     other_seed = simulate(frames_array(frames, chunk), **{**settings, "seed": settings["seed"] + 1})
     assert not np.array_equal(other_seed.values, spikes.values)  # the comparison above can fail
@@ -201,9 +202,12 @@ def test_to_spikes_refuses_bad_input_in_one_line_before_anything_is_written(tmp_
         (lambda: to_spikes(spikes.astype(np.uint8), out), InputError, "must be bool"),
         (lambda: to_spikes(spikes.compute(), out), InputError, "dask-backed"),
         (lambda: to_spikes(spikes[:, :4], out), InputError, "record 8x12"),
-        (lambda: to_spikes(spikes[:0], out), InputError, "no frames"),
+        (lambda: to_spikes(spikes[:0], out), InputError, "no frame"),
         (lambda: to_spikes(lacking, out), InputError, "lack height"),
-        (lambda: to_spikes(spikes, tmp_path / "out.zarr"), InputTypeError, "url must be a string"),
+        (lambda: to_spikes(spikes, 5), InputTypeError, "url must be a path or URL"),
+        (lambda: to_spikes(spikes, ""), InputError, "url is empty"),
+        (lambda: to_spikes(spikes.isel(t=slice(None, None, 2)), out), InputError, "skips (a step of 2)"),
+        (lambda: to_spikes(spikes.isel(t=slice(None, None, -1)), out), InputError, "runs backwards"),
         (lambda: to_spikes(spikes, out, overwrite="yes"), InputTypeError, "overwrite"),
         (lambda: to_spikes(spikes, out, task_frames=0), InputError, "task_frames"),
         (lambda: to_spikes(spikes, out, resume=True), InputError, "cannot resume"),

@@ -20,20 +20,16 @@ active, else Dask's default).
 import operator
 
 import dask.array as da
-import dask.local
-import dask.threaded
 import numpy as np
 import xarray as xr
 import zarr
-from dask.base import get_scheduler, tokenize
+from dask.base import tokenize
 from dask.highlevelgraph import HighLevelGraph
-from distributed import Client
 
-from pipeline.compute.cluster import check_in_memory
 from pipeline.stores.frame_sources import FrameSource
 from pipeline.compute.hold import hold_point
 from pipeline.jobs.ingest import COMMITTED_UNITS, task_frames_for
-from pipeline.lazy.spikes import as_spikes, check_spikes, unpacked_bits
+from pipeline.lazy.spikes import as_spikes, check_here, check_spikes, run_of, unpacked_bits, url_text
 from pipeline.stores.lease import check_free, claimed, held
 from pipeline.stores.outputs import SPIKE_STORE, check_existing, new_output
 from pipeline.jobs.simulate import SimulateOptions, check_options, fire_chunk, simulated_meta, state_after
@@ -44,12 +40,11 @@ from stages.simulation import sensor
 from stages.capture.bits import count_spikes, pack_rows, packed_width
 from stages.errors import InputError, InputTypeError, describe
 from stages.simulation.intensities import to_unit_rgb
-from stages.numbers import check_flag, check_number, check_text
+from stages.numbers import check_flag, check_number
 
 FRAME_DIMS = ("t", "y", "x", "rgb")  # HR scene frames: one per spike frame
 CHANNELS = (1, 3, 4)  # grey, RGB, RGBA: what stages.simulation.intensities.to_unit_rgb takes
 READ_FROM = "store"  # the attribute naming the store lazy spikes were read from (lazy_spikes.open_spikes): not recorded
-IN_THIS_PROCESS = (dask.threaded.get, dask.local.get_sync)  # Dask's schedulers that run tasks in this process
 RESUME_FLAG = "resume=True or overwrite=True"  # how a caller finishes or replaces an existing store (as ingest says it)
 
 
@@ -64,7 +59,13 @@ def simulate(frames: xr.DataArray, *, scale: int = 4, cfa: str = "rggb", brightn
     The bytes of ``cscsr simulate --interp linear`` on a video of as many frames as it simulates (spike frame ``t``
     is then scene frame ``t``), with the same options; the attributes it records (``source``: the frames' own
     ``source`` attribute, else ""). Refuses, in one line and before any graph exists, what the job refuses
-    (``pipeline.jobs.simulate.check_options``) and frames of other dims or dtype.
+    (``pipeline.jobs.simulate.check_options``) and frames of other dims or dtype; float frames must hold
+    intensities in [0, 1] (a scene of 0..255 as floats, NaN, inf or negatives are refused: before the graph for
+    frames in memory, when their block is computed for lazy ones, never clipped).
+
+    ``reset`` defaults to ``zero``, the ``simulate`` job's default (``cscsr simulate``), so that the same options
+    give the job's bytes; ``ingest`` records ``subtract`` by default because that is how the real camera resets.
+    Give ``reset="subtract"`` to simulate that camera.
     """
     n_frames, hr_height, hr_width, _ = _checked_frames(frames).shape
     options = SimulateOptions(scale=scale, cfa=cfa, brightness=brightness, threshold=threshold, frames=n_frames,
@@ -74,10 +75,24 @@ def simulate(frames: xr.DataArray, *, scale: int = 4, cfa: str = "rggb", brightn
     source = frames.attrs.get("source")
     meta = simulated_meta(options, height, width, source if isinstance(source, str) else "")
     scene = frames.data
-    if not isinstance(scene, da.Array):  # in memory: chunks of Dask's size, whole frames
+    if not isinstance(scene, da.Array):  # in memory: checked now, then chunks of Dask's size, whole frames
+        check_intensities(np.asarray(scene), 0)
         scene = da.from_array(scene, chunks=("auto", -1, -1, -1))
     scene = scene.rechunk({1: -1, 2: -1, 3: -1})  # whole frames per block
-    return as_spikes(_fired_spikes(scene, options, height, width), meta.attrs())
+    return as_spikes(_fired_spikes(scene, options, height, width), {**meta.attrs(), "frames": n_frames})
+
+
+def check_intensities(frames: np.ndarray, first_frame: int) -> None:
+    """Refuse, in one line, float scene frames (spike frames ``first_frame``..) that are not intensities in [0, 1]:
+    NaN, inf, negatives, or a scene of 0..255 given as floats (clipping would make it white)."""
+    if not np.issubdtype(frames.dtype, np.floating) or frames.size == 0:
+        return
+    low, high = np.nanmin(frames) if not np.isnan(frames).all() else np.nan, np.nanmax(frames)
+    if not np.isfinite(frames).all() or low < 0 or high > 1:
+        bad = int(np.argmax(~(np.isfinite(frames) & (frames >= 0) & (frames <= 1)).reshape(len(frames), -1).all(1)))
+        values = frames[bad][~(np.isfinite(frames[bad]) & (frames[bad] >= 0) & (frames[bad] <= 1))]
+        raise InputError(f"frames: scene frame {first_frame + bad} holds {values.flat[0]!r} (float frames are "
+                         f"intensities in [0, 1], never clipped: divide a 0..255 scene by 255, or give it as uint8)")
 
 
 def _checked_frames(frames) -> xr.DataArray:
@@ -121,6 +136,7 @@ def _fired_spikes(scene: da.Array, options: SimulateOptions, height: int, width:
 def _increments(frames: np.ndarray, first_frame: int, options: SimulateOptions, dark: np.ndarray | None) -> np.ndarray:
     """Task: scene frames (n, s*H, s*W, c) of spike frames ``first_frame``.. -> their increments (n, H, W) int32,
     through the job's stages: intensities, area downsampling, the colour filter, the sensor's gain and noise."""
+    check_intensities(frames, first_frame)
     n_frames, hr_height, hr_width = frames.shape[:3]
     mosaics = np.empty((n_frames, hr_height // options.scale, hr_width // options.scale), np.float32)
     for i, frame in enumerate(frames):
@@ -147,6 +163,7 @@ def to_spikes(spikes: xr.DataArray, url: str, *, chunk_frames: int | None = None
     store of other attributes, frame count or chunking; that the spikes are the same data is the caller's word).
     Everything is checked, in one line, before anything is written.
     """
+    url = url_text(url)
     plan = _ToSpikes.checked(spikes, url, chunk_frames, task_frames, overwrite, resume)
     with claimed(url):  # one job per store, taken atomically before the store is touched
         if resume:
@@ -177,7 +194,9 @@ class _ToSpikes:
 
     def __init__(self, url: str, meta: SpikeMeta, n_frames: int, chunk_frames: int | None, task_frames: int | None):
         self.url, self.meta, self.n_frames = url, meta, n_frames
-        self.asked = (chunk_frames, task_frames)  # as the caller gave them (None: the default, or the store's cut)
+        # as the caller gave them (None: the default, or the store's cut), at most the whole recording
+        chunk_frames, task_frames = (None if n is None else min(n, n_frames) for n in (chunk_frames, task_frames))
+        self.asked = (chunk_frames, task_frames)
         self.cut(chunk_frames or chunk_frames_for(meta, n_frames), task_frames)
 
     def cut(self, chunk: int, task_frames: int | None) -> None:
@@ -191,7 +210,7 @@ class _ToSpikes:
     def checked(cls, spikes, url, chunk_frames, task_frames, overwrite, resume) -> "_ToSpikes":
         """Every check of the arguments, the output and (``resume``) the store to finish; reads, never writes."""
         check_spikes(spikes)
-        check_text("url", url)
+        run_of(spikes.coords["frame"].values, "frame", "spikes")  # a run of frames: one rate, one time base
         check_flag("overwrite", overwrite)
         check_flag("resume", resume)
         for label, value in (("chunk_frames", chunk_frames), ("task_frames", task_frames)):
@@ -211,11 +230,7 @@ class _ToSpikes:
                              f"{meta.height}x{meta.width}: keep the attrs of the spikes they were computed from")
         # never over the store they are read from, nor what that was made from
         check_apart(url, *(place for name in (READ_FROM, "source") if isinstance(place := spikes.attrs.get(name), str)))
-        scheduler = get_scheduler(collections=[spikes.data])
-        if scheduler not in IN_THIS_PROCESS:  # a memory:// store is this process's alone
-            client = getattr(scheduler, "__self__", None)
-            check_in_memory((url,), client=client if isinstance(client, Client) else None,
-                            instead=", or compute with Dask's threads")
+        check_here([url], spikes.data)  # a memory:// store is this process's alone
         if resume and not exists(url):
             raise InputError(f"cannot resume: {url} does not exist")
         if not resume:

@@ -201,6 +201,34 @@ def _write_block(block: np.ndarray, url: str, run: str, starts: tuple[int, ...],
     return np.full((1, 1, 1, 1), len(block), np.int64)
 
 
+STORE_ONLY = ("gain", "format_version", "cscsr_version", "state")  # attributes of a store, not of the hr it holds
+
+
 def open_video(url) -> xr.DataArray:
-    """placeholder"""
-    raise NotImplementedError
+    """The video store at ``url`` as the lazy ``hr`` that wrote it: (t, y, x, rgb) uint8, one dask chunk per stored
+    chunk (a frame's tile), nothing read but metadata; coordinates ``t`` (seconds: each output frame's centre),
+    ``frame`` (its centre spike frame), ``y``/``x`` (HR pixels of the recording: the ``region`` times ``scale``)
+    and ``gain``; ``attrs`` what the store records of how it was made (as ``hr.attrs``). A store written by the
+    ``reconstruct`` job, or before ``region``/``fps`` were recorded, reads alike (its y/x from 0). Refuses, in one
+    line, what is not a video store, a damaged one, and one whose writer did not finish."""
+    url = url_text(url)
+    check_here([url])
+    group = open_video_store(url)
+    attrs = dict(group.attrs)
+    if attrs.get("state") != "complete":
+        raise InputError(f"video store {url} is incomplete (state {attrs.get('state')!r}): its writer did not finish; "
+                         f"finish it with to_video(..., resume=True) or cscsr reconstruct --resume")
+    video, frames = group["video"], np.asarray(group["frames"][:], np.int64)
+    n, height, width, _ = video.shape
+    data = da.from_array(video, chunks=video.chunks, asarray=True, fancy=False, name=f"video-{tokenize(url, attrs)}")
+    scale, region, every, fps = (attrs.get(k) for k in ("scale", "region", "every", "fps"))
+    y0, x0 = (region[0] * scale, region[2] * scale) if region and isinstance(scale, int) else (0, 0)
+    coords = {"frame": ("t", frames), "y": np.arange(y0, y0 + height), "x": np.arange(x0, x0 + width)}
+    if isinstance(fps, (int, float)) and isinstance(every, int):
+        spike_fps = fps * every  # the recording's rate (the store records output frames per second)
+        spike_fps = float(round(spike_fps)) if abs(spike_fps - round(spike_fps)) < 1e-9 * spike_fps else spike_fps
+        coords["t"] = ("t", frames / spike_fps, {"units": "s", "meaning": "time of the window's centre"})
+    if attrs.get("gain") is not None:
+        coords["gain"] = ((), float(attrs["gain"]))
+    return xr.DataArray(data, dims=VIDEO_DIMS, name="video", coords=coords,
+                        attrs={k: v for k, v in attrs.items() if k not in STORE_ONLY})
