@@ -99,8 +99,10 @@ def test_the_cfa_string_changes_the_output(lite):
     for i in range(4):
         for j in range(i + 1, 4):
             assert (outputs[i] - outputs[j]).abs().mean() > 1e-3
-    with pytest.raises(InputError, match="needs a Bayer CFA"):
+    with pytest.raises(InputError, match="colour .Bayer. CSCSR network and the clip is mono"):
         run(lite, x, "mono")
+    with pytest.raises(InputError, match="needs a Bayer CFA"):
+        run(lite, x, "rgbg")
 
 
 def test_a_batch_of_clips_with_different_cfas_equals_single_clips(lite):

@@ -63,10 +63,14 @@ class NetworkReconstructor:
         """The method's name, as ``--method`` takes it."""
         return "cscsr-ensemble" if self.self_ensemble else "cscsr"
 
-    def check(self, window: int, scale: int, cfa: str) -> None:
+    def check(self, window: int, scale: int, cfa: str, recording: str = "this recording") -> None:
         config = self.model.config
-        if cfa == "mono":
-            raise InputError("the CSCSR network is a colour (Bayer) model and this recording is mono: use tfp or tfi")
+        if cfa == "mono" and not config.mono:
+            raise InputError(f"weights {self.weights} hold a colour (Bayer) CSCSR network and {recording} is mono: "
+                             "use the mono weights (--weights lite-mono, the default for a mono recording), or tfp or tfi")
+        if cfa != "mono" and config.mono:
+            raise InputError(f"weights {self.weights} hold a mono CSCSR network and {recording} is colour (Bayer "
+                             f"{cfa}): use colour weights (--weights lite or full, the defaults for a colour recording)")
         if window != config.frames:
             raise InputError(f"the CSCSR network ({self.weights}) takes windows of {config.frames} frames, "
                              f"not --window {window}")

@@ -31,10 +31,13 @@ def demosaic(rate: torch.Tensor, colours: torch.Tensor) -> torch.Tensor:
 
 def lr_images(spikes: torch.Tensor, colours: torch.Tensor, zero_reset: torch.Tensor, middle: int) -> torch.Tensor:
     """(B, N, H, W) spikes -> (B, 6, H, W): demosaicked TFP over all N frames, then over the middle
-    ``middle`` frames (less motion blur, more noise)."""
+    ``middle`` frames (less motion blur, more noise). Mono ((B, 1, H, W) mask of ones): (B, 2, H, W), no
+    demosaicking."""
     n = spikes.shape[1]
     start = n // 2 - middle // 2
     window = spikes[:, start : start + middle]
+    if colours.shape[1] == 1:
+        return torch.cat([tfp(spikes, zero_reset), tfp(window, zero_reset)], 1)  # (B, 2, H, W)
     return torch.cat([demosaic(tfp(spikes, zero_reset), colours), demosaic(tfp(window, zero_reset), colours)], 1)
 
 

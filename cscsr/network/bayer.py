@@ -14,6 +14,17 @@ from stages.errors import InputError
 # The four half-resolution channels of the joint motion estimation (supplement, Fig. 3a):
 # G1 is the green on the red row, G2 the green on the blue row.
 HALF_CHANNELS = ("r", "g1", "g2", "b")
+MONO_PHASES = ((0, 0), (0, 1), (1, 0), (1, 1))  # a mono network's four cells: the same split, one colour
+
+
+def check_cfa(cfa: str, mono: bool) -> str:
+    """The clip's CFA for a Bayer network (a Bayer pattern) or a mono one (``mono``), else one line naming both."""
+    name = str(cfa).lower()
+    if mono and name != "mono":
+        raise InputError(f"this is a mono CSCSR network and the clip's CFA is {cfa!r}: it takes mono clips only")
+    if not mono and name == "mono":
+        raise InputError("this is a colour (Bayer) CSCSR network and the clip is mono: use a mono network")
+    return name if mono else check_bayer(name)
 
 
 def check_bayer(cfa: str) -> str:
@@ -32,10 +43,11 @@ def positions(cfa: str) -> dict[str, tuple[int, int]]:
 
 
 def cell_masks(cfas: list[str], height: int, width: int, device=None) -> torch.Tensor:
-    """(B, 4, H, W) float 0/1 masks of R, G1, G2, B for each clip's pattern."""
+    """(B, 4, H, W) float 0/1 masks of R, G1, G2, B for each clip's pattern (mono: the 2x2 cell's four phases)."""
     masks = torch.zeros(len(cfas), 4, height, width, device=device)
     for b, cfa in enumerate(cfas):
-        for c, (dy, dx) in enumerate(positions(check_bayer(cfa)).values()):
+        cells = MONO_PHASES if cfa == "mono" else positions(check_bayer(cfa)).values()
+        for c, (dy, dx) in enumerate(cells):
             masks[b, c, dy::2, dx::2] = 1
     return masks
 

@@ -15,6 +15,7 @@ PRECISIONS = ("fp32", "bf16")  # the network's arithmetic: float32, or bfloat16 
 BACKENDS = ("torch", "onnx")  # what runs the network: PyTorch, or ONNX Runtime on the CPU (cscsr.inference.onnx_runtime)
 
 MOTIONS = ("joint", "assembled")
+COLOURS = (3, 1)  # colour branches: a Bayer network's R, G, B, or a mono network's one
 
 
 @dataclass(frozen=True)
@@ -31,6 +32,11 @@ class CSCSRConfig:
     flow_span: int = 9  # motion time points are the centre -/+ this many frames (11 and 29 of 41)
     motion: str = "joint"  # "joint": one flow from R, G1, G2, B together; "assembled": per channel
     flow_guidance: bool = True  # False: time points are fused unaligned (ablation)
+    colours: int = 3  # 3: a Bayer (RGB) network; 1: mono (one branch, all-pixel mask, grey output as 3 equal channels)
+
+    @property
+    def mono(self) -> bool:
+        return self.colours == 1
 
     @property
     def time_points(self) -> int:
@@ -47,6 +53,8 @@ class CSCSRConfig:
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < (0 if name == "blocks" else 1):
                 raise InputError(f"configuration {name} must be a positive integer, got {value!r}")
+        if self.colours not in COLOURS:
+            raise InputError(f"configuration colours must be 3 (Bayer) or 1 (mono), got {self.colours!r}")
         if self.motion not in MOTIONS:
             raise InputError(f"unknown motion estimation {self.motion!r}: expected one of {', '.join(MOTIONS)}")
         if self.frames % 2 == 0 or self.length % 2 == 0:
@@ -81,6 +89,7 @@ class CSCSRConfig:
 CONFIGS = {
     "full": CSCSRConfig("full", colour_features=50, features=96, blocks=21, flow_features=48),
     "lite": CSCSRConfig("lite", colour_features=24, features=48, blocks=13, flow_features=24),
+    "lite-mono": CSCSRConfig("lite-mono", colour_features=24, features=48, blocks=13, flow_features=24, colours=1),
 }
 
 

@@ -18,17 +18,18 @@ LR_IMAGES = 6  # channels of the TFP images the trunk sees: RGB over the whole c
 
 
 class Integration(nn.Module):
-    """(B, 3C, H, W) features, (B, 6, H, W) LR images, (B,) zero-reset flags -> (B, 3, sH, sW) residual."""
+    """(B, 3C, H, W) features, (B, 6, H, W) LR images, (B,) zero-reset flags -> (B, 3, sH, sW) residual.
+    Mono (``colours=1``): (B, C, H, W) features, (B, 2, H, W) images -> (B, 1, sH, sW)."""
 
-    def __init__(self, colour_features: int, features: int, blocks: int):
+    def __init__(self, colour_features: int, features: int, blocks: int, colours: int = 3):
         super().__init__()
-        self.fuse = nn.Conv2d(3 * colour_features + 1 + LR_IMAGES, features, 3, 1, 1)
+        self.fuse = nn.Conv2d(colours * colour_features + 1 + LR_IMAGES * colours // 3, features, 3, 1, 1)
         self.trunk = nn.Sequential(*[ResBlock(features) for _ in range(blocks)], nn.Conv2d(features, features, 3, 1, 1))
         # conv + pixel shuffle, no activation after it (as EDSR's upsampler): a ReLU there was measured to die
         # whole (0 % of the x4 features positive after 600 steps), cutting every layer before it off from the loss
         self.up = nn.ModuleList([nn.Sequential(nn.Conv2d(features, 4 * features, 3, 1, 1), nn.PixelShuffle(2))
                                  for _ in NETWORK_SCALES])
-        self.heads = nn.ModuleList([nn.Conv2d(features, 3, 3, 1, 1) for _ in NETWORK_SCALES])
+        self.heads = nn.ModuleList([nn.Conv2d(features, colours, 3, 1, 1) for _ in NETWORK_SCALES])
         for head in self.heads:  # an untrained network returns its base image: training starts there
             nn.init.zeros_(head.weight)  # a random start residual was measured to make the optimiser kill the
             nn.init.zeros_(head.bias)  # features' ReLUs to remove it, leaving the network stuck at its base

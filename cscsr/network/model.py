@@ -20,7 +20,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from cscsr.network.base_image import base_image, lr_images
-from cscsr.network.bayer import cell_masks, check_bayer, colour_masks
+from cscsr.network.bayer import cell_masks, check_cfa, colour_masks
 from cscsr.network.blocks import ResBlock
 from cscsr.network.bssr import BSSR
 from cscsr.network.config import CSCSRConfig
@@ -37,19 +37,21 @@ class CSCSR(nn.Module):
     def __init__(self, config: CSCSRConfig):
         super().__init__()
         self.config = config.check()
-        c, t = config.colour_features, config.time_points
-        self.bssr = nn.ModuleList([BSSR(c, config.length, config.stride, t) for _ in "rgb"])
+        c, t, k = config.colour_features, config.time_points, config.colours  # k: R, G, B, or mono's one
+        self.bssr = nn.ModuleList([BSSR(c, config.length, config.stride, t) for _ in range(k)])
         self.motion = MotionEstimation(config) if config.flow_guidance else None
-        self.temporal = nn.ModuleList([TemporalPixels(c, t, config.flow_guidance) for _ in "rgb"])
-        self.integration = Integration(c, config.features, config.blocks)
+        self.temporal = nn.ModuleList([TemporalPixels(c, t, config.flow_guidance) for _ in range(k)])
+        self.integration = Integration(c, config.features, config.blocks, k)
         self.channels_last = False  # memory format of the activations (``use_channels_last``); default NCHW
         initialise(self)
 
     def forward(self, spikes: torch.Tensor, cfa: str | list[str], zero_reset=False, scale: int = 4) -> dict:
         """(B, N, H, W) 0/1 spikes -> {"image": (B, 3, sH, sW), "flows": middle->first and ->last
-        (B, 2, H, W) each or None, "base": (B, 3, sH, sW)}."""
+        (B, 2, H, W) each or None, "base": (B, 3, sH, sW)}. A mono network takes cfa "mono" and gives its grey
+        image as three equal channels."""
         b, n, h, w = self.check_input(spikes, scale)
-        cfas = [check_bayer(cfa)] * b if isinstance(cfa, str) else [check_bayer(c) for c in cfa]
+        mono = self.config.mono
+        cfas = [check_cfa(cfa, mono)] * b if isinstance(cfa, str) else [check_cfa(c, mono) for c in cfa]
         if len(cfas) != b:
             raise InputError(f"{len(cfas)} CFA patterns for a batch of {b} clips")
         zero = torch.as_tensor(zero_reset, device=spikes.device).expand(b).bool()
@@ -57,18 +59,21 @@ class CSCSR(nn.Module):
         x = pad_keeping_phase(spikes.float(), MULTIPLE)  # (B, N, Hp, Wp)
         if self.channels_last:
             x = x.contiguous(memory_format=torch.channels_last)  # (B, N, Hp, Wp) stored as (B, Hp, Wp, N)
-        cells = cell_masks(cfas, x.shape[-2], x.shape[-1], x.device)  # (B, 4, Hp, Wp) R, G1, G2, B
-        colours = colour_masks(cells)  # (B, 3, Hp, Wp) R, G, B
+        cells = cell_masks(cfas, x.shape[-2], x.shape[-1], x.device)  # (B, 4, Hp, Wp) R, G1, G2, B (mono: phases)
+        colours = cells.sum(1, keepdim=True) if mono else colour_masks(cells)  # (B, 3, Hp, Wp) R, G, B; mono ones
         if self.motion is not None:
             flows, key_flows = self.motion(x, cells)  # (B, N', 2, Hp, Wp)
         else:
             flows, key_flows = None, None
+        k = self.config.colours
         features = [self.temporal[c](self.bssr[c](x, colours[:, c : c + 1]), colours[:, c : c + 1], flows)
-                    for c in range(3)]  # 3 x (B, C, Hp, Wp)
-        images = lr_images(x, colours, zero, self.config.length)  # (B, 6, Hp, Wp)
-        residual = self.integration(torch.cat(features, 1), images, zero, scale)  # (B, 3, s*Hp, s*Wp)
-        base = base_image(images[:, :3], scale)
+                    for c in range(k)]  # k x (B, C, Hp, Wp)
+        images = lr_images(x, colours, zero, self.config.length)  # (B, 2k, Hp, Wp)
+        residual = self.integration(torch.cat(features, 1), images, zero, scale)  # (B, k, s*Hp, s*Wp)
+        base = base_image(images[:, :k], scale)  # (B, k, s*Hp, s*Wp)
         image = (base + residual)[..., : scale * h, : scale * w]
+        if mono:  # grey as the video store's three equal channels: export, evaluate, open_video need no case
+            image, base = image.expand(-1, 3, -1, -1), base.expand(-1, 3, -1, -1)  # (B, 3, sH, sW) views
         if key_flows is not None:
             key_flows = tuple(f[..., :h, :w] for f in key_flows)
         return {"image": image, "flows": key_flows, "base": base[..., : scale * h, : scale * w]}
@@ -79,7 +84,7 @@ class CSCSR(nn.Module):
         b, n, h, w = spikes.shape
         if n != self.config.frames:
             raise InputError(f"the {self.config.name} network takes {self.config.frames} frames per clip, got {n}")
-        if h % 2 or w % 2 or h < 2 or w < 2:
+        if (h % 2 or w % 2) and not self.config.mono or h < 2 or w < 2:  # mono: any side (padded)
             raise InputError(f"a Bayer clip needs even height and width, got {h}x{w}")
         if scale not in NETWORK_SCALES:
             raise InputError(f"the CSCSR network upsamples by {' or '.join(map(str, NETWORK_SCALES))}, not {scale}")

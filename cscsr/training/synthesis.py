@@ -78,7 +78,8 @@ def synthesise(batch: PreparedBatch, device: torch.device | str) -> dict:
     scenes = torch.from_numpy(np.stack([p.picture for p in plans])).to(device).permute(0, 3, 1, 2)  # (B, 3, S, S)
     alpha = torch.tensor([p.sensor.brightness for p in plans], dtype=torch.float64, device=device)  # (B,)
     channel = torch.from_numpy(np.stack([colour_index(p.cfa, side, side) for p in plans]).astype(np.int64))
-    channel = channel.to(device)[:, None]  # (B, 1, lr, lr): 0 R, 1 G, 2 B
+    channel = channel.clamp(min=0).to(device)[:, None]  # (B, 1, lr, lr): 0 R, 1 G, 2 B; mono (-1) reads R of its
+    # grey scene (``random_plan(mono=True)`` turns the scene to luma: R = G = B = what the mono sensor sees)
 
     footage = footage_tensors(plans, device)
     mosaics, truth = [], None

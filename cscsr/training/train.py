@@ -160,7 +160,8 @@ def _about(step: int, options: TrainOptions, command: str) -> dict:
                     + (f"the pictures in {', '.join(options.picture_folders())} (sequences of frames with their own motion)"
                         if options.pictures else
                        f"scikit-image pictures ({', '.join(TRAIN_PICTURES)})") + ", random camera paths, alpha 0.6-1.0, both resets, "
-                    "realistic noise on half, four CFA phases, x2 and x4"
+                    "realistic noise on half, "
+                    + ("a mono sensor (Rec.601 luma)" if options.network().mono else "four CFA phases") + ", x2 and x4"
                     + (f"; a pool of {options.pool} clips under 8 flips and turns" if options.pool else "")}
 
 

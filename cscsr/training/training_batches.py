@@ -35,14 +35,16 @@ def make_batch(step: int, options: TrainOptions, cache: dict, pool: dict | None 
         from cscsr.training.synthesis import prepare
 
         return prepare([random_plan([options.seed, step, i], lr_side=options.lr_side, scale=scale, pictures=pictures,
-                                    cache=cache, dead_leaves_share=options.dead_leaves) for i in range(options.batch)])
+                                    cache=cache, dead_leaves_share=options.dead_leaves, mono=options.network().mono)
+                          for i in range(options.batch)])
     if pool:
         rng = np.random.default_rng([options.seed, step, 998])
         clips = pool[scale]
         return batch_arrays([reoriented(clips[i], int(k)) for i, k in
                              zip(rng.integers(len(clips), size=options.batch), rng.integers(8, size=options.batch))])
     clips = [random_clip([options.seed, step, i], lr_side=options.lr_side, scale=scale, pictures=pictures,
-                         cache=cache, dead_leaves_share=options.dead_leaves) for i in range(options.batch)]
+                         cache=cache, dead_leaves_share=options.dead_leaves, mono=options.network().mono)
+             for i in range(options.batch)]
     return batch_arrays(clips)
 
 
@@ -60,7 +62,8 @@ def clip_pool(options: TrainOptions) -> dict[int, list]:
     scales = [4 if i < fours else 2 for i in range(options.pool)]
     pool: dict[int, list] = {2: [], 4: []}
     with ProcessPoolExecutor(os.cpu_count(), mp_context=multiprocessing.get_context("spawn")) as workers:
-        jobs = workers.map(_pool_clip, [([options.seed, 997, i], options.lr_side, s) for i, s in enumerate(scales)],
+        mono = options.network().mono
+        jobs = workers.map(_pool_clip, [([options.seed, 997, i], options.lr_side, s, mono) for i, s in enumerate(scales)],
                            chunksize=8)
         for clip in jobs:
             pool[clip.scale].append(clip)
@@ -71,8 +74,8 @@ _WORKER_PICTURES: dict = {}  # a pool worker's decoded pictures, read once per p
 
 
 def _pool_clip(args) -> Clip:
-    seed, lr_side, scale = args
-    return random_clip(seed, lr_side=lr_side, scale=scale, pictures=TRAIN_PICTURES, cache=_WORKER_PICTURES)
+    seed, lr_side, scale, mono = args
+    return random_clip(seed, lr_side=lr_side, scale=scale, pictures=TRAIN_PICTURES, cache=_WORKER_PICTURES, mono=mono)
 
 
 def training_pictures(options: TrainOptions) -> tuple[str, ...]:
@@ -92,9 +95,12 @@ def training_pictures(options: TrainOptions) -> tuple[str, ...]:
 
 
 def validation_batches(options: TrainOptions) -> list[dict]:
-    """Fixed held-out clips at x4, alpha spread over [0.6, 1.0]; dead leaves only (no test pictures)."""
+    """Fixed held-out clips at x4, alpha spread over [0.6, 1.0]; dead leaves only (no test pictures); mono for a
+    mono network."""
     alphas = np.linspace(0.6, 1.0, options.validation_clips)
-    return [batch_arrays([random_clip([VALIDATION_SEED, i], lr_side=48, scale=4, pictures=(), alpha=float(a))])
+    mono = options.network().mono
+    return [batch_arrays([random_clip([VALIDATION_SEED, i], lr_side=48, scale=4, pictures=(), alpha=float(a),
+                                      mono=mono)])
             for i, a in enumerate(alphas)]
 
 

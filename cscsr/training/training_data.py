@@ -15,13 +15,13 @@ training ones (``TEST_PICTURES``); validation uses dead leaves from their own se
 Everything is a function of the seed, so a clip is reproducible bit for bit.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from cscsr.training.frame_motion import FrameMotion, choices, source_names
 from stages.reconstruction.cfa import BAYER_PATTERNS, flip_horizontally, flip_vertically, transpose
-from stages.simulation.intensities import to_unit_rgb
+from stages.simulation.intensities import luma_rgb, to_unit_rgb
 from stages.simulation.camera_path import CameraPath, render
 from stages.capture.bits import unpack_rows
 from stages.errors import InputError, describe
@@ -272,25 +272,31 @@ def run_plan(plan: ClipPlan) -> Clip:
 
 def random_plan(seed, *, lr_side: int, scale: int, pictures: tuple = TRAIN_PICTURES,
                 cache: dict | None = None, alpha: float | None = None,
-                dead_leaves_share: float = DEAD_LEAVES_SHARE) -> ClipPlan:
-    """A training clip's plan: everything drawn from ``seed`` (an int or a sequence of ints)."""
+                dead_leaves_share: float = DEAD_LEAVES_SHARE, mono: bool = False) -> ClipPlan:
+    """A training clip's plan: everything drawn from ``seed`` (an int or a sequence of ints). ``mono``: a mono
+    sensor's clip (the scene turned to its Rec.601 luma, so the truth is the grey it sees; the same draws)."""
     rng = np.random.default_rng(seed)
     margin = max(4, lr_side // 4) // 2 * 2
     picture, motion = source_scene(rng, pictures, scale * (lr_side + 2 * margin), {} if cache is None else cache,
                                    dead_leaves_share)
-    return plan_clip(picture, rng, lr_side=lr_side, scale=scale,
-                     alpha=float(rng.uniform(0.6, 1.0)) if alpha is None else alpha,
-                     cfa=BAYER_PATTERNS[rng.integers(4)], zero_reset=bool(rng.random() < 0.5),
+    if mono:
+        picture = luma_rgb(picture)
+        if motion is not None:  # footage's neighbours grey too (their flows stay: they were measured on colour)
+            motion = replace(motion, before=luma_rgb(motion.before), after=luma_rgb(motion.after))
+    alpha = float(rng.uniform(0.6, 1.0)) if alpha is None else alpha
+    cfa = BAYER_PATTERNS[rng.integers(4)]
+    return plan_clip(picture, rng, lr_side=lr_side, scale=scale, alpha=alpha,
+                     cfa="mono" if mono else cfa, zero_reset=bool(rng.random() < 0.5),
                      noise="realistic" if rng.random() < 0.5 else "none",
                      speed=float(rng.uniform(0, MAX_SPEED)), motion=motion)
 
 
 def random_clip(seed, *, lr_side: int, scale: int, pictures: tuple = TRAIN_PICTURES,
                 cache: dict | None = None, alpha: float | None = None,
-                dead_leaves_share: float = DEAD_LEAVES_SHARE) -> Clip:
-    """A training clip: everything drawn from ``seed`` (an int or a sequence of ints)."""
+                dead_leaves_share: float = DEAD_LEAVES_SHARE, mono: bool = False) -> Clip:
+    """A training clip: everything drawn from ``seed`` (an int or a sequence of ints); ``mono`` as in ``random_plan``."""
     return run_plan(random_plan(seed, lr_side=lr_side, scale=scale, pictures=pictures, cache=cache, alpha=alpha,
-                                dead_leaves_share=dead_leaves_share))
+                                dead_leaves_share=dead_leaves_share, mono=mono))
 
 
 def reoriented(clip: Clip, orientation: int) -> Clip:

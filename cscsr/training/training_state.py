@@ -7,7 +7,7 @@ refusing options that would change the weights, the clips or the schedule so far
 
 import json
 import os
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import torch
@@ -114,7 +114,12 @@ def initial_weights(options: TrainOptions) -> dict:
     from cscsr.weights.weights_io import load_model
 
     model, _ = load_model(options.init)
-    if model.config != options.network():
+    target = options.network()
+    if target.mono and model.config.colours == 3 and replace(model.config, name=target.name, colours=1) == target:
+        from cscsr.weights.mono_init import mono_state
+
+        return mono_state(model.state_dict(), model.config)  # a mono run from a colour file: its green branch
+    if model.config != target:
         raise InputError(f"cannot start from {options.init}: it holds CSCSR {model.config.name!r} "
                          f"({model.config.to_json()}), this run trains {options.network().to_json()}")
     return model.state_dict()

@@ -61,12 +61,12 @@ from pipeline.compute.progress import is_quiet, progress_bar
 from pipeline.jobs.dry_run import plan_job
 from pipeline.jobs.reconstruct_plan import (
     DEFAULT_TILE,
-    DEFAULT_WEIGHTS,
     GPU_BATCH,
     MADE_FROM,
     Placement,
     Plan,
     ReconstructOptions,
+    default_weights,
     job_part,
     made_from,
     task_groups,
@@ -110,12 +110,15 @@ def network_options(options: ReconstructOptions) -> tuple[str | None, str | None
 def checked_method(store: SpikeStore, options: ReconstructOptions) -> tuple[int, Reconstructor]:
     """Every check of a job on ``store`` that needs no output: the options against the recording, the
     scale (``--scale``, else the store's, else 4) and the method, its weights loaded (on the CPU: this
-    process only checks them; without ``--weights``, those for CPU workers). -> (scale, method)."""
+    process only checks them; without ``--weights``, those for CPU workers and the recording's CFA). -> (scale, method)."""
     check_options(options, store.n_frames)
     scale = options.scale if options.scale is not None else int(store.attrs.get("scale", 4))
-    weights = options.weights or (DEFAULT_WEIGHTS["cpu"] if options.method in NETWORKS else None)
+    weights = options.weights or (default_weights(False, store.meta.cfa) if options.method in NETWORKS else None)
     method = reconstructor(options.method, weights, *network_options(options), device="cpu")  # loads and checks them
-    method.check(options.window, scale, store.meta.cfa)
+    if options.method in NETWORKS:  # the network's check names the recording beside its weights
+        method.check(options.window, scale, store.meta.cfa, f"the recording {store.url}")
+    else:
+        method.check(options.window, scale, store.meta.cfa)
     return scale, method
 
 
@@ -145,13 +148,13 @@ def gpu_memory_bytes() -> int | None:
     return torch.cuda.get_device_properties(0).total_memory if torch.cuda.is_available() else None
 
 
-def placed(options: ReconstructOptions, where: Placement, recorded: dict) -> ReconstructOptions:
-    """The options with the weights that depend on where the network runs filled in: ``--weights``, else
-    what a resumed output records, else ``full`` on GPU workers and ``lite`` on CPUs. Chosen once per
-    job; the output records it."""
+def placed(options: ReconstructOptions, where: Placement, recorded: dict, cfa: str = "rggb") -> ReconstructOptions:
+    """The options with the weights that depend on where the network runs and on the recording's ``cfa`` filled
+    in: ``--weights``, else what a resumed output records, else ``lite-mono`` for a mono recording, ``full`` on
+    GPU workers and ``lite`` on CPUs. Chosen once per job; the output records it."""
     if options.method not in NETWORKS or options.weights:
         return options
-    return dataclasses.replace(options, weights=recorded.get("weights") or DEFAULT_WEIGHTS["gpu" if where.gpus else "cpu"])
+    return dataclasses.replace(options, weights=recorded.get("weights") or default_weights(where.gpus, cfa))
 
 
 def sized(options: ReconstructOptions, where: Placement, method: Reconstructor, shape: tuple[int, int],
@@ -208,7 +211,7 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
             client = stack.enter_context(dask_client(scheduler=scheduler))
         where = placement(options, client)
         found = _recorded_attrs(out) if options.resume else {}
-        options = placed(options, where, found)
+        options = placed(options, where, found, meta.cfa)
         scale, method = checked_method(store, options)  # the weights by where the network runs
         y0, y1, x0, x1 = part.region
         options = sized(options, where, method, (y1 - y0, x1 - x0), found)

@@ -23,6 +23,13 @@ DEFAULT_TILE = 256  # LR pixels, on CPU workers: a 1000x1000 frame becomes 16 ta
 # the tile is sized for the device's memory: cscsr.inference.device_memory, stages.reconstruction.tiles.device_tile)
 GPU_BATCH = 16  # the most windows per network pass on a GPU worker (fewer where the device's memory holds fewer)
 DEFAULT_WEIGHTS = {"gpu": "full", "cpu": "lite"}  # where the network runs -> the weights a job takes by default
+MONO_WEIGHTS = "lite-mono"  # a mono recording's default, wherever the network runs (no full-mono yet)
+
+
+def default_weights(gpus: bool, cfa: str) -> str:
+    """The weights a network job takes without ``--weights``: the mono ones for a mono recording, else ``full``
+    on GPU workers and ``lite`` on CPUs."""
+    return MONO_WEIGHTS if cfa == "mono" else DEFAULT_WEIGHTS["gpu" if gpus else "cpu"]
 
 
 @dataclass(frozen=True)

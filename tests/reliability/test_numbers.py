@@ -264,15 +264,15 @@ def test_evaluate_testset_bad_methods_leave_an_existing_out_alone(cli, tmp_path)
 
 def test_evaluate_a_method_that_cannot_serve_the_store_is_refused_before_the_others_run(cli, tmp_path, store):
     """Every method is checked against the store (and its weights loaded) before the first one runs:
-    on a mono store, cscsr is refused before tfp has written anything."""
+    on a mono store, cscsr with colour weights is refused before tfp has written anything."""
     set_attribute(store, "cfa", "mono")
     group = zarr.open_group(str(store), mode="r+")
     group.create_array("truth", shape=(2, HEIGHT * 4, WIDTH * 4, 3), chunks=(1, HEIGHT * 4, WIDTH * 4, 3), dtype=np.uint8)
     group.create_array("truth_frames", data=np.array([20, 61], np.int64))
     before, unchanged = set(os.listdir(tmp_path)), fingerprint(store)
     out = tmp_path / "ev"
-    assert_refused(cli("evaluate", store, "--methods", "tfp,cscsr", "--out", out, "--workers", 1),
-                   "colour (Bayer) model and this recording is mono")
+    assert_refused(cli("evaluate", store, "--methods", "tfp,cscsr", "--weights", "lite", "--out", out, "--workers", 1),
+                   "colour (Bayer) CSCSR network and the recording", "is mono")
     assert_nothing_made(tmp_path, before, out)
     assert fingerprint(store) == unchanged
 
