@@ -139,9 +139,7 @@ class NetworkReconstructor:
 
     def _autocast(self):
         """bfloat16 autocast on the network's device for ``precision="bf16"``; nothing for fp32."""
-        if self.precision == "fp32":
-            return contextlib.nullcontext()
-        return torch.autocast(device_type=self.device.type, dtype=torch.bfloat16)
+        return precision_context(self.device.type, self.precision)
 
     def _seen_under(self, orientation: int, spikes: torch.Tensor, window: Window) -> torch.Tensor:
         """The network's output for the windows turned by ``orientation`` (bits as in training:
@@ -189,8 +187,6 @@ def load_reconstructor(weights: str | None, device: str | None = None, *, self_e
     ``channels_last`` runs the convolutions on NHWC tensors (``cscsr.network.model.use_channels_last``);
     ``backend`` "onnx" runs the network on ONNX Runtime (CPU, fp32); ``fast_gpu``, on a GPU only
     (a CPU ignores it): channels-last, cuDNN autotuning and ``torch.compile`` (:func:`compiled`)."""
-    from cscsr.network.model import use_channels_last
-
     check_backend(backend, precision)
     path = weights_file(weights)
     digest = weights_sha256(path)  # before loading: a file replaced during the load reads as changed
@@ -199,10 +195,28 @@ def load_reconstructor(weights: str | None, device: str | None = None, *, self_e
     device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
     model, _ = load_model(path, device)
     fast = fast_gpu and device.type == "cuda"
-    if channels_last or fast:
-        use_channels_last(model)
+    model = prepare_model(model, device.type, precision, channels_last=channels_last or fast)
     return NetworkReconstructor(model, device, str(path), self_ensemble=self_ensemble, precision=precision,
                                 backend=backend, weights_sha256=digest, forward=compiled(model) if fast else None)
+
+
+def prepare_model(model: torch.nn.Module, device_type: str, precision: str, *, channels_last: bool = False):
+    """The loaded network as it runs on a ``device_type`` ("cuda" or "cpu") in ``precision``: what
+    :func:`load_reconstructor` does to it after loading, a function of its own so that a CPU can prepare (and
+    count, ``benchmarks/network_traffic.py``) the very network a GPU worker runs."""
+    from cscsr.network.model import use_channels_last
+
+    if channels_last:
+        use_channels_last(model)
+    return model
+
+
+def precision_context(device_type: str, precision: str):
+    """What the network's forward pass runs under for ``precision`` on a ``device_type``: bfloat16 autocast for
+    bf16, nothing for fp32."""
+    if precision == "fp32":
+        return contextlib.nullcontext()
+    return torch.autocast(device_type=device_type, dtype=torch.bfloat16)
 
 
 COMPILE_CACHE = "~/.cache/cscsr/torchinductor"  # torch.compile's kernels, kept between worker processes
