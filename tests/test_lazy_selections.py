@@ -1,0 +1,252 @@
+"""``cscsr.lazy`` keeps xarray's promises (#55): a selection (``isel``/``sel``, slicing) of spikes, windows or HR is
+honoured exactly, with the recording's coordinates carried through, or refused in one line before anything is
+written; every block ``to_video`` writes is checked against its chunk; a resume refuses another graph.
+
+Known answers: a selection of frames gives the windows, bytes and record of ``start=``/``stop=`` on the whole
+recording; a crop of pixels gives the whole reconstruction's interior, at the recording's HR coordinates, with the
+recording's gain; a written selection of ``hr`` reads back (``open_video``) as that selection.
+"""
+
+import os
+import pathlib
+
+import dask
+import dask.array as da
+import numpy as np
+import pytest
+import xarray as xr
+import zarr
+
+from cscsr import lazy
+from pipeline.jobs.info import summarize
+from pipeline.jobs.simulate import SimulateOptions
+from pipeline.lazy import written as lazy_written
+from stages.errors import InputError, InputTypeError
+from tests.test_ranges_and_regions import FPS, FRAMES, HEIGHT, WIDTH, recording  # noqa: F401 - 200 frames, no gain
+
+
+@pytest.fixture(autouse=True)
+def threads():
+    with dask.config.set(scheduler="threads"):
+        yield
+
+
+def stored(url: str) -> tuple[np.ndarray, np.ndarray, dict]:
+    group = zarr.open_group(str(url), mode="r")
+    return group["video"][:], group["frames"][:], dict(group.attrs)
+
+
+def refused(call, fragment: str, kind=InputError) -> str:
+    with pytest.raises(kind) as raised:
+        call()
+    message = str(raised.value)
+    assert fragment in message and "\n" not in message, message
+    return message
+
+
+# ---- 1. time ----
+
+def test_a_run_of_frames_is_start_and_stop_on_the_recording(recording, tmp_path):
+    """isel(t=slice(30, 120)) and sel(t=...) of the same frames: the output frames whose whole window lies in
+    them (centres 60, 80 on the recording's grid), recorded as start 50, stop 100: the bytes and record of
+    windows(start=50, stop=100) on the whole recording, its automatic gain included."""
+    spikes = lazy.open_spikes(recording)
+    by_index = lazy.windows(spikes.isel(t=slice(30, 120)), every=20)
+    by_time = lazy.windows(spikes.sel(t=slice(30 / FPS, 119 / FPS)), every=20)
+    ranged = lazy.windows(spikes, every=20, start=50, stop=100)
+    for win in (by_index, by_time):
+        assert win.frame.values.tolist() == [60, 80] == ranged.frame.values.tolist()
+        assert np.array_equal(win.t.values, ranged.t.values) and (win.attrs["start"], win.attrs["stop"]) == (50, 100)
+        assert np.array_equal(win.values, ranged.values)
+    lazy.to_video(lazy.tfp(by_index, tile=16), str(tmp_path / "selected.zarr"))
+    lazy.to_video(lazy.tfp(ranged, tile=16), str(tmp_path / "ranged.zarr"))
+    selected, reference = stored(tmp_path / "selected.zarr"), stored(tmp_path / "ranged.zarr")
+    assert np.array_equal(selected[0], reference[0]) and selected[1].tolist() == [60, 80]
+    assert selected[2] == reference[2]  # start, stop, the recording's shape, its automatic gain ...
+    assert selected[2]["source_shape"] == [FRAMES, HEIGHT, WIDTH]
+    refused(lambda: lazy.windows(spikes.isel(t=slice(45, 100)), every=20), "no output frame's window of 41")
+
+
+@pytest.mark.parametrize("pick", ["every-2nd", "reversed", "shuffled", "repeated"])
+def test_frames_that_are_not_a_run_are_refused(recording, pick):
+    spikes = lazy.open_spikes(recording)
+    index = {"every-2nd": slice(None, None, 2), "reversed": slice(None, None, -1),
+             "shuffled": np.random.default_rng(0).permutation(FRAMES), "repeated": [*range(100), *range(99, 199)]}[pick]
+    fragment = {"every-2nd": "skips (a step of 2)", "reversed": "runs backwards", "shuffled": "frame",
+                "repeated": "repeats"}[pick]
+    message = refused(lambda: lazy.windows(spikes.isel(t=index), every=10), fragment)
+    assert "isel(t=slice(a, b))" in message
+
+
+# ---- 2. space ----
+
+def test_a_crop_is_the_whole_reconstruction_s_interior_at_the_recording_s_pixels(recording, tmp_path):
+    spikes = lazy.open_spikes(recording)
+    whole = lazy.tfp(lazy.windows(spikes, every=20), tile=16)
+    crop = lazy.tfp(lazy.windows(spikes.isel(y=slice(16, 48), x=slice(16, 64)), every=20), tile=16)
+    assert crop.y.values.tolist() == list(range(64, 192)) and crop.x.values.tolist() == list(range(64, 256))
+    assert float(crop.gain) == float(whole.gain)  # the recording's automatic gain, not the crop's
+    # the crop's tiles are the whole frame's (both cut every 16 from a multiple of 16): a tile whose halo stays
+    # inside the crop reads what the whole frame's reads, and makes its bytes; one at the crop's edge sees the edge
+    inner = dict(y=slice(4 * 32, None), x=slice(4 * 32, None))
+    assert np.array_equal(crop.sel(**inner).values, whole.sel(**inner).values)
+    assert not np.array_equal(crop.values, whole.sel(y=crop.y, x=crop.x).values)  # the edges are the crop's own
+    lazy.to_video(crop, str(tmp_path / "crop.zarr"))
+    attrs = stored(tmp_path / "crop.zarr")[2]
+    assert attrs["region"] == [16, 48, 16, 64] and attrs["source_shape"] == [FRAMES, HEIGHT, WIDTH]
+    assert summarize(str(tmp_path / "crop.zarr"))  # cscsr info reads it
+
+
+def test_a_crop_s_odd_offsets_and_steps_are_refused(recording):
+    spikes = lazy.open_spikes(recording)
+    refused(lambda: lazy.windows(spikes.isel(y=slice(1, None))), "selection at y=1: the rggb colour pattern")
+    refused(lambda: lazy.windows(spikes.isel(x=slice(0, 31))), "x end 31")
+    refused(lambda: lazy.windows(spikes.isel(x=slice(None, None, 2))), "skips (a step of 2)")
+    refused(lambda: lazy.windows(spikes.isel(y=slice(8, 40)), region="0:16,0:64"), "outside the selected pixels")
+
+
+# ---- 3. windows ----
+
+def test_windows_selected_along_dt_are_refused_and_along_t_honoured(recording, tmp_path):
+    win = lazy.windows(lazy.open_spikes(recording), every=20)
+    refused(lambda: lazy.tfp(win.isel(dt=slice(10, 31))), "selection along dt")
+    refused(lambda: lazy.tfp(win.isel(dt=slice(None, None, -1))), "selection along dt")
+    refused(lambda: lazy.tfp(win.isel(t=[0, 2])), "skip output frames")
+    part = lazy.tfp(win.isel(t=slice(2, 5)), tile=16)
+    assert part.frame.values.tolist() == [60, 80, 100]
+    assert np.array_equal(part.values, lazy.tfp(win, tile=16).isel(t=slice(2, 5)).values)
+    lazy.to_video(part, str(tmp_path / "part.zarr"))
+    assert (stored(tmp_path / "part.zarr")[2]["start"], stored(tmp_path / "part.zarr")[2]["stop"]) == (60, 101)
+
+
+# ---- 4. blocks ----
+
+@pytest.mark.parametrize("bad", ["a row short", "float", "nan"])
+def test_a_block_unlike_its_chunk_fails_the_write_and_the_store_is_never_complete(recording, tmp_path, bad):
+    hr = lazy.tfp(lazy.windows(lazy.open_spikes(recording), every=20), tile=16)
+    change = {"a row short": lambda block: block[:, :-1], "float": lambda block: block / 2.0,
+              "nan": lambda block: np.full(block.shape, np.nan)}[bad]
+    broken = hr.copy(data=hr.data.map_blocks(change, dtype=np.uint8))  # what dask is told is not what it gets
+    refused(lambda: lazy.to_video(broken, str(tmp_path / "out.zarr")), "where its chunk is uint8")
+    assert zarr.open_group(str(tmp_path / "out.zarr"), mode="r").attrs["state"] == "writing"
+
+
+# ---- 5 and 6. a selection of hr ----
+
+def test_a_sliced_hr_is_written_with_its_region_and_read_back(recording, tmp_path):
+    hr = lazy.tfp(lazy.windows(lazy.open_spikes(recording), every=20), tile=16)
+    sliced = hr.isel(t=slice(1, 4), y=slice(8, 64), x=slice(32, 128))
+    lazy.to_video(sliced, str(tmp_path / "sliced.zarr"))
+    video, frames, attrs = stored(tmp_path / "sliced.zarr")
+    assert attrs["region"] == [2, 16, 8, 32] and (attrs["start"], attrs["stop"]) == (40, 81)
+    assert np.array_equal(video, sliced.values) and frames.tolist() == [40, 60, 80]
+    back = lazy.open_video(tmp_path / "sliced.zarr")
+    assert back.dims == sliced.dims and back.attrs == {**sliced.attrs, "region": [2, 16, 8, 32], "start": 40,
+                                                       "stop": 81}
+    for name in ("t", "frame", "y", "x", "gain"):
+        assert np.array_equal(back[name].values, sliced[name].values), name
+    assert np.array_equal(back.values, sliced.values)
+    assert summarize(str(tmp_path / "sliced.zarr"))
+    from pipeline.jobs.export import export
+
+    export(str(tmp_path / "sliced.zarr"), str(tmp_path / "pngs"))
+    assert sorted(os.listdir(tmp_path / "pngs")) == [f"frame_{c:08d}.png" for c in (40, 60, 80)]
+
+
+@pytest.mark.parametrize("pick", ["repeated", "reversed", "gapped", "cut pixel"])
+def test_a_selection_of_hr_that_cannot_be_written_is_refused_before_anything_exists(recording, tmp_path, pick):
+    hr = lazy.tfp(lazy.windows(lazy.open_spikes(recording), every=20), tile=16)
+    selected, fragment = {"repeated": (hr.isel(t=[0, 0, 1]), "repeat"),
+                          "reversed": (hr.isel(t=slice(None, None, -1)), "run backwards"),
+                          "gapped": (hr.isel(t=[0, 2]), "skip output frames"),
+                          "cut pixel": (hr.isel(y=slice(3, 64)), "cuts through LR pixels (scale=4)")}[pick]
+    refused(lambda: lazy.to_video(selected, str(tmp_path / "out.zarr")), fragment)
+    assert not os.listdir(tmp_path)
+
+
+# ---- 7. memory:// and worker processes ----
+
+def test_memory_stores_are_refused_up_front_where_tasks_run_in_other_processes(recording, tmp_path):
+    hr = lazy.tfp(lazy.windows(lazy.open_spikes(recording), every=50), tile=16)
+    lazy.to_video(hr, "memory://lazy-hr.zarr")  # threads: this process's own memory
+    memory_spikes = "memory://lazy-spikes.zarr"
+    lazy.to_spikes(lazy.open_spikes(recording), memory_spikes)
+    from_memory = lazy.tfp(lazy.windows(lazy.open_spikes(memory_spikes), every=50), tile=16)
+    with dask.config.set(scheduler="processes"):
+        refused(lambda: lazy.to_video(hr, "memory://other-hr.zarr"), "memory:// lives in this process only")
+        refused(lambda: lazy.open_spikes(memory_spikes), "memory:// lives in this process only")
+        refused(lambda: lazy.to_video(from_memory, str(tmp_path / "hr.zarr")), "cannot use memory://lazy-spikes.zarr")
+    assert not os.listdir(tmp_path)
+
+
+# ---- 8. simulate ----
+
+def test_simulate_refuses_a_float_scene_that_is_not_intensities():
+    scene = np.full((50, 32, 32, 3), 0.5, np.float32)
+    for value, shown in ((255.0, "255.0"), (np.nan, "nan"), (np.inf, "inf"), (-0.1, "-0.1")):
+        bad = scene.copy()
+        bad[7, 3, 3, 0] = value
+        refused(lambda: lazy.simulate(xr.DataArray(bad, dims=("t", "y", "x", "rgb"))), "scene frame 7 holds")
+        lazy_bad = lazy.simulate(xr.DataArray(da.from_array(bad, chunks=(10, -1, -1, -1)), dims=("t", "y", "x", "rgb")))
+        message = refused(lambda: lazy_bad.compute(), "scene frame 7 holds")  # lazy: when its block is computed
+        assert shown in message and "[0, 1]" in message
+    assert lazy.simulate(xr.DataArray(scene, dims=("t", "y", "x", "rgb"))).shape == (50, 8, 8)
+
+
+def test_simulate_s_default_reset_is_the_simulate_job_s():
+    import inspect
+
+    assert inspect.signature(lazy.simulate).parameters["reset"].default == SimulateOptions().reset
+    assert "ingest" in inspect.getdoc(lazy.simulate)  # and it says why ingest's differs
+
+
+# ---- 9. writes ----
+
+def test_paths_are_taken_as_the_jobs_take_them(recording, tmp_path):
+    spikes = lazy.open_spikes(pathlib.Path(recording))
+    assert lazy.to_video(lazy.tfp(lazy.windows(spikes, every=50), tile=16), tmp_path / "hr.zarr")["frames"] == 4
+    assert lazy.to_spikes(spikes, tmp_path / "copy.zarr")["frames"] == FRAMES
+
+
+def test_chunk_frames_beyond_the_recording_are_clamped_to_it(recording, tmp_path):
+    result = lazy.to_spikes(lazy.open_spikes(recording), str(tmp_path / "copy.zarr"), chunk_frames=10**9)
+    assert zarr.open_group(str(tmp_path / "copy.zarr"), mode="r")["spikes"].chunks[0] == FRAMES  # not 119 GiB
+    assert result["frames"] == FRAMES and result["tasks"] == 1
+
+
+def test_an_empty_url_and_a_file_where_a_store_should_be_are_refused(recording, tmp_path):
+    hr = lazy.tfp(lazy.windows(lazy.open_spikes(recording), every=50), tile=16)
+    refused(lambda: lazy.to_video(hr, ""), "url is empty")
+    refused(lambda: lazy.to_video(hr, 5), "url must be a path or URL", InputTypeError)
+    notes = tmp_path / "notes.txt"
+    notes.write_text("mine")
+    refused(lambda: lazy.to_video(hr, str(notes), resume=True), "cannot resume")
+    assert notes.read_text() == "mine" and os.listdir(tmp_path) == ["notes.txt"]
+
+
+# ---- 10. resume ----
+
+def test_a_resume_refuses_another_graph_and_finishes_the_same_one(recording, tmp_path, monkeypatch):
+    monkeypatch.setattr(lazy_written, "BLOCKS_AT_ONCE", 1)
+    failing = tmp_path / "fail"
+    win = lazy.windows(lazy.open_spikes(recording), every=20)
+
+    def hr_of(level: int):  # a function whose closure says how bright: one graph per level
+        def grey(window):
+            if failing.exists() and window.shape[1] == 32:  # the second row of tiles (16 rows and a halo of 8)
+                raise RuntimeError("disk full")
+            return np.full((4 * window.shape[1], 4 * window.shape[2], 3), level, np.uint8)
+
+        return lazy.apply(win, grey, scale=4, halo=8, tile=16)
+
+    out = str(tmp_path / "out.zarr")
+    failing.touch()
+    with pytest.raises(RuntimeError, match="disk full"):
+        lazy.to_video(hr_of(7), out)
+    failing.unlink()
+    refused(lambda: lazy.to_video(hr_of(9), out, resume=True), "not the graph that wrote it")
+    brighter = hr_of(7).copy(data=hr_of(7).data.map_blocks(lambda block: block + 1))
+    refused(lambda: lazy.to_video(brighter, out, resume=True), "not the graph that wrote it")
+    counts = lazy.to_video(hr_of(7), out, resume=True)  # built again from the same code: the same graph
+    assert counts["tasks_skipped"] > 0 and stored(out)[2]["state"] == "complete"
+    assert (stored(out)[0] == 7).all()
