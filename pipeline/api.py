@@ -175,11 +175,12 @@ def reconstruct(store: str, out: str, *, client=None, workers: int | None = None
 
 def evaluate(store: str, methods: str | Iterable[str] = ("tfp", "tfi"), out: str = "evaluation", *,
              weights: str | None = None, client=None, workers: int | None = None, scheduler: str | None = None,
-             progress: bool = False, overwrite: bool = False) -> Written:
+             progress: bool = False, overwrite: bool = False, videos: dict | None = None) -> Written:
     """PSNR / SSIM of ``methods`` (a list, or ``"tfp,tfi"``) against a simulated store's truth, as ``cscsr
     evaluate``: the reconstructions, ``metrics.csv``, ``summary.csv`` and ``comparison.png`` in the folder
     ``out`` (an existing one is refused unless ``overwrite``, and replaced only if it is an evaluation);
-    ``rows`` holds the summary, one dict per method."""
+    ``rows`` holds the summary, one dict per method, then one per written video of ``videos`` ({name: URL}, as
+    ``--video NAME=URL``: your own method's output, scored alike)."""
     from pipeline.jobs.evaluate import evaluate as run
 
     store, out = _path("evaluate", "store", store), _path("evaluate", "out", out)
@@ -192,6 +193,10 @@ def evaluate(store: str, methods: str | Iterable[str] = ("tfp", "tfi"), out: str
         raise InputTypeError(f"evaluate(): methods must be a string (\"tfp,tfi\") or a list of strings, "
                              f"got {methods!r}")
     names = [m.strip() for m in listed if m.strip()]
+    if videos is not None:
+        if not isinstance(videos, dict):
+            raise InputTypeError(f"evaluate(): videos must be a dict of names to video store URLs, got {videos!r}")
+        videos = {name: _path("evaluate", f"videos[{name!r}]", url) for name, url in videos.items()}
     rows = run(store, names, out, weights=weights, workers=workers, scheduler=scheduler, client=client,
-               progress=progress, overwrite=overwrite)
+               progress=progress, overwrite=overwrite, videos=videos)
     return Written(str(out), {}, {"methods": len(rows)}, tuple(rows))

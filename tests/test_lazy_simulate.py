@@ -88,6 +88,46 @@ def test_to_spikes_writes_the_job_s_recording(job, tmp_path):
     assert store_identity(open_spike_store(copy)) == store_identity(made)
 
 
+def test_to_spikes_writes_the_job_s_truth_and_evaluate_scores_a_lazy_video_beside_the_methods(job, client, tmp_path, cli):
+    """``truth=`` the scene: the simulate job's ground truth, byte for byte; ``evaluate(videos=)`` then scores a
+    video written by ``lazy.to_video`` beside the built-in methods, and it scores exactly as the job's tfp."""
+    from cscsr import lazy
+    from pipeline.jobs.evaluate import evaluate
+    from pipeline.stores.ground_truth import TRUTH, TRUTH_FRAMES
+
+    frames, settings, store = job
+    out = str(tmp_path / "lazy.zarr")
+    to_spikes(simulate(frames_array(frames, 9), **settings), out, chunk_frames=8, truth=frames_array(frames, 5))
+    written, made = open_spike_store(out), open_spike_store(store)
+    for name in (TRUTH, TRUTH_FRAMES):
+        np.testing.assert_array_equal(written.group[name][:], made.group[name][:])
+    assert written.group[TRUTH].shape[0] == 1 and written.complete  # 70 frames: one centre, 20
+    with dask.config.set(scheduler="threads"):
+        lazy.to_video(lazy.tfp(lazy.windows(open_spikes(out), every=41)), str(tmp_path / "mine.zarr"))
+    rows = evaluate(out, ["tfp"], str(tmp_path / "evaluation"), videos={"mine": str(tmp_path / "mine.zarr")},
+                    workers=1, progress=False)
+    assert [row["method"] for row in rows] == ["tfp", "mine"] and rows[1]["seconds_per_image"] is None
+    assert rows[0]["psnr"] == rows[1]["psnr"] and rows[0]["ssim"] == rows[1]["ssim"]  # the same bytes, scored alike
+    summary = (tmp_path / "evaluation" / "summary.csv").read_text()
+    assert summary.splitlines()[2].startswith("mine,") and (tmp_path / "evaluation" / "comparison.png").exists()
+    refusals = {"a name of its own": {"tfp": str(tmp_path / "mine.zarr")},
+                "not an HR video store": {"other": out}}
+    for fragment, videos in refusals.items():
+        with pytest.raises(InputError, match=fragment) as raised:
+            evaluate(out, ["tfp"], str(tmp_path / "refused"), videos=videos, workers=1, progress=False)
+        assert "\n" not in str(raised.value) and not (tmp_path / "refused").exists()
+    done = cli("evaluate", out, "--methods", "", "--video", f"mine={tmp_path / 'mine.zarr'}", "--out",
+               tmp_path / "cli", "--scheduler", client.scheduler.address)
+    assert done.exit_code == 0 and "mine" in done.stdout and "written" in done.stdout, done.stdout + done.stderr
+    assert f"{rows[1]['psnr']:.2f}" in done.stdout
+    bad = cli("evaluate", out, "--video", "mine", "--out", tmp_path / "cli2", "--scheduler", client.scheduler.address)
+    assert bad.exit_code != 0 and "give NAME=URL" in bad.stdout + bad.stderr and not (tmp_path / "cli2").exists()
+    with pytest.raises(InputError, match="truth= must be the scene"):
+        to_spikes(simulate(frames_array(frames, 9), **settings), str(tmp_path / "bad.zarr"),
+                  truth=frames_array(frames[:, :16], 5))
+    assert not (tmp_path / "bad.zarr").exists()
+
+
 def test_simulate_computes_nothing_until_asked():
     def unreadable(block):
         raise RuntimeError("a frame was read")

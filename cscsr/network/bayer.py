@@ -52,8 +52,11 @@ def cell_masks(cfas: list[str], height: int, width: int, device=None) -> torch.T
     return masks
 
 
-def colour_masks(cells: torch.Tensor) -> torch.Tensor:
-    """(B, 4, H, W) R, G1, G2, B masks -> (B, 3, H, W) R, G, B masks (G1 and G2 together)."""
+def colour_masks(cells: torch.Tensor, mono: bool = False) -> torch.Tensor:
+    """(B, 4, H, W) R, G1, G2, B masks -> (B, 3, H, W) R, G, B masks (G1 and G2 together); ``mono``: the four
+    phases together, (B, 1, H, W) ones (sums of slices, as for colour: shapes an ONNX trace can follow)."""
+    if mono:
+        return (cells[:, 0] + cells[:, 1] + cells[:, 2] + cells[:, 3])[:, None]
     return torch.stack([cells[:, 0], cells[:, 1] + cells[:, 2], cells[:, 3]], dim=1)
 
 

@@ -40,9 +40,11 @@ class BSSR(nn.Module):
         """``self.window`` (the 3D convolution) as one 2D convolution over the w frames of every time
         point: the same sums, but on PyTorch's fast 2D path (the CPU's 3D path with one input channel
         is a slow fallback, 2x the time). (B, N, H, W) -> (B, C, N', H, W)."""
-        b, _, h, w = spikes.shape
+        b, n, h, w = spikes.shape
         length, stride = self.window.kernel_size[0], self.window.stride[0]
-        frames = spikes.unfold(1, length, stride)  # (B, N', H, W, w): a view
-        frames = frames.permute(0, 1, 4, 2, 3).reshape(-1, length, h, w)  # (B*N', w, H, W)
+        # the time points' frames by slices, not Tensor.unfold: ONNX's exporter cannot follow unfold on a padded
+        # input (any side not a multiple of 16 failed to export, colour or mono); the same values
+        frames = torch.stack([spikes[:, t : t + length] for t in range(0, n - length + 1, stride)], 1)  # (B, N', w, H, W)
+        frames = frames.reshape(-1, length, h, w)  # (B*N', w, H, W)
         raw = F.conv2d(frames, self.window.weight[:, 0], padding=1)  # (B*N', C, H, W)
         return raw.view(b, -1, raw.shape[1], h, w).transpose(1, 2)  # (B, C, N', H, W)

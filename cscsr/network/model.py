@@ -56,11 +56,11 @@ class CSCSR(nn.Module):
             raise InputError(f"{len(cfas)} CFA patterns for a batch of {b} clips")
         zero = torch.as_tensor(zero_reset, device=spikes.device).expand(b).bool()
 
-        x = pad_keeping_phase(spikes.float(), MULTIPLE)  # (B, N, Hp, Wp)
+        x = pad_keeping_phase(spikes.float(), MULTIPLE, phase=not mono)  # (B, N, Hp, Wp)
         if self.channels_last:
             x = x.contiguous(memory_format=torch.channels_last)  # (B, N, Hp, Wp) stored as (B, Hp, Wp, N)
         cells = cell_masks(cfas, x.shape[-2], x.shape[-1], x.device)  # (B, 4, Hp, Wp) R, G1, G2, B (mono: phases)
-        colours = cells.sum(1, keepdim=True) if mono else colour_masks(cells)  # (B, 3, Hp, Wp) R, G, B; mono ones
+        colours = colour_masks(cells, mono)  # (B, 3, Hp, Wp) R, G, B; mono (B, 1, Hp, Wp) ones
         if self.motion is not None:
             flows, key_flows = self.motion(x, cells)  # (B, N', 2, Hp, Wp)
         else:
@@ -130,18 +130,19 @@ def initialise(model: nn.Module) -> None:
             module.body[-1].weight.data.mul_(0.1)
 
 
-def pad_keeping_phase(x: torch.Tensor, multiple: int) -> torch.Tensor:
+def pad_keeping_phase(x: torch.Tensor, multiple: int, phase: bool = True) -> torch.Tensor:
     """Pad the bottom and right by reflection to a multiple of ``multiple``.
 
     An even pad of an even side by reflection puts every padded row and column on a row
-    and column of the same parity, so the Bayer pattern continues unbroken.
+    and column of the same parity, so the Bayer pattern continues unbroken. ``phase=False`` (mono: no
+    pattern to keep) reflects by any amount, so an odd side pads too.
     """
     h, w = x.shape[-2:]
     ph, pw = -h % multiple, -w % multiple
     for axis, pad in ((-2, ph), (-1, pw)):
         while pad:  # a small frame may need several reflections
             size = x.shape[axis]
-            step = min(pad, size - 1) // 2 * 2
+            step = min(pad, size - 1) // 2 * 2 if phase else min(pad, size - 1)
             mode = "reflect" if step else "circular"  # a 2-pixel side: repeat the whole 2x2 cell
             step = step or min(pad, size)
             x = F.pad(x, (0, step, 0, 0) if axis == -1 else (0, 0, 0, step), mode=mode)

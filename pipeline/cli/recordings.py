@@ -263,16 +263,20 @@ def evaluate(store: Annotated[str, typer.Argument(help="Simulated spike store (w
              weights: Annotated[Optional[str], typer.Option(help="Network weights for cscsr.")] = None,
              workers: Workers = None, scheduler: Scheduler = None,
              overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace the --out folder if it is an "
-                                                     "evaluation.")] = False):
+                                                     "evaluation.")] = False,
+             video: Annotated[Optional[list[str]], typer.Option("--video", help="NAME=URL: a written video store "
+                              "(your own method's) scored beside the methods; repeatable.")] = None):
     """PSNR / SSIM of methods against a store's ground truth: a table, CSVs and a side-by-side picture."""
-    from pipeline.jobs.evaluate import evaluate as run
+    from pipeline.jobs.evaluate import evaluate as run, parse_videos
 
     rows = run(store, [m.strip() for m in methods.split(",") if m.strip()], out_dir, weights=weights,
-               workers=workers, scheduler=scheduler, overwrite=overwrite)
+               workers=workers, scheduler=scheduler, overwrite=overwrite, videos=parse_videos(video))
     table = Table(title=f"{store}: against ground truth ({rows[0]['frames']} frames)")
     for column in ("method", "PSNR (dB)", "SSIM", "s / image"):
         table.add_column(column, justify="left" if column == "method" else "right")
     for row in rows:
-        table.add_row(row["method"], f"{row['psnr']:.2f}", f"{row['ssim']:.4f}", f"{row['seconds_per_image']:.2f}")
+        seconds = row["seconds_per_image"]
+        table.add_row(row["method"], f"{row['psnr']:.2f}", f"{row['ssim']:.4f}",
+                      "written" if seconds is None else f"{seconds:.2f}")
     stdout.print(table)
     stdout.print(f"wrote {out_dir}/metrics.csv, {out_dir}/summary.csv, {out_dir}/comparison.png")

@@ -18,19 +18,19 @@ from pipeline.stores.ground_truth import read_truth
 from pipeline.stores.images import write_image
 from pipeline.stores.outputs import EVALUATION, mark_folder, new_output
 from pipeline.jobs.reconstruct import ReconstructOptions, checked_method, reconstruct
-from pipeline.stores.spike_store import open_spike_store
+from pipeline.stores.spike_store import open_spike_store, store_identity
 from pipeline.stores.storage import check_apart, resolve
-from pipeline.stores.video_store import VIDEO, open_video_store
+from pipeline.stores.video_store import FRAMES, VIDEO, open_video_store
 from stages.errors import InputError
 from stages.measures.metrics import psnr, ssim
 from stages.reconstruction.methods import METHODS, NETWORKS, WINDOW, output_centres
 from stages.measures.montage import labelled, side_by_side
 
 
-def check_methods(methods: list[str], weights: str | None = None) -> None:
-    """Refuse a ``--methods`` list that is empty, or names a method that does not exist or one twice, and
-    ``--weights`` with no network among them, before any method runs."""
-    if not methods:
+def check_methods(methods: list[str], weights: str | None = None, videos: dict | None = None) -> None:
+    """Refuse a ``--methods`` list that is empty (with no ``--video`` to score), or names a method that does not
+    exist or one twice, and ``--weights`` with no network among them, before any method runs."""
+    if not methods and not videos:
         raise InputError(f"--methods is empty: give one or more of {', '.join(METHODS)}, separated by commas")
     for index, method in enumerate(methods):
         if method not in METHODS:
@@ -42,10 +42,60 @@ def check_methods(methods: list[str], weights: str | None = None) -> None:
                          f"have no weights to load: leave --weights out")
 
 
-def checked_evaluation(store_url: str, methods: list[str], weights: str | None) -> tuple:
+def parse_videos(texts: list[str] | None) -> dict[str, str]:
+    """``--video NAME=URL`` (repeatable) -> {NAME: URL}; one line for a text without ``=`` or a name given twice."""
+    videos: dict[str, str] = {}
+    for text in texts or []:
+        name, sign, url = text.partition("=")
+        if not sign or not name.strip() or not url.strip():
+            raise InputError(f"--video {text!r}: give NAME=URL (a name for the table, a video store's path or URL)")
+        if name.strip() in videos:
+            raise InputError(f"--video names {name.strip()} twice")
+        videos[name.strip()] = url.strip()
+    return videos
+
+
+def checked_videos(videos: dict, store, truth, truth_frames, methods: list[str]) -> dict[str, tuple]:
+    """Every ``--video NAME=URL`` checked against the store's truth before anything is written: a name of its own
+    (not a method's, not empty), a complete video store made from this recording (where it records its source),
+    holding every truth frame, at the truth's scale (a ``region`` is scored against that part of the truth).
+    -> {name: (video array, the index of each truth frame in it, (y0, y1, x0, x1) of the truth it covers)}."""
+    if not isinstance(videos, dict) or not all(isinstance(k, str) and isinstance(v, str) for k, v in videos.items()):
+        raise InputError(f"videos must map names to video store URLs ({{'mine': 'mine.zarr'}}), got {videos!r}")
+    checked = {}
+    for name, url in videos.items():
+        if not name.strip() or "," in name or name in methods:
+            raise InputError(f"--video {name}={url}: give it a name of its own (not empty, no comma, not one of "
+                             f"--methods)")
+        group = open_video_store(url)
+        attrs = dict(group.attrs)
+        if attrs.get("state") != "complete":
+            raise InputError(f"--video {name}={url} is incomplete (state {attrs.get('state')!r}): finish it first")
+        if attrs.get("source_identity") not in (None, store_identity(store)):
+            raise InputError(f"--video {name}={url} was made from another recording (source {attrs.get('source')}), "
+                             f"not {store.url}")
+        frames = group[FRAMES][:]
+        at = np.searchsorted(frames, truth_frames).clip(0, max(len(frames) - 1, 0))
+        if not len(frames) or not np.array_equal(frames[at], truth_frames):
+            missing = [int(f) for f in truth_frames if f not in set(frames.tolist())]
+            raise InputError(f"--video {name}={url} lacks the truth's frames {missing[:4]}...: reconstruct every "
+                             f"{int(store.attrs.get('truth_every', WINDOW))} frames with window {WINDOW} (the truth's)")
+        height, width = truth.shape[1:3]
+        scale = attrs.get("scale")
+        region = attrs.get("region") or [0, store.shape[1], 0, store.shape[2]]
+        crop = [side * scale for side in region] if isinstance(scale, int) else [0, height, 0, width]
+        if group[VIDEO].shape[1:3] != (crop[1] - crop[0], crop[3] - crop[2]) or crop[1] > height or crop[3] > width:
+            raise InputError(f"--video {name}={url} is {group[VIDEO].shape[2]}x{group[VIDEO].shape[1]} HR at scale "
+                             f"{scale}, region {region}; the truth is {width}x{height}: give a video at the truth's "
+                             f"scale")
+        checked[name] = (group[VIDEO], at, tuple(crop))
+    return checked
+
+
+def checked_evaluation(store_url: str, methods: list[str], weights: str | None, videos: dict | None = None) -> tuple:
     """Every check of an evaluation that needs no output: the store's truth, and every method's options
     and weights against it. -> (store, truth frames, options per method)."""
-    check_methods(methods, weights)
+    check_methods(methods, weights, videos)
     store = open_spike_store(store_url)
     _, truth_frames = read_truth(store)
     every = int(store.attrs.get("truth_every", WINDOW))
@@ -60,29 +110,41 @@ def checked_evaluation(store_url: str, methods: list[str], weights: str | None) 
 
 def evaluate(store_url: str, methods: list[str], out_dir: str, *, weights: str | None = None,
              workers: int | None = None, scheduler: str | None = None, client=None, progress: bool = True,
-             overwrite: bool = False) -> list[dict]:
-    """Reconstruct with every method at the truth frames; return one summary row per method.
+             overwrite: bool = False, videos: dict[str, str] | None = None) -> list[dict]:
+    """Reconstruct with every method at the truth frames; return one summary row per method, then one per written
+    video of ``videos`` (name -> URL: your own method's output, e.g. ``cscsr.lazy.to_video``), scored alike at
+    the truth frames (its ``seconds_per_image`` None: not timed here).
 
     ``out_dir`` is a new output: an existing one is refused unless ``overwrite`` (and it is an evaluation),
     and a failed evaluation leaves none."""
-    check_apart(out_dir, store_url, weights)
+    videos = {} if videos is None else videos
+    check_apart(out_dir, store_url, weights, *(videos.values() if isinstance(videos, dict) else ()))
     check_workers(workers)
     check_in_memory((store_url, out_dir, weights), client=client)  # the reconstructions' tasks read and write them
-    store, truth_frames, options = checked_evaluation(store_url, methods, weights)
+    store, truth_frames, options = checked_evaluation(store_url, methods, weights, videos)
+    written = checked_videos(videos, store, read_truth(store)[0], truth_frames, methods)
     if client is None:
         check_scheduler(scheduler)  # a named scheduler answers (within seconds) before OUT exists
     with new_output(out_dir, overwrite=overwrite, kind=EVALUATION):
         mark_folder(out_dir, EVALUATION)
         return _evaluate(store_url, store, truth_frames, options, methods, out_dir, workers=workers,
-                         scheduler=scheduler, client=client, progress=progress)
+                         scheduler=scheduler, client=client, progress=progress, written=written)
 
 
 def _evaluate(store_url: str, store, truth_frames, options: dict, methods: list[str], out_dir: str, *,
-              workers: int | None, scheduler: str | None, client, progress: bool) -> list[dict]:
+              workers: int | None, scheduler: str | None, client, progress: bool, written: dict) -> list[dict]:
     truth, _ = read_truth(store)
     fs, root = resolve(out_dir)
 
     rows, per_frame, videos = [], [], {}
+    for name, (video, at, (y0, y1, x0, x1)) in written.items():  # written videos: read, nothing to run
+        frames = [video[int(i)] for i in at]
+        scores = [(psnr(frame, truth[k][y0:y1, x0:x1]), ssim(frame, truth[k][y0:y1, x0:x1]))
+                  for k, frame in enumerate(frames)]
+        per_frame += [{"method": name, "frame": int(f), "psnr": p, "ssim": s} for f, (p, s) in zip(truth_frames, scores)]
+        rows.append({"method": name, "psnr": float(np.mean([p for p, _ in scores])),
+                     "ssim": float(np.mean([s for _, s in scores])), "frames": len(scores), "seconds_per_image": None})
+        videos[name] = _in_frame(frames, truth.shape[1:3], (y0, x0))
     with contextlib.nullcontext(client) if client else dask_client(workers=workers, scheduler=scheduler) as client:
         for method in methods:
             out = f"{str(out_dir).rstrip('/')}/{method}.zarr"
@@ -92,14 +154,29 @@ def _evaluate(store_url: str, store, truth_frames, options: dict, methods: list[
             video = open_video_store(out)[VIDEO]
             scores = [(psnr(video[k], truth[k]), ssim(video[k], truth[k])) for k in range(len(truth_frames))]
             per_frame += [{"method": method, "frame": int(f), "psnr": p, "ssim": s} for f, (p, s) in zip(truth_frames, scores)]
-            rows.append({"method": method, "psnr": float(np.mean([p for p, _ in scores])),
-                         "ssim": float(np.mean([s for _, s in scores])), "frames": len(scores),
-                         "seconds_per_image": seconds / len(scores)})
+            rows.insert(len(rows) - len(written), {"method": method, "psnr": float(np.mean([p for p, _ in scores])),
+                                                   "ssim": float(np.mean([s for _, s in scores])),
+                                                   "frames": len(scores), "seconds_per_image": seconds / len(scores)})
             videos[method] = video
+    videos = {**{m: videos[m] for m in methods}, **{name: videos[name] for name in written}}
+    per_frame.sort(key=lambda row: [*methods, *written].index(row["method"]))
     _write_csv(f"{root}/metrics.csv", fs, per_frame)
     _write_csv(f"{root}/summary.csv", fs, rows)
     write_image(f"{str(out_dir).rstrip('/')}/comparison.png", comparison_picture(truth, truth_frames, videos))
     return rows
+
+
+def _in_frame(frames: list[np.ndarray], size: tuple[int, int], origin: tuple[int, int]) -> list[np.ndarray]:
+    """Frames of a part of the picture (a video's ``region``) placed where they belong in black frames of ``size``:
+    pictures side by side at one size."""
+    if frames and frames[0].shape[:2] == tuple(size):
+        return frames
+    placed = []
+    for frame in frames:
+        whole = np.zeros((*size, 3), np.uint8)
+        whole[origin[0]:origin[0] + frame.shape[0], origin[1]:origin[1] + frame.shape[1]] = frame
+        placed.append(whole)
+    return placed
 
 
 def comparison_picture(truth, truth_frames, videos: dict) -> np.ndarray:

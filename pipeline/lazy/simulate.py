@@ -35,11 +35,14 @@ from pipeline.stores.outputs import SPIKE_STORE, check_existing, new_output
 from pipeline.jobs.simulate import SimulateOptions, check_options, fire_chunk, simulated_meta, state_after
 from pipeline.stores.spike_store import (COMMITTED, SPIKES, SpikeMeta, SpikeStoreWriter, chunk_frames_for,
                                   open_spike_store, write_region)
+from pipeline.stores.ground_truth import declare_truth, has_truth, write_truth
 from pipeline.stores.storage import check_apart, exists
 from stages.simulation import sensor
 from stages.capture.bits import count_spikes, pack_rows, packed_width
 from stages.errors import InputError, InputTypeError, describe
+from stages.reconstruction.methods import WINDOW, output_centres
 from stages.simulation.intensities import to_unit_rgb
+from stages.simulation.latent import truth_image
 from stages.numbers import check_flag, check_number
 
 FRAME_DIMS = ("t", "y", "x", "rgb")  # HR scene frames: one per spike frame
@@ -151,7 +154,7 @@ class SpikesIncomplete(RuntimeError):
 
 
 def to_spikes(spikes: xr.DataArray, url: str, *, chunk_frames: int | None = None, task_frames: int | None = None,
-              overwrite: bool = False, resume: bool = False) -> dict:
+              overwrite: bool = False, resume: bool = False, truth: xr.DataArray | None = None) -> dict:
     """Write lazy ``spikes`` (t, y, x) bool (the convention of ``pipeline.lazy.spikes``) into a new spike store at
     ``url``, computed on the active scheduler; -> ``attrs`` (the store's final attributes), ``frames``, ``spikes``
     (their count), ``tasks``, ``tasks_run``, ``tasks_skipped``.
@@ -162,9 +165,15 @@ def to_spikes(spikes: xr.DataArray, url: str, *, chunk_frames: int | None = None
     keeps what it committed; ``resume=True`` runs only the tasks not committed, cut as the store was (it refuses a
     store of other attributes, frame count or chunking; that the spikes are the same data is the caller's word).
     Everything is checked, in one line, before anything is written.
+
+    ``truth``: the HR scene frames the spikes were simulated from (:func:`simulate`'s ``frames``), written as the
+    ``simulate`` job writes its ground truth (``pipeline.stores.ground_truth``: the picture at each 41-frame window
+    centre, every ``truth_every`` frames), after the spikes and before the store is complete, so that ``cscsr
+    evaluate`` scores reconstructions of it. A resume of a store written with truth needs it again.
     """
     url = url_text(url)
     plan = _ToSpikes.checked(spikes, url, chunk_frames, task_frames, overwrite, resume)
+    centres = _checked_truth(truth, spikes, url, resume)
     with claimed(url):  # one job per store, taken atomically before the store is touched
         if resume:
             check_free(url)  # and no live lease (a job on a machine that shares no claim file with us)
@@ -178,14 +187,64 @@ def to_spikes(spikes: xr.DataArray, url: str, *, chunk_frames: int | None = None
                 writer.add_array(COMMITTED, (plan.n_tasks,), (1,), np.int64, ("task",),
                                  {"units": COMMITTED_UNITS, "task_frames": plan.task_frames}, fill_value=-1)
                 counts = np.full(plan.n_tasks, -1, np.int64)
+                if truth is not None:
+                    meta = plan.meta
+                    declare_truth(writer, centres, truth.shape[1:3], float(meta.fps), with_flow=False)
             todo = [index for index in range(plan.n_tasks) if counts[index] < 0]
             if todo:
                 with held(url):
                     counts[todo] = plan.run(spikes.data, todo)
+            if truth is not None and writer.group.attrs.get("state") != "complete":
+                with held(url):
+                    _write_truths(truth, centres, url, spikes.attrs["cfa"])
             if writer.group.attrs.get("state") != "complete":
                 writer.finish(spike_count=int(counts.sum()))
     return {"attrs": dict(writer.group.attrs), "frames": plan.n_frames, "spikes": int(counts.sum()),
             "tasks": plan.n_tasks, "tasks_run": len(todo), "tasks_skipped": plan.n_tasks - len(todo)}
+
+
+def _checked_truth(truth, spikes: xr.DataArray, url: str, resume: bool) -> list[int]:
+    """The truth's centres (the ``simulate`` job's: ``output_centres(frames, WINDOW, truth_every)``) if ``truth`` is
+    the HR scene of ``spikes`` (one frame per spike frame, ``scale`` times its pixels), else one line; and a resume
+    must give truth exactly where the store was begun with it."""
+    if resume:
+        has = has_truth(open_spike_store(url, allow_incomplete=True).group)
+        if has != (truth is not None):
+            raise InputError(f"cannot resume {url}: it was begun {'with' if has else 'without'} truth=: "
+                             f"{'give the same scene frames' if has else 'leave truth out'}")
+    if truth is None:
+        return []
+    frames = _checked_frames(truth).shape
+    scale = spikes.attrs.get("scale")
+    if not isinstance(scale, int) or "truth_every" not in spikes.attrs:
+        raise InputError("truth= is for simulated spikes (lazy.simulate: their scale and truth_every say where the "
+                         "truth goes); these spikes record none")
+    n, height, width = spikes.shape
+    if frames[:3] != (n, scale * height, scale * width):
+        raise InputError(f"truth= must be the scene the spikes were simulated from, ({n}, {scale * height}, "
+                         f"{scale * width}, rgb) at scale {scale}, got {frames}")
+    centres = output_centres(n, WINDOW, int(spikes.attrs["truth_every"]))
+    if not centres:
+        raise InputError(f"truth=: {n} frames hold no {WINDOW}-frame window centre to draw the truth at")
+    return centres
+
+
+def _write_truths(truth: xr.DataArray, centres: list[int], url: str, cfa: str) -> None:
+    """Write the truth at each centre (one task per picture, on the active scheduler): the simulate job's
+    ``truth_image`` of the scene frame there."""
+    scene = truth.data if isinstance(truth.data, da.Array) else da.from_array(truth.data, chunks=(1, -1, -1, -1))
+    picked = scene[np.asarray(centres)].rechunk((1, -1, -1, -1))
+    written = picked.map_blocks(_write_truth_block, url, cfa, tuple(centres), drop_axis=(1, 2, 3), chunks=((1,) * len(centres),),
+                                dtype=np.int64, meta=np.empty((0,), np.int64), name=f"truth-{tokenize(picked.name, url)}")
+    written.compute()
+
+
+def _write_truth_block(frame: np.ndarray, url: str, cfa: str, centres: tuple[int, ...], block_info=None) -> np.ndarray:
+    """Task: truth picture ``k`` (the block's place) from its scene frame (1, s*H, s*W, c), spike frame centres[k]."""
+    k = block_info[0]["chunk-location"][0]
+    check_intensities(frame, centres[k])
+    write_truth(url, k, truth_image(to_unit_rgb(frame[0]), cfa))
+    return np.ones(1, np.int64)
 
 
 class _ToSpikes:
