@@ -24,11 +24,13 @@ def model_info(config: str | None = None, weights: str | None = None) -> dict[st
     rows = {
         "configuration": cfg.name,
         "parameters (network, as the paper counts)": f"{counts['network']:,} ({counts['network'] / 1e6:.2f} M)",
-        "  BSSR (R, G, B)": f"{_count(model.bssr):,}",
+        "  BSSR (mono)" if cfg.mono else "  BSSR (R, G, B)": f"{_count(model.bssr):,}",
         "  temporal-pixel features": f"{_count(model.temporal):,}",
         "  integration and upsampling": f"{_count(model.integration):,}",
         "parameters (spike-flow network, apart)": f"{counts['flow']:,} ({counts['flow'] / 1e6:.2f} M)",
         "frames N, window w, stride s -> N'": f"{cfg.frames}, {cfg.length}, {cfg.stride} -> {cfg.time_points}",
+        "colours": "mono: one branch, every pixel; grey output as three equal channels" if cfg.mono
+                   else "Bayer: R, G, B branches",
         "features C (per colour), F (trunk), ResBlocks": f"{cfg.colour_features}, {cfg.features}, {cfg.blocks}",
         "motion estimation": f"{cfg.motion}, flow guidance {'on' if cfg.flow_guidance else 'off'}",
         "scales": ", ".join(map(str, NETWORK_SCALES)),

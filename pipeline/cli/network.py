@@ -10,7 +10,7 @@ from pipeline.cli.core import Scheduler, Workers, command, command_line, show_ta
 
 
 @command("model-info")
-def model_info(config: Annotated[str, typer.Option(help="Named configuration: lite or full.")] = "lite",
+def model_info(config: Annotated[str, typer.Option(help="Named configuration: lite, full or lite-mono (mono recordings).")] = "lite",
                weights: Annotated[Optional[str], typer.Option(help="Describe this weights file instead.")] = None):
     """Parameter counts and settings of a CSCSR network configuration (or of a weights file)."""
     from cscsr.weights.model_info import model_info as describe
@@ -22,7 +22,8 @@ def model_info(config: Annotated[str, typer.Option(help="Named configuration: li
 @command()
 def train(context: typer.Context,
           out: Annotated[str, typer.Argument(help="Folder for checkpoints, log.jsonl and the final weights.")],
-          config: Annotated[str, typer.Option(help="Network configuration: lite or full.")] = "lite",
+          config: Annotated[str, typer.Option(help="Network configuration: lite, full or lite-mono (mono clips; --init a colour file "
+                                                       "starts it from that file's green branch).")] = "lite",
           steps: Annotated[int, typer.Option(help="Optimiser steps in all (a resumed run continues to this).")] = 20000,
           batch: Annotated[int, typer.Option(help="Clips per step.")] = 8,
           lr_side: Annotated[int, typer.Option(help="LR crop side of a training clip (even).")] = 32,
