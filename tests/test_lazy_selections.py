@@ -250,3 +250,24 @@ def test_a_resume_refuses_another_graph_and_finishes_the_same_one(recording, tmp
     counts = lazy.to_video(hr_of(7), out, resume=True)  # built again from the same code: the same graph
     assert counts["tasks_skipped"] > 0 and stored(out)[2]["state"] == "complete"
     assert (stored(out)[0] == 7).all()
+
+
+# ---- the graph's tools ----
+
+def test_tasks_are_named_by_stage_and_counted_in_the_job_s_units(recording, tmp_path):
+    hr = lazy.tfp(lazy.windows(lazy.open_spikes(recording), every=20), tile=32)  # 8 frames, 2x2 tiles
+    stages = {key[0].rsplit("-", 1)[0] for key in hr.data.__dask_graph__() if isinstance(key, tuple)}
+    assert {"spikes", "windows", "tfp"} <= stages, stages  # read and unpacked, windowed, reconstructed
+    out = str(tmp_path / "hr.zarr")
+    fresh = lazy.to_video(hr, out)
+    again = lazy.to_video(hr, out, resume=True)  # nothing left to do
+    assert fresh == {"frames": 8, "tasks_run": 8 * 4, "tasks_skipped": 0}  # a frame's tile each, as the job counts
+    assert again == {"frames": 8, "tasks_run": 0, "tasks_skipped": fresh["tasks_run"]}
+
+
+def test_progress_reports_a_line_a_round_when_piped(recording, tmp_path, monkeypatch, capfd):
+    monkeypatch.setattr(lazy_written, "BLOCKS_AT_ONCE", 2)
+    hr = lazy.tfp(lazy.windows(lazy.open_spikes(recording), every=20), tile=32)
+    lazy.to_video(hr, str(tmp_path / "hr.zarr"), progress=True)
+    lines = [line for line in capfd.readouterr().err.splitlines() if line.startswith("to_video")]
+    assert lines[-1].endswith(": 32 of 32 tasks") and len(lines) == 2  # 4 blocks, 2 a round

@@ -26,6 +26,7 @@ import dask
 import dask.array as da
 import numpy as np
 import xarray as xr
+from dask.base import tokenize
 
 from pipeline.compute.cluster import GPU, GPU_SHARE
 from pipeline.jobs.reconstruct_plan import Plan, ReconstructOptions
@@ -188,8 +189,9 @@ def _reconstructed(win: xr.DataArray, spec: _Method, built: Reconstructor, scale
             for t in row:
                 read = data[:, :, t.ry0 - oy : t.ry1 - oy, t.rx0 - ox : t.rx1 - ox]
                 ys, xs = t.crop(scale)
+                arguments = (spec, gain, t.rx1 - t.rx0, cfa, attrs["reset"], scale, (ys, xs), most)
                 rows[-1].append(read.map_blocks(
-                    _reconstruct_block, spec, gain, t.rx1 - t.rx0, cfa, attrs["reset"], scale, (ys, xs), most,
+                    _reconstruct_block, *arguments, name=f"{spec.method}-{tokenize(read.name, *arguments)}",
                     chunks=(read.chunks[0], ((t.y1 - t.y0) * scale,), ((t.x1 - t.x0) * scale,), (3,)),
                     dtype=np.uint8, meta=np.empty((0, 0, 0, 0), np.uint8)))
     hr = da.concatenate([da.concatenate(row, axis=2) for row in rows], axis=1)  # tiles side by side, rows down

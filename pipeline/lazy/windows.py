@@ -14,6 +14,7 @@ import re
 import dask.array as da
 import numpy as np
 import xarray as xr
+from dask.base import tokenize
 
 from pipeline.jobs.reconstruct_plan import ReconstructOptions, job_part
 from pipeline.lazy.spikes import check_spikes, open_spikes, run_of, selection
@@ -92,7 +93,8 @@ def windows(spikes: xr.DataArray, length: int = WINDOW, every: int = WINDOW, sta
     data = da.map_overlap(_windows_of, read, depth={0: half, 1: 0, 2: 0}, boundary="none", trim=False,
                           new_axis=1, chunks=(counts, (length,), read.chunks[1], read.chunks[2]), dtype=bool,
                           meta=np.empty((0, 0, 0, 0), bool), starts=tuple(int(s) for s in starts),
-                          centre0=int(centres[0]), centre1=int(centres[-1]), every=every, half=half, align_arrays=False)
+                          centre0=int(centres[0]), centre1=int(centres[-1]), every=every, half=half, align_arrays=False,
+                          name=f"windows-{tokenize(read.name, starts, centres[0], centres[-1], every, half)}")
     fps = float(attrs["fps"])
     out = xr.DataArray(
         data, dims=WINDOW_DIMS, name="windows",

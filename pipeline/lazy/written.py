@@ -8,6 +8,7 @@ or refused in one line before anything exists.
 """
 
 import functools
+import sys
 import uuid
 
 import dask
@@ -26,6 +27,7 @@ from pipeline.stores.storage import check_place, consolidate, exists, remove_par
 from pipeline.stores.video_store import COMMITTED, TileWriter, committed_mask, create_video_store, open_video_store
 from stages.errors import InputError, InputTypeError
 from stages.numbers import check_flag
+from stages.reconstruction.methods import NETWORKS
 
 BLOCKS_AT_ONCE = 256  # blocks of video to_video computes and writes per round: the graph in memory stays bounded
 
@@ -38,7 +40,9 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
     block is checked against its chunk (shape, uint8), written, then committed; ``resume=True`` continues a store a
     failed or killed call left, computing only the blocks not committed (the same bytes as one uninterrupted call),
     and refuses one written by another graph (``committed``'s ``graph``: the token of ``hr``'s graph, which covers
-    every function in it where Dask can hash it). -> {frames, tasks_run, tasks_skipped}.
+    every function in it where Dask can hash it). -> {frames, tasks_run, tasks_skipped}, counted in the job's tasks
+    (a frame's tile; the network's batch of frames), so that a fresh call's ``tasks_run`` is a finished store's
+    ``tasks_skipped``. ``progress=True``: a bar on a terminal, a line a round where standard error is piped.
 
     ``hr`` may be a selection (``isel``/``sel``) of a reconstruction: a contiguous increasing run of output frames
     (recorded as its ``start``/``stop``) and of whole LR pixels (HR rows and columns in multiples of the scale,
@@ -84,15 +88,24 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
         written = data.map_blocks(_write_block, url, uuid.uuid4().hex, tuple(int(s) for s in starts), tile_hr,
                                   chunks=tuple((1,) * len(c) for c in data.chunks), dtype=np.int64,
                                   meta=np.empty((0, 0, 0, 0), np.int64), name=f"write-{uuid.uuid4().hex}")
-        with held(url), progress_bar(f"to_video {url}", len(blocks), unit="blocks", enabled=progress) as advance:
+        # the job's units: a task per frame and tile for a method that reconstructs one window at a time, a task
+        # per block (the network's batch of frames, one tile) for the network
+        per_block = attrs.get("method") in NETWORKS
+        units = [1 if per_block else data.chunks[0][b] for b, _, _ in blocks]
+        total = (sum(1 for c in data.chunks[0] if c) if per_block else n) * tiles[0] * tiles[1]
+        piped = progress and not sys.stderr.isatty()  # no bar to draw: a line a round
+        with held(url), progress_bar(f"to_video {url}", sum(units), unit="tasks", enabled=progress) as advance:
             for at in range(0, len(blocks), BLOCKS_AT_ONCE):
                 chosen = blocks[at : at + BLOCKS_AT_ONCE]
-                dask.compute(*(written.blocks[b, ty, tx, 0] for b, ty, tx in chosen),
-                             optimize_graph=not _annotated(data))
-                advance(len(chosen))
+                # unoptimised: each stage's tasks keep their names (windows, tfp, write ...) and annotations
+                dask.compute(*(written.blocks[b, ty, tx, 0] for b, ty, tx in chosen), optimize_graph=False)
+                advance(sum(units[at : at + BLOCKS_AT_ONCE]))
+                if piped:
+                    print(f"to_video {url}: {sum(units[: at + len(chosen)])} of {sum(units)} tasks", file=sys.stderr,
+                          flush=True)
         remove_partial_writes(url)
         open_video_store(url, writable=True).attrs["state"] = "complete"
-    return {"frames": n, "tasks_run": len(blocks), "tasks_skipped": int(done.sum())}
+    return {"frames": n, "tasks_run": sum(units), "tasks_skipped": total - sum(units)}
 
 
 def graph_token(data: da.Array) -> str:
@@ -158,12 +171,6 @@ def _tiled(data: da.Array) -> da.Array:
     if regular(data.chunks[1]) and regular(data.chunks[2]) and len(data.chunks[3]) == 1:
         return data
     return data.rechunk({1: data.chunks[1][0], 2: data.chunks[2][0], 3: -1})
-
-
-def _annotated(data: da.Array) -> bool:
-    """Whether a layer of the graph asks for resources (GPU workers): then computed unoptimised, since fusing
-    blockwise layers drops their annotations."""
-    return any(getattr(layer, "annotations", None) for layer in data.__dask_graph__().layers.values())
 
 
 def _resumable(url: str, attrs: dict, n: int, tiles: tuple[int, int], graph: str) -> np.ndarray:
