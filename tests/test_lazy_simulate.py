@@ -203,14 +203,14 @@ def _bad_simulate_calls():
         (lambda: simulate(good.astype(bool)), InputError, "got bool"),
         (lambda: simulate(good.isel(rgb=[0, 1])), InputError, "rgb of size 1, 3 or 4"),
         (lambda: simulate(good, scale=3), InputError, "scale must be one of"),
-        (lambda: simulate(good, scale=4.0), InputTypeError, "--scale"),
+        (lambda: simulate(good, scale=4.0), InputTypeError, "scale must be an integer"),  # Python words
         (lambda: simulate(good, cfa="xyz"), InputError, "xyz"),
         (lambda: simulate(good, noise="loud"), InputError, "unknown noise 'loud'"),
         (lambda: simulate(good, reset="half"), InputError, "unknown reset mode 'half'"),
         (lambda: simulate(good, brightness=0), InputError, "brightness"),
         (lambda: simulate(good, seed=-1), InputError, "seed"),
         (lambda: simulate(good, fps=0), InputError, "fps"),
-        (lambda: simulate(good.isel(t=slice(0, 20))), InputError, "--frames 20 is too few"),
+        (lambda: simulate(good.isel(t=slice(0, 20))), InputError, "frames=20 is too few"),
         (lambda: simulate(good.isel(y=slice(0, 28))), InputError, "not divisible by 2*scale = 8"),
     ]
 

@@ -29,7 +29,7 @@ from dask.highlevelgraph import HighLevelGraph
 from pipeline.stores.frame_sources import FrameSource
 from pipeline.compute.hold import hold_point
 from pipeline.jobs.ingest import COMMITTED_UNITS, task_frames_for
-from pipeline.lazy.spikes import as_spikes, check_here, check_spikes, run_of, unpacked_bits, url_text
+from pipeline.lazy.spikes import as_spikes, check_here, python_words, check_spikes, run_of, unpacked_bits, url_text
 from pipeline.stores.lease import check_free, claimed, held
 from pipeline.stores.outputs import SPIKE_STORE, check_existing, new_output
 from pipeline.jobs.simulate import SimulateOptions, check_options, fire_chunk, simulated_meta, state_after
@@ -74,7 +74,8 @@ def simulate(frames: xr.DataArray, *, scale: int = 4, cfa: str = "rggb", brightn
     options = SimulateOptions(scale=scale, cfa=cfa, brightness=brightness, threshold=threshold, frames=n_frames,
                               seed=seed, noise=noise, reset=reset, interp="linear", fps=fps)
     # the job's checks; of its source they read the frame count and size only
-    height, width = check_options(options, FrameSource("frames", "array", n_frames, hr_height, hr_width))
+    with python_words():
+        height, width = check_options(options, FrameSource("frames", "array", n_frames, hr_height, hr_width))
     source = frames.attrs.get("source")
     meta = simulated_meta(options, height, width, source if isinstance(source, str) else "")
     scene = frames.data

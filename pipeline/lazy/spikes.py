@@ -8,8 +8,10 @@ Stored spikes are bit-packed (8 pixels a byte along x): unpacking is a per-chunk
 is read and unpacked only when something downstream computes it.
 """
 
+import contextlib
 import functools
 import os
+import re
 from typing import NamedTuple
 
 import dask.array as da
@@ -53,6 +55,23 @@ def check_here(urls, *collections) -> None:
 
     check_in_memory(urls, client=client if isinstance(client, Client) else None,
                     instead=", or compute with Dask's threads (dask.config.set(scheduler='threads'))")
+
+
+@contextlib.contextmanager
+def python_words(**renamed: str):
+    """One-line errors of the jobs' checks in Python words: ``--start 300`` -> ``start=300``, ``--window must``
+    -> ``window must`` (``renamed``: an option the function names otherwise, ``window="length"``)."""
+    try:
+        yield
+    except InputError as error:
+        def word(match: re.Match) -> str:
+            name = match.group(1).replace("-", "_")
+            name = renamed.get(name, name)
+            value = match.group(2)
+            return f"{name}={value}" if value else name
+
+        text = re.sub(r"(?<![\w-])--([a-z][a-z-]*)(?: ((?:[-\d'\"(\[]|\w+:)\S*))?", word, str(error))
+        raise type(error)(text) from None
 
 
 def open_spikes(url) -> xr.DataArray:

@@ -8,16 +8,13 @@ a selection along ``dt``) is refused. The output frames, ranges and regions are 
 (``pipeline.jobs.reconstruct_plan.job_part``).
 """
 
-import contextlib
-import re
-
 import dask.array as da
 import numpy as np
 import xarray as xr
 from dask.base import tokenize
 
 from pipeline.jobs.reconstruct_plan import ReconstructOptions, job_part
-from pipeline.lazy.spikes import check_spikes, open_spikes, run_of, selection
+from pipeline.lazy.spikes import check_spikes, open_spikes, python_words, run_of, selection
 from stages.capture.bits import pack_rows
 from stages.errors import InputError, InputTypeError
 from stages.numbers import check_number
@@ -123,23 +120,6 @@ def _whole_recording(spikes: xr.DataArray) -> da.Array | None:
         raise InputError(f"spike store {url} is not the recording these spikes were read from (it was replaced): "
                          f"open it again")
     return whole.data
-
-
-@contextlib.contextmanager
-def python_words(**renamed: str):
-    """One-line errors of the jobs' checks in Python words: ``--start 300`` -> ``start=300``, ``--window must``
-    -> ``window must`` (``renamed``: an option the function names otherwise, ``window="length"``)."""
-    try:
-        yield
-    except InputError as error:
-        def word(match: re.Match) -> str:
-            name = match.group(1).replace("-", "_")
-            name = renamed.get(name, name)
-            value = match.group(2)
-            return f"{name}={value}" if value else name
-
-        text = re.sub(r"(?<![\w-])--([a-z][a-z-]*)(?: ((?:[-\d'\"(\[]|\w+:)\S*))?", word, str(error))
-        raise type(error)(text) from None
 
 
 def _windows_of(block: np.ndarray, *, starts: tuple[int, ...], centre0: int, centre1: int, every: int, half: int,
