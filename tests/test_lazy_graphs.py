@@ -27,6 +27,7 @@ from cscsr import lazy
 from pipeline.compute.cluster import GPU, GPU_SHARE
 from pipeline.lazy import written as lazy_written
 from pipeline.lazy.video import MARGIN
+from pipeline.lazy.windows import WINDOW_BLOCKS
 from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct
 from pipeline.stores.spike_store import SPIKES, SpikeMeta, SpikeStoreWriter
 from stages.errors import InputError, InputTypeError
@@ -89,8 +90,8 @@ def test_the_stages_are_lazy_and_say_what_they_hold(recording):
     with threaded():
         assert np.array_equal(win[3].values, spikes.values[60:101])  # centred on 20 + 3 * 20
     assert list(win.coords["dt"].values) == list(range(-20, 21))
-    # the time overlap is dask's: one task per chunk of the recording, no copy of it in the graph
-    assert win.data.npartitions == spikes.data.npartitions
+    # the time overlap is dask's, no copy of the recording in the graph; a block per window's centre
+    assert win.data.npartitions == 8 and spikes.data.npartitions == 1
     hr = lazy.tfp(win)
     assert hr.dims == ("t", "y", "x", "rgb") and hr.dtype == np.uint8 and hr.shape == (8, 4 * HEIGHT, 4 * WIDTH, 3)
     assert isinstance(hr.coords["gain"].data, dask.array.Array)  # the automatic exposure, not yet computed
@@ -109,7 +110,9 @@ def test_a_million_frames_build_a_small_graph_without_reading_a_chunk(tmp_path):
     shutil.rmtree(tmp_path / "long.zarr" / SPIKES / "c")
     hr = lazy.tfp(lazy.windows(lazy.open_spikes(url), every=41, start="10s", stop="40s"))
     assert hr.shape == (14634, 32, 64, 3)  # the centres in [200000, 800000), every 41 frames
-    assert len(hr.data.__dask_graph__()) < 200  # tasks per chunk of the recording, not per window
+    # a few tasks per block along t, at most WINDOW_BLOCKS of them however long the recording (here 15 windows each)
+    assert hr.data.chunks[0][0] == 15 and len(hr.data.chunks[0]) <= WINDOW_BLOCKS
+    assert len(hr.data.__dask_graph__()) < 10 * WINDOW_BLOCKS
     with threaded(), pytest.raises(InputError, match=r"the chunk of frames \d+\.\.\d+ is missing \(lost data\)"):
         hr[0].compute()
 
@@ -178,7 +181,8 @@ def test_threads_processes_and_a_killed_worker_give_one_result(recording, tmp_pa
 
 
 def test_a_failed_to_video_resumes_to_the_bytes_of_one_run(recording, tmp_path, monkeypatch):
-    """Written 4 blocks a round (12 blocks: 3 rows of 4 tiles): the first row's round is committed, the second's fails."""
+    """Written 4 blocks a round (a block per output frame and tile: 3 rows of 4 tiles): the first round (frame 0's
+    first row of tiles) is committed, the second (its second row) fails."""
     monkeypatch.setattr(lazy_written, "BLOCKS_AT_ONCE", 4)
     failing = tmp_path / "fail"
 
@@ -196,7 +200,7 @@ def test_a_failed_to_video_resumes_to_the_bytes_of_one_run(recording, tmp_path, 
         assert zarr.open_group(str(tmp_path / "resumed.zarr"), mode="r").attrs["state"] == "writing"
         failing.unlink()
         counts = lazy.to_video(hr, str(tmp_path / "resumed.zarr"), resume=True)
-    assert counts["tasks_skipped"] == 23 * 4  # the first row's 4 tiles of the 23 output frames
+    assert counts["tasks_skipped"] == 4 and counts["tasks_run"] == 23 * 12 - 4  # the job's tasks: a frame's tile
     assert np.array_equal(stored(str(tmp_path / "resumed.zarr"))[0], stored(str(tmp_path / "whole.zarr"))[0])
     with pytest.raises(InputError, match="other parameters"):  # another method's output is not resumed
         lazy.to_video(lazy.tfp(lazy.windows(lazy.open_spikes(recording), every=7), tile=16),

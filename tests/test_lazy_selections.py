@@ -271,3 +271,16 @@ def test_progress_reports_a_line_a_round_when_piped(recording, tmp_path, monkeyp
     lazy.to_video(hr, str(tmp_path / "hr.zarr"), progress=True)
     lines = [line for line in capfd.readouterr().err.splitlines() if line.startswith("to_video")]
     assert lines[-1].endswith(": 32 of 32 tasks") and len(lines) == 2  # 4 blocks, 2 a round
+
+
+def test_a_slice_of_hr_computes_only_its_windows(recording):
+    calls = []
+
+    def counted(window):  # one call per window and tile
+        calls.append(window.shape)
+        return np.zeros((4 * window.shape[1], 4 * window.shape[2], 3), np.uint8)
+
+    hr = lazy.apply(lazy.windows(lazy.open_spikes(recording), every=20), counted, scale=4)  # 8 frames, one tile
+    assert hr.data.chunks[0] == (1,) * 8  # a block per output frame: the job's task of a method like this one
+    hr.isel(t=3).compute()
+    assert len(calls) == 1

@@ -24,6 +24,7 @@ from stages.reconstruction.tfp import tfp_rate
 
 MARGIN = 32  # LR pixels kept around a region: the largest halo of a built-in method (the network's, HALO)
 WINDOW_DIMS = ("t", "dt", "y", "x")
+WINDOW_BLOCKS = 1024  # the most blocks along t: a block per window up to this many windows, then several a block
 
 
 def windows(spikes: xr.DataArray, length: int = WINDOW, every: int = WINDOW, start=None, stop=None, region=None,
@@ -83,6 +84,10 @@ def windows(spikes: xr.DataArray, length: int = WINDOW, every: int = WINDOW, sta
     first, last = part.centres[0] - half, part.centres[-1] + half + 1  # the spike frames the windows read
     read = spikes.data[first - chosen.f0:last - chosen.f0, around[0] - by0:around[1] - by0,
                        around[2] - bx0:around[3] - bx0]
+    # blocks of ``every`` frames from the first window's start: a window's centre each (a slice computes only its
+    # windows), several where there are more than WINDOW_BLOCKS windows (the graph stays bounded), at least half a
+    # window long (dask's overlap reads ``half`` frames of each neighbour)
+    read = read.rechunk({0: max(every * -(-len(part.centres) // WINDOW_BLOCKS), half + 1)})
     read = read.rechunk({0: da.overlap.ensure_minimum_chunksize(half + 1, read.chunks[0])}) if half else read
     starts = np.cumsum((0, *read.chunks[0]))  # each chunk's first frame, relative to ``first``
     centres = np.asarray(part.centres) - first
