@@ -270,7 +270,7 @@ def test_progress_reports_a_line_a_round_when_piped(recording, tmp_path, monkeyp
     hr = lazy.tfp(lazy.windows(lazy.open_spikes(recording), every=20), tile=32)
     lazy.to_video(hr, str(tmp_path / "hr.zarr"), progress=True)
     lines = [line for line in capfd.readouterr().err.splitlines() if line.startswith("to_video")]
-    assert lines[-1].endswith(": 32 of 32 tasks") and len(lines) == 2  # 4 blocks, 2 a round
+    assert lines[-1].endswith(": 32 of 32 tasks") and len(lines) == 16  # 32 blocks (a frame's tile each), 2 a round
 
 
 def test_a_slice_of_hr_computes_only_its_windows(recording):
