@@ -284,3 +284,15 @@ def test_a_slice_of_hr_computes_only_its_windows(recording):
     assert hr.data.chunks[0] == (1,) * 8  # a block per output frame: the job's task of a method like this one
     hr.isel(t=3).compute()
     assert len(calls) == 1
+
+
+def test_open_video_refuses_an_unfinished_store_and_a_lost_chunk(recording, tmp_path):
+    hr = lazy.tfp(lazy.windows(lazy.open_spikes(recording), every=50), tile=32)
+    out = str(tmp_path / "hr.zarr")
+    lazy.to_video(hr, out)
+    assert np.array_equal(lazy.open_video(out).values, hr.values)
+    chunk = next(path for path in (tmp_path / "hr.zarr" / "video" / "c").rglob("*") if path.is_file())
+    chunk.unlink()
+    refused(lambda: lazy.open_video(out), "has lost data")
+    zarr.open_group(out, mode="r+").attrs["state"] = "writing"
+    refused(lambda: lazy.open_video(out), "is incomplete")

@@ -3,7 +3,7 @@
     spikes (t, y, x) bool                      lazy.open_spikes, lazy.simulate  (pipeline.lazy.spikes)
       -> windows (t, dt, y, x) bool            one 41-frame window per output frame: dask's overlap along time
       -> hr (t, y, x, rgb) uint8               tfp, tfi, reconstruct, apply: a blockwise map per tile, halo included
-      -> a video store                          to_video: written per (frames, tile) block, committed, resumable
+      -> a video store                          to_video (pipeline.lazy.written): per (frames, tile) block, resumable
 
 The arithmetic is the job's own (one home for each piece): the output frames, ranges and regions of
 ``pipeline.jobs.reconstruct_plan.job_part``, the tiles and halos of ``stages.reconstruction.tiles.tile_grid``, the reconstructors of

@@ -24,7 +24,8 @@ from pipeline.lazy.windows import _output_part
 from pipeline.stores.lease import claimed, held
 from pipeline.stores.outputs import VIDEO_STORE, new_output
 from pipeline.stores.storage import check_place, consolidate, exists, remove_partial_writes
-from pipeline.stores.video_store import COMMITTED, TileWriter, committed_mask, create_video_store, open_video_store
+from pipeline.stores.video_store import (COMMITTED, TileWriter, committed_mask, create_video_store, lost_frames,
+                                         open_video_store)
 from stages.errors import InputError, InputTypeError
 from stages.numbers import check_flag
 from stages.reconstruction.methods import NETWORKS
@@ -218,7 +219,7 @@ def open_video(url) -> xr.DataArray:
     ``frame`` (its centre spike frame), ``y``/``x`` (HR pixels of the recording: the ``region`` times ``scale``)
     and ``gain``; ``attrs`` what the store records of how it was made (as ``hr.attrs``). A store written by the
     ``reconstruct`` job, or before ``region``/``fps`` were recorded, reads alike (its y/x from 0). Refuses, in one
-    line, what is not a video store, a damaged one, and one whose writer did not finish."""
+    line, what is not a video store, a damaged one (a chunk lost), and one whose writer did not finish."""
     url = url_text(url)
     check_here([url])
     group = open_video_store(url)
@@ -226,6 +227,8 @@ def open_video(url) -> xr.DataArray:
     if attrs.get("state") != "complete":
         raise InputError(f"video store {url} is incomplete (state {attrs.get('state')!r}): its writer did not finish; "
                          f"finish it with to_video(..., resume=True) or cscsr reconstruct --resume")
+    if lost := lost_frames(group):  # a listing, no chunk read: a lost chunk would read as black
+        raise InputError(f"video store {url} has lost data: {lost}: make it again")
     video, frames = group["video"], np.asarray(group["frames"][:], np.int64)
     n, height, width, _ = video.shape
     data = da.from_array(video, chunks=video.chunks, asarray=True, fancy=False, name=f"video-{tokenize(url, attrs)}")
