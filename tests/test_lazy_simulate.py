@@ -241,7 +241,7 @@ def test_to_spikes_refuses_bad_input_in_one_line_before_anything_is_written(tmp_
         (lambda: to_spikes(spikes.transpose("t", "x", "y"), out), InputError, "must have dims"),
         (lambda: to_spikes(spikes.astype(np.uint8), out), InputError, "must be bool"),
         (lambda: to_spikes(spikes.compute(), out), InputError, "dask-backed"),
-        (lambda: to_spikes(spikes[:, :4], out), InputError, "record 8x12"),
+        (lambda: to_spikes(spikes[:, :4], out), InputError, "a selection of pixels (y 0:4, x 0:12 of the recording's 8x12)"),
         (lambda: to_spikes(spikes[:0], out), InputError, "no frame"),
         (lambda: to_spikes(lacking, out), InputError, "lack height"),
         (lambda: to_spikes(spikes, 5), InputTypeError, "url must be a path or URL"),

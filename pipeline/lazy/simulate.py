@@ -29,7 +29,7 @@ from dask.highlevelgraph import HighLevelGraph
 from pipeline.stores.frame_sources import FrameSource
 from pipeline.compute.hold import hold_point
 from pipeline.jobs.ingest import COMMITTED_UNITS, task_frames_for
-from pipeline.lazy.spikes import as_spikes, check_here, python_words, check_spikes, run_of, unpacked_bits, url_text
+from pipeline.lazy.spikes import as_spikes, check_here, check_spikes, python_words, selection, unpacked_bits, url_text
 from pipeline.stores.lease import check_free, claimed, held
 from pipeline.stores.outputs import SPIKE_STORE, check_existing, new_output
 from pipeline.jobs.simulate import SimulateOptions, check_options, fire_chunk, simulated_meta, state_after
@@ -270,7 +270,12 @@ class _ToSpikes:
     def checked(cls, spikes, url, chunk_frames, task_frames, overwrite, resume) -> "_ToSpikes":
         """Every check of the arguments, the output and (``resume``) the store to finish; reads, never writes."""
         check_spikes(spikes)
-        run_of(spikes.coords["frame"].values, "frame", "spikes")  # a run of frames: one rate, one time base
+        chosen = selection(spikes)  # a run of frames (one rate, one time base), steps and repeats refused
+        if chosen.box != (0, chosen.shape[1], 0, chosen.shape[2]):
+            y0, y1, x0, x1 = chosen.box
+            raise InputError(f"spikes are a selection of pixels (y {y0}:{y1}, x {x0}:{x1} of the recording's "
+                             f"{chosen.shape[1]}x{chosen.shape[2]}): to_spikes writes whole frames (a crop's colour "
+                             f"phase and place would be lost); a crop is reconstructed as it is, by lazy.windows")
         check_flag("overwrite", overwrite)
         check_flag("resume", resume)
         for label, value in (("chunk_frames", chunk_frames), ("task_frames", task_frames)):
