@@ -137,7 +137,7 @@ def test_the_lazy_graphs_example_prints_what_the_page_says(tmp_path):
     done = subprocess.run([sys.executable, "example.py"], cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
     printed, expected = done.stdout.splitlines(), documented_outputs(code)
-    assert len(expected) == 7 and len(printed) == len(expected), done.stdout
+    assert len(expected) == 9 and len(printed) == len(expected), done.stdout
     for line, documented in zip(printed, expected):
         assert re.fullmatch(".*".join(map(re.escape, documented.split("..."))), line), (line, documented)
     assert (tmp_path / "hr.zarr" / "zarr.json").exists() and (tmp_path / "mine.zarr" / "zarr.json").exists()
