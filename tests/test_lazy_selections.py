@@ -296,3 +296,13 @@ def test_open_video_refuses_an_unfinished_store_and_a_lost_chunk(recording, tmp_
     refused(lambda: lazy.open_video(out), "has lost data")
     zarr.open_group(out, mode="r+").attrs["state"] = "writing"
     refused(lambda: lazy.open_video(out), "is incomplete")
+
+
+def test_windows_sliced_in_space_say_so(recording):
+    """Windows of a region with their margin: a slice that keeps the region and the method's halo is honoured; one
+    that cuts the halo is refused naming the slice (not the margin); one inside the region is refused."""
+    win = lazy.windows(lazy.open_spikes(recording), every=50, region="16:32,16:32")  # kept: y 0:48, x 0:64
+    kept = lazy.tfp(win.isel(y=slice(8, 40), x=slice(8, 40)), tile=16)
+    assert np.array_equal(kept.values, lazy.tfp(win, tile=16).values)
+    refused(lambda: lazy.tfp(win.isel(y=slice(12, 40))), "they were sliced (y 12:40, x 0:64 of the y 0:48, x 0:64")
+    refused(lambda: lazy.tfp(win.isel(y=slice(20, 40))), "inside their region")
