@@ -12,6 +12,10 @@ scheduler)::
     hr = hr.copy(data=hr.data.map_blocks(my_filter))      # anything a Dask user does, between stages
     lazy.to_video(hr, "hr.zarr")                          # a video store, as cscsr reconstruct writes it
 
+A selection (``isel``/``sel``) of spikes, windows or ``hr`` is honoured exactly, in the recording's frames and
+pixels, or refused in one line before anything is written (``docs/python.md``, "Selections");
+``open_video(url)`` reads a written store back as the ``hr`` that wrote it.
+
 The same arithmetic, reconstructors and store writers as the jobs: ``to_video(reconstruct(windows(...)))`` writes
 the bytes ``cscsr reconstruct`` writes with the same options. Spikes: :mod:`pipeline.lazy.spikes` (reading) and
 :mod:`pipeline.lazy.simulate` (simulating, writing); windows: :mod:`pipeline.lazy.windows`; reconstructions:

@@ -6,6 +6,12 @@ The convention every lazy stage (:mod:`pipeline.lazy`) takes and gives for spike
 indices); ``attrs`` the store's attributes (``cfa``, ``fps``, ``reset``, ``gain`` ...), which the stages read.
 Stored spikes are bit-packed (8 pixels a byte along x): unpacking is a per-chunk stage of the graph, so a chunk
 is read and unpacked only when something downstream computes it.
+
+The rule every lazy stage keeps for xarray selections (``isel``, ``sel``, slicing): honoured exactly, in the
+recording's numbers (the coordinates carried through), or refused in one line before anything is written.
+:func:`selection` reads which part of its recording a ``DataArray`` of spikes holds from its coordinates, and
+:func:`run_of` refuses steps, repeats and reversed or shuffled runs; errors of the jobs' checks are said in
+Python words (``start=``, not ``--start``: :func:`python_words`).
 """
 
 import contextlib
