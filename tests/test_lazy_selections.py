@@ -306,3 +306,41 @@ def test_windows_sliced_in_space_say_so(recording):
     assert np.array_equal(kept.values, lazy.tfp(win, tile=16).values)
     refused(lambda: lazy.tfp(win.isel(y=slice(12, 40))), "they were sliced (y 12:40, x 0:64 of the y 0:48, x 0:64")
     refused(lambda: lazy.tfp(win.isel(y=slice(20, 40))), "inside their region")
+
+
+RESUMED = """
+import os, sys
+import dask, numpy as np
+from cscsr import lazy
+from pipeline.lazy import written
+recording, out, flag, resume = sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[4] == "resume"
+written.BLOCKS_AT_ONCE = 1
+
+def dimmed(block, block_info=None):  # output frames from 5 on fail while the flag exists (a full disk)
+    if os.path.exists(flag) and block_info[0]["chunk-location"][0] >= 5:
+        raise RuntimeError("disk full")
+    return block // 2
+
+hr = lazy.tfp(lazy.windows(lazy.open_spikes(recording), every=20), tile=48)
+hr = hr.copy(data=hr.data.map_blocks(dimmed, dtype=np.uint8))
+with dask.config.set(scheduler="synchronous"):
+    print(lazy.to_video(hr, out, resume=resume)["tasks_skipped"])
+"""
+
+
+def test_a_resume_in_another_process_is_the_same_graph(recording, tmp_path):
+    """A call that failed in one process is resumed by the same code in another: the graph's token is the same
+    there (Dask hashes the function by its code and closure), so the resume runs only what was left."""
+    import subprocess
+    import sys
+
+    out, flag = str(tmp_path / "hr.zarr"), tmp_path / "flag"
+    flag.touch()
+    args = [sys.executable, "-c", RESUMED, recording, out, str(flag)]
+    failed = subprocess.run([*args, "fresh"], capture_output=True, text=True, timeout=300)
+    assert failed.returncode != 0 and "disk full" in failed.stderr
+    flag.unlink()
+    resumed = subprocess.run([*args, "resume"], capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    assert int(resumed.stdout.split()[-1]) == 5 * 2  # frames 0..4 (2 tiles each) committed before the failure
+    assert stored(out)[2]["state"] == "complete"
