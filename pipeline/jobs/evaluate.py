@@ -4,7 +4,8 @@ Each method runs through the same distributed reconstruction as ``cscsr reconstr
 exactly the store's truth frames (window 41, one output every ``truth_every`` frames), into
 ``OUT/<method>.zarr``. PSNR and SSIM come from scikit-image. Writes ``OUT/metrics.csv``
 (one row per method and frame), ``OUT/summary.csv`` and ``OUT/comparison.png`` (truth and
-every method side by side at the middle truth frame).
+every method side by side at the middle truth frame). Written videos (``--video NAME=URL``: your own method's, e.g.
+``cscsr.lazy.to_video``) are read, not run, and scored alike beside the methods.
 """
 
 import contextlib
