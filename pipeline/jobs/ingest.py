@@ -182,19 +182,13 @@ def _prepare(src: str, dest: str, options: IngestOptions, *, parallel: bool, cli
         raise InputError(f"cannot resume: {dest} does not exist")
     if parallel:  # a client whose workers are in this process shares its memory://
         check_in_memory((src, dest), client=client, instead=", or ingest without --workers or --scheduler")
-    capture = open_capture(src, height=options.height, width=options.width, flip=options.flip,
-                           head_columns=options.head_columns, key=options.key, layout=options.layout)
+    capture = opened_capture(src, options)
     if parallel and not capture.ranged:
         raise InputError(f"{src}: a .npz is read as one stream, and parallel ingest (--workers, --scheduler, "
                          f"DASK_SCHEDULER_ADDRESS) reads "
                          f"a capture by frame range ({', '.join(RANGED_KINDS)}): ingest it without them, or save "
                          f"the array as .npy")
-    sensor_cfa = check_cfa(options.cfa, capture.height, capture.width)
-    meta = SpikeMeta(
-        height=capture.height, width=capture.width,
-        cfa=flip_vertically(sensor_cfa, capture.height) if options.flip else sensor_cfa,
-        fps=options.fps, source=recorded(src), flipped=options.flip, head_columns=options.head_columns, reset=options.reset,
-    )
+    sensor_cfa, meta = capture_meta(src, options, capture)
     chunk = chunk_frames_for(meta, capture.n_frames)
     resumed = _resumed(dest) if options.resume else None
     found = resumed[1] if resumed else {}
@@ -213,6 +207,32 @@ def _prepare(src: str, dest: str, options: IngestOptions, *, parallel: bool, cli
     if options.resume:
         job.counts = _check_resumable(dest, src, job, resumed)
     return job
+
+
+def opened_capture(src: str, options: IngestOptions):
+    """The reader of capture ``src`` as ``options`` take it (``pipeline.stores.captures.open_capture``: the sizes, the
+    layout and its first frame checked; nothing read but headers and sizes)."""
+    return open_capture(src, height=options.height, width=options.width, flip=options.flip,
+                        head_columns=options.head_columns, key=options.key, layout=options.layout)
+
+
+def capture_meta(src: str, options: IngestOptions, capture) -> tuple[str, SpikeMeta]:
+    """(the sensor's colour pattern, the metadata of the store ingesting ``capture`` writes): with ``flip`` the
+    store records the pattern of the upright image it holds. ``lazy.open_capture``'s attributes too."""
+    sensor_cfa = check_cfa(options.cfa, capture.height, capture.width)
+    meta = SpikeMeta(
+        height=capture.height, width=capture.width,
+        cfa=flip_vertically(sensor_cfa, capture.height) if options.flip else sensor_cfa,
+        fps=options.fps, source=recorded(src), flipped=options.flip, head_columns=options.head_columns, reset=options.reset,
+    )
+    return sensor_cfa, meta
+
+
+def cut_short(src: str, unread: int, n_frames: int) -> str:
+    """The line that says a capture's last ``unread`` bytes, after its ``n_frames`` whole frames, are a frame cut
+    short (checked with the last frames: ``captures.RawCapture._packed``), not read."""
+    return (f"{src}: its last {unread} bytes, after frame {n_frames - 1}, are a frame cut short (its packets in "
+            f"sequence): not read")
 
 
 def _resumed(dest: str) -> tuple[SpikeStore, dict]:
@@ -334,8 +354,7 @@ def run_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *,
         if not complete:
             writer.finish(spike_count=int(counts.sum()))
     if unread := job.capture.unread_bytes:  # checked with the last frames (captures.RawCapture._packed): cut short
-        log.warning("%s: its last %d bytes, after frame %d, are a frame cut short (its packets in sequence): not read",
-                    src, unread, plan.n_frames - 1)
+        log.warning("%s", cut_short(src, unread, plan.n_frames))
     return {"attrs": dict(writer.group.attrs), "frames": plan.n_frames, "tasks": plan.n_tasks,
             "tasks_run": len(todo), "tasks_skipped": plan.n_tasks - len(todo)}
 

@@ -1,0 +1,189 @@
+"""``lazy.open_capture`` (#56): a raw capture as lazy spikes, the spikes ``cscsr ingest`` stores from it.
+
+For a ``.dat`` (the bundled sample and a small one with header columns), a ``.npy`` and an sps100 capture (begun
+mid-frame, ended in a frame cut short): ``to_spikes(open_capture(...))`` writes the store's bytes ``ingest`` writes
+with the same options (every chunk, the commit record's counts, every attribute; ``committed`` of ingest alone also
+records the capture's fingerprint and options, for ``--resume``), and TFP of its windows is TFP of the ingested
+store's. Bad input refused in one line, in Python words, with no graph and nothing written."""
+
+import json
+import logging
+import os
+import re
+
+import dask
+import numpy as np
+import pytest
+
+from cscsr import lazy
+from pipeline.jobs.ingest import IngestOptions, ingest
+from pipeline.stores import spike_store
+from stages.capture.sps100 import CaptureDamaged
+from stages.errors import InputError, InputTypeError
+from tests.conftest import write_dat
+from tests.test_docs import PAGES, documented_outputs
+from tests.test_parallel_ingest import store_files
+from tests.test_sps100 import FB, spikes as sps100_spikes, write_capture
+
+SAMPLE = os.path.join(os.path.dirname(lazy.__file__), "..", "..", "cscsr", "samples",
+                      "synthetic_reds_200_part1_250x400.dat")
+INGEST_ONLY = ("capture", "options")  # committed's attributes that only ingest records (what --resume compares)
+
+
+@pytest.fixture(autouse=True)
+def threads():
+    with dask.config.set(scheduler="threads"):
+        yield
+
+
+def metadata(value):
+    """A store's zarr.json, less what only ingest's ``committed`` records (wherever consolidated)."""
+    if isinstance(value, dict):
+        return {k: metadata(v) for k, v in value.items()
+                if not (k in INGEST_ONLY and "task_frames" in value and "units" in value)}
+    return value
+
+
+def assert_same_store(written, ingested) -> None:
+    ours, theirs = store_files(written), store_files(ingested)
+    assert sorted(ours) == sorted(theirs)
+    for name in ours:
+        if name.endswith("zarr.json"):
+            assert metadata(json.loads(ours[name])) == metadata(json.loads(theirs[name])), name
+        else:
+            assert ours[name] == theirs[name], name
+    assert "capture" in json.loads(theirs["committed/zarr.json"])["attributes"]  # what the comparison leaves out
+
+
+def check_against_ingest(tmp_path, src, options: IngestOptions, **kwargs) -> None:
+    """``to_spikes(open_capture(src, **kwargs))`` and ``ingest(src, options)``: the same store; the same spikes,
+    coordinates and attributes as ``open_spikes`` of it; the same TFP."""
+    ingest(str(src), str(tmp_path / "ingested.zarr"), options, progress=False)
+    spikes = lazy.open_capture(src, **kwargs)
+    stored = lazy.open_spikes(tmp_path / "ingested.zarr")
+    assert spikes.dims == stored.dims and spikes.shape == stored.shape and spikes.dtype == stored.dtype
+    assert spikes.data.chunks == stored.data.chunks  # the store's chunks: one byte-range read each
+    assert all(np.array_equal(spikes[name].values, stored[name].values) for name in ("t", "frame", "y", "x"))
+    only_store = {"store", "state", "spike_count", "identity"}
+    assert spikes.attrs == {k: v for k, v in stored.attrs.items() if k not in only_store}
+    assert np.array_equal(spikes.values, stored.values)
+    done = lazy.to_spikes(spikes, tmp_path / "written.zarr", task_frames=options.task_frames)
+    assert done["attrs"]["identity"] == stored.attrs["identity"]
+    assert_same_store(tmp_path / "written.zarr", tmp_path / "ingested.zarr")
+    length = min(41, spikes.sizes["t"] - 1 + spikes.sizes["t"] % 2)  # odd, at most the recording
+    every = max(1, spikes.sizes["t"] // 3)
+    if spikes.sizes["y"] <= 256:  # whole frames, the automatic gain
+        ours, theirs = (lazy.tfp(lazy.windows(s, length=length, every=every)) for s in (spikes, stored))
+    else:  # a crop of a megapixel capture (not from a store: its gain given)
+        ours, theirs = (lazy.tfp(lazy.windows(s.isel(y=slice(0, 64), x=slice(0, 64)), length=length, every=every),
+                                 gain=1.0) for s in (spikes, stored))
+    assert ours.sizes["t"] >= 1 and np.array_equal(ours.values, theirs.values)
+
+
+@pytest.fixture
+def small_chunks(monkeypatch):
+    monkeypatch.setattr(spike_store, "TARGET_CHUNK_BYTES", 160)  # 5 frames of 16x16 a chunk
+
+
+def test_the_bundled_dat_is_what_ingest_stores(tmp_path):
+    check_against_ingest(tmp_path, SAMPLE, IngestOptions(250, 400, flip=True, task_frames=100),
+                         height=250, width=400, flip=True)
+
+
+@pytest.mark.parametrize("width,head", [(20, 4), (40, 8)])
+def test_a_small_dat_with_header_columns_is_what_ingest_stores(tmp_path, small_chunks, width, head):
+    bits = (np.random.default_rng(width).random((63, 16, width + head)) < 0.2).astype(np.uint8)
+    write_dat(tmp_path / "c.dat", bits, flip=True)
+    spikes = lazy.open_capture(tmp_path / "c.dat", height=16, width=width, head_columns=head, flip=True, cfa="rggb")
+    assert np.array_equal(spikes.values, bits[:, :, :width].astype(bool))
+    check_against_ingest(tmp_path, tmp_path / "c.dat",
+                         IngestOptions(16, width, cfa="rggb", flip=True, head_columns=head, task_frames=10),
+                         height=16, width=width, head_columns=head, flip=True, cfa="rggb")
+
+
+def test_a_npy_is_what_ingest_stores(tmp_path, small_chunks):
+    bits = (np.random.default_rng(1).random((50, 16, 24)) < 0.2).astype(np.uint8)
+    np.save(tmp_path / "a.npy", bits)
+    check_against_ingest(tmp_path, tmp_path / "a.npy", IngestOptions(cfa="bggr", fps=1000, reset="zero", task_frames=12),
+                         cfa="bggr", fps=1000, reset="zero")
+
+
+def test_an_sps100_capture_cut_short_is_what_ingest_stores(tmp_path, monkeypatch, caplog):
+    monkeypatch.setattr(spike_store, "TARGET_CHUNK_BYTES", 2 * 1000 * 125)  # 2 frames a chunk
+    tail = 64 * 700 + 32
+    write_capture(tmp_path / "c.dat", sps100_spikes(3, seed=6), lead=64 * 5, tail=tail)
+    with caplog.at_level(logging.WARNING, logger="cscsr.lazy"):
+        spikes = lazy.open_capture(tmp_path / "c.dat", layout="sps100", cfa="rggb")
+    assert [r.getMessage() for r in caplog.records if r.name == "cscsr.lazy"] == [
+        f"{tmp_path / 'c.dat'}: its last {tail} bytes, after frame 2, are a frame cut short (its packets in "
+        f"sequence): not read"]
+    assert spikes.shape == (3, 1000, 1000)
+    check_against_ingest(tmp_path, tmp_path / "c.dat", IngestOptions(cfa="rggb", layout="sps100", task_frames=2),
+                         layout="sps100", cfa="rggb")
+
+
+def test_damage_in_the_frames_is_refused_naming_its_offset_when_read(tmp_path):
+    """A corrupted tag mid-capture: the graph is built (nothing read), and computing the block that holds it
+    says where, in ingest's words; a packet dropped (the capture then ends in a partial frame, checked up front
+    with the last whole frame) or dropped from the frame cut short at the end is refused by open_capture."""
+    lead = 100
+    data = write_capture(tmp_path / "ok.dat", sps100_spikes(4, seed=3), lead=lead)
+    half_line = lead + 2 * FB + 300 * 64
+    corrupted = bytearray(data)
+    corrupted[half_line + 505 // 8] ^= 1 << (505 % 8)
+    (tmp_path / "c.dat").write_bytes(bytes(corrupted))
+    spikes = lazy.open_capture(tmp_path / "c.dat", layout="sps100", chunk_frames=1)
+    assert spikes[:2].values.shape == (2, 1000, 1000)  # the frames before it read
+    with pytest.raises(CaptureDamaged, match=f"at byte {half_line + 48}: half-line 300 of frame 2"):
+        spikes[2].values
+    (tmp_path / "e.dat").write_bytes(data[:half_line + 16] + data[half_line + 32:])
+    with pytest.raises(CaptureDamaged, match=f"at byte {half_line + 48}: half-line 300 of frame 2"):
+        lazy.open_capture(tmp_path / "e.dat", layout="sps100")
+    last = lead + 3 * FB + 700 * 64
+    (tmp_path / "d.dat").write_bytes(data[:last + 16] + data[last + 32:])
+    with pytest.raises(CaptureDamaged, match=f"at byte {last + 48}: half-line 700 of frame 3"):
+        lazy.open_capture(tmp_path / "d.dat", layout="sps100")
+
+
+def test_bad_input_is_refused_in_one_line_in_python_words_and_nothing_is_written(tmp_path):
+    write_dat(tmp_path / "c.dat", np.zeros((4, 8, 16), np.uint8))
+    (tmp_path / "cut.dat").write_bytes((tmp_path / "c.dat").read_bytes()[:-3])
+    np.save(tmp_path / "a.npy", np.zeros((3, 8, 16), np.uint8))
+    np.savez(tmp_path / "a.npz", spk=np.zeros((3, 8, 16), np.uint8))
+    write_capture(tmp_path / "s.dat", sps100_spikes(1))
+    cases = [
+        ((tmp_path / "cut.dat",), dict(height=8, width=16), InputError, "13 bytes too many, or 3 missing"),
+        ((tmp_path / "c.dat",), dict(height=8), InputError, "give both height and width"),
+        ((tmp_path / "c.dat",), dict(height=7, width=16), InputError, "not a multiple of the frame size"),
+        ((tmp_path / "c.dat",), dict(height=8, width=16, layout="sps1000"), InputError,
+         "unknown raw layout 'sps1000': expected one of dat, sps100"),
+        ((tmp_path / "a.npy",), dict(width=17), InputError, "width=17 is inconsistent with the array's width 16"),
+        ((tmp_path / "a.npy",), dict(layout="sps100"), InputError, "layout sps100 names a raw capture's layout"),
+        ((tmp_path / "a.npy",), dict(head_columns=8), InputError, "head_columns applies to .dat captures only"),
+        ((tmp_path / "a.npz",), {}, InputError, "save the array as .npy"),
+        ((tmp_path / "s.dat",), dict(layout="sps100", height=500), InputError,
+         "height=500 is inconsistent with the sps100 layout's fixed 1000x1000 frames: leave height out"),
+        ((tmp_path / "c.dat",), dict(height="8", width=16), InputTypeError, "height must be an integer"),
+        ((tmp_path / "c.dat",), dict(height=8, width=16, cfa="rgbw"), InputError, "unknown CFA 'rgbw'"),
+        ((tmp_path / "c.dat",), dict(height=8, width=16, chunk_frames=0), InputError, "chunk_frames must be"),
+        ((tmp_path / "none.dat",), dict(height=8, width=16), InputError, "no such file"),
+        ((None,), {}, InputTypeError, "path must be a path or URL"),
+    ]
+    before = sorted(os.listdir(tmp_path))
+    for args, kwargs, kind, fragment in cases:
+        with pytest.raises(kind) as refused:
+            lazy.to_spikes(lazy.open_capture(*args, **kwargs), tmp_path / "out.zarr")
+        line = str(refused.value)
+        assert fragment in line and "\n" not in line and not re.search(r"(?<![\w-])--[a-z]", line), (kwargs, line)
+    assert sorted(os.listdir(tmp_path)) == before
+
+
+def test_the_docs_example_prints_what_the_page_says(tmp_path, monkeypatch, capsys):
+    """docs/python.md's raw-capture example, run in an empty folder: every line it prints as its comment says."""
+    code = re.search(r"### Raw captures.*?```python\n(.*?)```", PAGES["docs/python.md"], re.S)[1]
+    monkeypatch.chdir(tmp_path)
+    exec(compile(code, "example", "exec"), {"__name__": "__main__"})
+    printed, expected = capsys.readouterr().out.splitlines(), documented_outputs(code)
+    assert len(expected) >= 2 and len(printed) == len(expected), printed
+    for line, documented in zip(printed, expected):
+        assert re.fullmatch(".*".join(map(re.escape, documented.split("..."))), line), (line, documented)
