@@ -15,6 +15,7 @@ from cscsr.network.config import PRECISIONS, CSCSRConfig, named
 from cscsr.training.training_data import DEAD_LEAVES_SHARE
 from stages.errors import InputError
 from stages.numbers import check_number
+from stages.reconstruction.methods import WINDOW
 
 
 # Bounds of the options that size a run (TrainOptions.check), each with its reason:
@@ -25,7 +26,7 @@ MAX_LEARNING_RATE = 0.1  # Adam moves each weight by up to the rate per step; th
 STEP_BYTES_PER_LR_PIXEL = 16 * 2**10
 # A pooled clip held in memory, per LR pixel: 41 frames of uint8 spikes, the x4 truth (3 float32 per HR pixel,
 # 16 HR pixels per LR pixel) and two float32 (x, y) flows.
-CLIP_BYTES_PER_LR_PIXEL = 41 + 3 * 4 * 16 + 2 * 2 * 4
+CLIP_BYTES_PER_LR_PIXEL = WINDOW + 3 * 4 * 16 + 2 * 2 * 4
 
 
 def memory_of(device: torch.device) -> int | None:

@@ -101,7 +101,7 @@ def checked_evaluation(store_url: str, methods: list[str], weights: str | None, 
     _, truth_frames = read_truth(store)
     every = int(store.attrs.get("truth_every", WINDOW))
     if list(truth_frames) != output_centres(store.n_frames, WINDOW, every)[: len(truth_frames)] or not len(truth_frames):
-        raise InputError(f"{store_url}: truth frames {list(truth_frames)[:4]}... are not the 41-frame window centres 20, 20+{every}, ...")
+        raise InputError(f"{store_url}: truth frames {list(truth_frames)[:4]}... are not the {WINDOW}-frame window centres {WINDOW // 2}, {WINDOW // 2}+{every}, ...")
     options = {method: ReconstructOptions(method=method, every=every, weights=weights if method in NETWORKS else None)
                for method in methods}  # into OUT, claimed new by evaluate: never over an existing store
     for method in methods:

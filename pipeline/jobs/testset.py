@@ -26,9 +26,10 @@ from pipeline.stores.storage import check_apart, resolve
 from stages.errors import InputError
 from stages.measures.montage import labelled, side_by_side
 from stages.numbers import check_flag
+from stages.reconstruction.methods import WINDOW
 
 ALPHAS = (0.6, 0.8, 1.0)
-HR_SIDE, SCALE, FRAMES, TRUTH_EVERY, SPEED = 256, 4, 123, 41, 0.5
+HR_SIDE, SCALE, FRAMES, TRUTH_EVERY, SPEED = 256, 4, 3 * WINDOW, WINDOW, 0.5  # a truth frame a window, 3 windows
 
 
 @dataclass(frozen=True)
