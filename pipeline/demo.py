@@ -33,7 +33,7 @@ from pipeline.jobs.simulate import SimulateOptions, simulate
 from pipeline.stores.spike_store import open_spike_store
 from pipeline.stores.storage import check_apart
 from pipeline.stores.video_store import VIDEO, open_video_store
-from stages.reconstruction.methods import NETWORKS
+from stages.reconstruction.methods import NETWORKS, WINDOW
 from stages.measures.metrics import correlation, psnr
 from stages.measures.montage import labelled, side_by_side
 
@@ -41,7 +41,7 @@ from stages.measures.montage import labelled, side_by_side
 # a network is labelled with its weights ("cscsr lite", "cscsr full")
 EVALUATIONS = [("evaluation", "lite", ["tfp", "tfi", "cscsr"]), ("evaluation-full", "full", ["cscsr"])]
 SCENE_SIZE = 256  # HR pixels: LR 64x64 at x4
-FRAMES = 205  # spike frames simulated: 5 truth frames, one per 41-frame window
+FRAMES = 5 * WINDOW  # spike frames simulated: 5 truth frames, one per 41-frame window
 VIDEO_EVERY = 5  # spike frames between the mp4's frames: 33 frames, 3.3 s at 10 fps (lite: ~0.5 s each on 2 cores)
 
 
@@ -65,7 +65,7 @@ def simulated_job(out_dir: str, console: Console, workers: int) -> list[dict]:
     recording = os.path.join(out_dir, "recording.zarr")
     console.print(f"simulating {recording} from {scene} ...")
     simulate(scene, recording, SimulateOptions(scale=4, cfa="rggb", frames=FRAMES, motion="random", speed=0.3,
-                                               reset="zero", truth_every=41, seed=0, overwrite=True), workers=workers)
+                                               reset="zero", truth_every=WINDOW, seed=0, overwrite=True), workers=workers)
     rows, videos = [], {}
     with dask_client(workers=workers) as client:  # one cluster for every network run below
         for folder, weights, methods in EVALUATIONS:
