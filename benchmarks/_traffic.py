@@ -19,6 +19,7 @@ from torch.utils._pytree import tree_flatten
 from torch.utils.flop_counter import flop_registry
 
 CASTS = {"_to_copy", "to", "_to_dtype"}
+ALLOCATIONS = {"empty", "empty_like", "empty_strided", "new_empty", "new_empty_strided"}
 CONVS = {"conv1d", "conv2d", "conv3d", "convolution", "_convolution", "cudnn_convolution", "convolution_overrideable",
          "mkldnn_convolution"}  # under inference mode the dispatcher sees conv2d itself (and ``to``, not _to_copy)
 
@@ -32,13 +33,12 @@ def extent_bytes(t: torch.Tensor) -> int:
 
 
 def nhwc(t: torch.Tensor) -> bool:
-    if t.dim() == 4:
-        return t.is_contiguous(memory_format=torch.channels_last) and not (t.shape[1] > 1 and t.is_contiguous()
-                                                                          and t.shape[2] * t.shape[3] > 1)
-    if t.dim() == 5:
-        return t.is_contiguous(memory_format=torch.channels_last_3d) and not (t.shape[1] > 1 and t.is_contiguous()
-                                                                             and t.shape[2] * t.shape[3] * t.shape[4] > 1)
-    return False
+    """Stored channels-last (NHWC, NDHWC), and not just as well NCHW (one channel, or one pixel)."""
+    if t.dim() not in (4, 5):
+        return False
+    layout = torch.channels_last if t.dim() == 4 else torch.channels_last_3d
+    pixels = t[0, 0].numel()
+    return t.is_contiguous(memory_format=layout) and not (t.shape[1] > 1 and pixels > 1 and t.is_contiguous())
 
 
 @dataclass
@@ -75,6 +75,8 @@ class Counter(TorchDispatchMode):
         in_place = name.endswith("_") or "out" in kwargs
         if not in_place and outputs and all(o.untyped_storage().data_ptr() in storages for o in outputs):
             return out  # a view: nothing moves
+        if name in ALLOCATIONS:
+            return out  # memory reserved, not touched
         op = Op(name, sum(extent_bytes(t) for t in inputs), sum(extent_bytes(t) for t in outputs),
                 dtype=str(outputs[0].dtype).replace("torch.", "") if outputs else "",
                 shape=tuple(outputs[0].shape) if outputs else ())

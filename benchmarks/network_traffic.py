@@ -48,14 +48,13 @@ def counted(config: str, precision: str, side: int):
     model, _ = load_model(default_weights(config))
     model = prepare_model(model.eval(), "cuda", precision, channels_last=True)
     spikes = (torch.rand(1, model.config.frames, side, side) < 0.3).float()
-    dtype = getattr(model, "input_dtype", torch.float32)
-    spikes = spikes.to(dtype)
+    spikes = spikes.to(model.dtype)  # as the device path unpacks them (the network's dtype)
     if getattr(model, "channels_last", False):
         spikes = spikes.contiguous(memory_format=torch.channels_last)
 
     def run():
-        with torch.inference_mode(), precision_context("cpu", precision):
-            model(spikes, "rggb", False, SCALE)["image"]
+        with torch.inference_mode(), precision_context("cpu", precision, model):
+            model(spikes, "mono" if model.config.mono else "rggb", False, SCALE)["image"]
 
     run()  # warm: lazily made constants are not counted
     return count(run)

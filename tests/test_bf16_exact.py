@@ -6,7 +6,7 @@ import pytest
 import skimage.data
 import torch
 
-from cscsr.network.warp import warp
+from cscsr.network.warp import SharedFlow, sample, sampling_plan, warp
 from cscsr.weights.weights_io import default_weights, load_model
 from stages.reconstruction.cfa import BAYER_PATTERNS
 from stages.reconstruction.colour import expose
@@ -42,8 +42,11 @@ def test_the_bf16_warp_is_grid_sample_s_bilinear_sampling():
     x, flow = torch.randn(2, 3, 24, 40, generator=g), 6 * torch.randn(2, 2, 24, 40, generator=g)  # some outside
     for padding in ("border", "zeros"):
         expected = warp(x, flow, padding)
-        got = warp(x.double(), flow.double(), padding)  # float64: not float32, so the exact-position sampler runs
-        torch.testing.assert_close(got.float(), expected, rtol=0, atol=1e-4)
+        got = sample(x, sampling_plan(flow, 24, 40, padding, torch.float32))  # the GPU path's sampler, in fp32
+        torch.testing.assert_close(got, expected, rtol=0, atol=1e-4)
+        shared = SharedFlow(flow)
+        assert torch.equal(shared.warp(x.bfloat16(), padding), warp(x.bfloat16(), flow, padding))  # one plan, reused
+        assert torch.equal(shared.warp(x.bfloat16(), padding), warp(x.bfloat16(), flow, padding))
 
 
 def natural_clip(side: int, cfa: str = "grbg", frames: int = 41, seed: int = 0) -> torch.Tensor:

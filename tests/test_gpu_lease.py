@@ -106,6 +106,24 @@ def test_prove_runs_every_step_on_the_cpu_and_keeps_what_each_measured(tmp_path)
     assert not (skipped / "gpu_pipeline.json").exists()
 
 
+def test_prove_measures_the_network_s_compile_bf16_and_convolutions_first(tmp_path):
+    """#53's measurements, dry-run on the CPU (tiny; the compile with torch.compile's eager backend): full's compile
+    first, with the profiler's top kernels eager and compiled; bf16 against fp32; the convolution micro-benchmarks."""
+    out = tmp_path / "out"
+    lease("prove", "--device", "cpu", "--tiny", "--out", out, "--only", "compile-full,bf16-1000,micro")
+    report = json.loads((out / "prove.json").read_text())
+    assert list(report["steps"]) == ["compile-full", "bf16-1000", "micro"]  # the compile first
+    assert all(step["status"] == "ok" for step in report["steps"].values()), report["steps"]
+    compiled = report["steps"]["compile-full"]["result"]
+    assert compiled["compile_and_first_pass_s"] > 0 and compiled["largest_difference"] == 0  # eager backend: exact
+    assert 0 < len(compiled["top25_eager"]) <= 25 and 0 < len(compiled["top25_compiled"]) <= 25
+    (bf16,) = report["steps"]["bf16-1000"]["result"]["runs"]  # lite only in the dry run
+    assert bf16["psnr_db"] >= 40 and bf16["mean_abs_levels"] <= 1
+    cases = report["steps"]["micro"]["result"]["cases"]
+    assert set(cases) == {"conv 96->96 NCHW", "conv 96->96 NHWC", "conv3d 50->50 NDHWC", "conv3d 56->56 NDHWC",
+                          "conv 101->50 NHWC", "conv 104->56 NHWC"} and all(c["ms"] > 0 for c in cases.values())
+
+
 def test_a_compiled_forward_is_kept_as_it_is():
     """--fast-gpu on a GPU: the reconstructor is given the torch.compile'd model. The first lease found every
     --fast-gpu load failing ('CSCSR does not support len()': a compiled module's truth asks the model's len)."""

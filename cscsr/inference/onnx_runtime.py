@@ -56,14 +56,49 @@ class OnnxNetwork:
     def _session(self, shape: tuple, cfa: str, zero_reset: bool, scale: int):
         import onnxruntime
 
-        graph = io.BytesIO()
-        with torch.inference_mode(False), torch.no_grad(), warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # the tracer's notes on Python-side shapes: fixed on purpose
-            example = torch.zeros(shape)
-            torch.onnx.export(_Image(self.model, cfa, zero_reset, scale), (example,), graph, input_names=["spikes"],
-                              output_names=["image"], opset_version=18, dynamo=False)
+        graph = export(self.model, shape, cfa, zero_reset, scale)
         options = onnxruntime.SessionOptions()
         options.intra_op_num_threads = options.inter_op_num_threads = 1
         options.execution_mode = onnxruntime.ExecutionMode.ORT_SEQUENTIAL
         options.log_severity_level = 3  # errors only
-        return onnxruntime.InferenceSession(graph.getvalue(), options, providers=["CPUExecutionProvider"])
+        return onnxruntime.InferenceSession(graph, options, providers=["CPUExecutionProvider"])
+
+
+OPSET = 18
+
+
+def export(model: torch.nn.Module, shape: tuple, cfa: str, zero_reset: bool, scale: int) -> bytes:
+    """The network's graph for one kind of input, (B, N, H, W) spikes -> (B, 3, sH, sW) image, as ONNX bytes."""
+    graph = io.BytesIO()
+    with torch.inference_mode(False), torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the tracer's notes on Python-side shapes: fixed on purpose
+        example = torch.zeros(shape)
+        torch.onnx.export(_Image(model, cfa, zero_reset, scale), (example,), graph, input_names=["spikes"],
+                          output_names=["image"], opset_version=OPSET, dynamo=False)
+    return graph.getvalue()
+
+
+# what an ONNX -> TensorRT build of the network needs to find in the graph (#53): the warp as GridSample (opset 16
+# or later), the BSSR's 3D convolution as a 5-D Conv, the pixel shuffle as DepthToSpace
+NEEDED = {"GridSample": "the warp (grid_sample)", "DepthToSpace": "the pixel shuffle", "Conv": "the convolutions"}
+
+
+def operator_check(graph: bytes) -> dict:
+    """The operators of an exported graph, and what an ONNX -> TensorRT build needs of them: ``ok`` and
+    ``problems`` (GridSample at opset >= 16, a 5-D Conv for the 3D convolution, DepthToSpace)."""
+    import onnx
+
+    model = onnx.load_from_string(graph)
+    opset = max(o.version for o in model.opset_import if o.domain in ("", "ai.onnx"))
+    counts: dict[str, int] = {}
+    for node in model.graph.node:
+        counts[node.op_type] = counts.get(node.op_type, 0) + 1
+    weights = {t.name: len(t.dims) for t in model.graph.initializer}
+    conv3d = sum(1 for n in model.graph.node if n.op_type == "Conv" and weights.get(n.input[1]) == 5)
+    problems = [f"no {op} ({what})" for op, what in NEEDED.items() if op not in counts]
+    if "GridSample" in counts and opset < 16:
+        problems.append(f"GridSample needs opset 16 or later, the graph has {opset}")
+    if not conv3d:
+        problems.append("no 5-D Conv (the BSSR's 3D convolution)")
+    return {"opset": opset, "operators": dict(sorted(counts.items())), "conv3d": conv3d, "nodes": len(model.graph.node),
+            "ok": not problems, "problems": problems}

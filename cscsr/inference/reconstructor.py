@@ -93,7 +93,7 @@ class NetworkReconstructor:
     def device_images(self, packed: torch.Tensor, window: Window) -> torch.Tensor:
         """On the device: packed bits (B, N, h, ceil(w/8)) uint8 -> exposed images (B, sH, sW, 3) uint8
         (unpack, the network, under each of the 8 orientations for the self-ensemble, exposure)."""
-        spikes = unpack_bits(packed, window.width).float()  # (B, N, h, w) 0/1
+        spikes = unpack_bits(packed, window.width).to(getattr(self.model, "dtype", torch.float32))  # (B, N, h, w) 0/1
         with self._autocast():
             views = range(8) if self.self_ensemble else (0,)
             rate = sum(self._seen_under(k, spikes, window) for k in views) / len(views)  # (B, 3, sH, sW)
@@ -139,7 +139,7 @@ class NetworkReconstructor:
 
     def _autocast(self):
         """bfloat16 autocast on the network's device for ``precision="bf16"``; nothing for fp32."""
-        return precision_context(self.device.type, self.precision)
+        return precision_context(self.device.type, self.precision, self.model)
 
     def _seen_under(self, orientation: int, spikes: torch.Tensor, window: Window) -> torch.Tensor:
         """The network's output for the windows turned by ``orientation`` (bits as in training:
@@ -203,18 +203,29 @@ def load_reconstructor(weights: str | None, device: str | None = None, *, self_e
 def prepare_model(model: torch.nn.Module, device_type: str, precision: str, *, channels_last: bool = False):
     """The loaded network as it runs on a ``device_type`` ("cuda" or "cpu") in ``precision``: what
     :func:`load_reconstructor` does to it after loading, a function of its own so that a CPU can prepare (and
-    count, ``benchmarks/network_traffic.py``) the very network a GPU worker runs."""
-    from cscsr.network.model import use_channels_last
+    count, ``benchmarks/network_traffic.py``) the very network a GPU worker runs.
 
+    The GPU path (#53): channel counts zero-padded to multiples of 8 (``cscsr.network.padding``: the same
+    function), every activation channels-last (NDHWC for the 3D convolution), and for bf16 the weights
+    themselves in bfloat16, so the pass runs in bf16 end to end with no casts (no autocast; sampling positions
+    stay float32). On a CPU only ``channels_last`` applies: its outputs keep their bytes."""
+    from cscsr.network.model import use_channels_last
+    from cscsr.network.padding import pad_channels
+
+    if device_type == "cuda":
+        pad_channels(model)
+        channels_last = True
+        if precision == "bf16":
+            model.to(torch.bfloat16)
     if channels_last:
         use_channels_last(model)
     return model
 
 
-def precision_context(device_type: str, precision: str):
+def precision_context(device_type: str, precision: str, model: torch.nn.Module | None = None):
     """What the network's forward pass runs under for ``precision`` on a ``device_type``: bfloat16 autocast for
-    bf16, nothing for fp32."""
-    if precision == "fp32":
+    bf16 with float32 weights, nothing for fp32 or for a network whose weights are bf16 already (the GPU path)."""
+    if precision == "fp32" or getattr(model, "dtype", torch.float32) != torch.float32:
         return contextlib.nullcontext()
     return torch.autocast(device_type=device_type, dtype=torch.bfloat16)
 
@@ -222,15 +233,34 @@ def precision_context(device_type: str, precision: str):
 COMPILE_CACHE = "~/.cache/cscsr/torchinductor"  # torch.compile's kernels, kept between worker processes
 
 
-def compiled(model: torch.nn.Module):
-    """``model`` under ``torch.compile`` with cuDNN autotuning, for a GPU: the first pass of each input
-    shape compiles (and autotunes) it, later passes reuse it; the compiled kernels are cached on disk
-    (``TORCHINDUCTOR_CACHE_DIR``, default :data:`COMPILE_CACHE`), so a worker that starts again pays
-    the compile once per shape per machine. Outputs stay within the network's float tolerance, not bit
-    for bit: autotuning may pick other kernels in another process."""
+def compiled_blocks() -> tuple:
+    """The network's repeated blocks, each compiled on its own by :func:`compiled`: the colour branches' BSSR and
+    temporal pixels (3 of each, 1 for mono), the trunk's ResBlocks (21 in ``full``), the flow network (4 calls)."""
+    from cscsr.network.blocks import ResBlock
+    from cscsr.network.bssr import BSSR
+    from cscsr.network.spike_flow import SpikeFlowNet
+    from cscsr.network.temporal_pixels import TemporalPixels
+
+    return BSSR, TemporalPixels, ResBlock, SpikeFlowNet
+
+
+def compiled(model: torch.nn.Module, backend: str = "inductor"):
+    """``model`` with each of its repeated blocks (:func:`compiled_blocks`) under ``torch.compile`` (``dynamic=False``:
+    one graph per block and tile shape) and cuDNN autotuning, for a GPU; the glue between blocks runs eagerly. A
+    block's copies share one compiled graph (their weights are the graph's inputs), so ``full`` compiles a
+    handful of small graphs, not one graph of 40 layers: bounded time. The first pass of each tile shape
+    compiles, later passes reuse it; the compiled kernels are cached on disk (``TORCHINDUCTOR_CACHE_DIR``,
+    default :data:`COMPILE_CACHE`, shared by a node's workers and by later runs), so a worker that starts
+    again pays the compile once per shape per machine. Outputs stay within the network's float tolerance, not
+    bit for bit: autotuning may pick other kernels in another process. Returns ``model`` (compiled in place)."""
     os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", os.path.expanduser(COMPILE_CACHE))
+    os.environ.setdefault("TORCHINDUCTOR_FX_GRAPH_CACHE", "1")
     torch.backends.cudnn.benchmark = True
-    return torch.compile(model, dynamic=False)
+    blocks = compiled_blocks()
+    for module in model.modules():
+        if isinstance(module, blocks):
+            module.compile(dynamic=False, backend=backend)
+    return model
 
 
 def check_backend(backend: str, precision: str = "fp32") -> None:

@@ -42,9 +42,9 @@ def positions(cfa: str) -> dict[str, tuple[int, int]]:
     return {"r": red, "g1": (red[0], 1 - red[1]), "g2": (blue[0], 1 - blue[1]), "b": blue}
 
 
-def cell_masks(cfas: list[str], height: int, width: int, device=None) -> torch.Tensor:
+def cell_masks(cfas: list[str], height: int, width: int, device=None, dtype=torch.float32) -> torch.Tensor:
     """(B, 4, H, W) float 0/1 masks of R, G1, G2, B for each clip's pattern (mono: the 2x2 cell's four phases)."""
-    masks = torch.zeros(len(cfas), 4, height, width, device=device)
+    masks = torch.zeros(len(cfas), 4, height, width, device=device, dtype=dtype)  # 0/1: exact in any dtype
     for b, cfa in enumerate(cfas):
         cells = MONO_PHASES if cfa == "mono" else positions(check_bayer(cfa)).values()
         for c, (dy, dx) in enumerate(cells):

@@ -19,6 +19,8 @@ from cscsr.network.blocks import ChannelAttention
 class BSSR(nn.Module):
     """One colour's encoder: (B, N, H, W) spikes and (B, 1, H, W) mask -> (B, N', C, H, W)."""
 
+    channels_last = False  # the GPU path (cscsr.network.model.use_channels_last): NDHWC, gated in place
+
     def __init__(self, features: int, length: int, stride: int, time_points: int):
         super().__init__()
         self.window = nn.Conv3d(1, features, (length, 3, 3), (stride, 1, 1), (0, 1, 1), bias=False)
@@ -28,15 +30,23 @@ class BSSR(nn.Module):
 
     def forward(self, spikes: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         b, _, h, w = spikes.shape
-        raw = self.windows(spikes * mask)  # (B, C, N', H, W)
+        raw = self.windows(spikes, mask) if self.channels_last else self.windows(spikes * mask)  # (B, C, N', H, W)
         samples = F.conv2d(mask, torch.ones(1, 1, 3, 3, device=mask.device, dtype=mask.dtype), padding=1)
-        x = raw * (9 / samples.clamp(min=1))[:, :, None] + self.bias[:, None, None, None]  # partial conv
-        x = self.mix(torch.relu(x))  # (B, C, N', H, W)
+        if self.channels_last:  # the GPU path: the partial convolution's scale and bias in one pass, ReLU in place
+            x = torch.addcmul(self.bias[:, None, None, None], raw, (9 / samples.clamp(min=1))[:, :, None]).relu_()
+            x = self.mix(x)  # (B, C, N', H, W) stored (B, N', H, W, C)
+        else:
+            x = raw * (9 / samples.clamp(min=1))[:, :, None] + self.bias[:, None, None, None]  # partial conv
+            x = self.mix(torch.relu(x))  # (B, C, N', H, W)
         c, t = x.shape[1], x.shape[2]
+        if self.channels_last:  # x stored (B, N', H, W, C): the same attention without the reshape's copy
+            y = x.transpose(1, 2)  # (B, N', C, H, W), a view
+            gate = self.attention.gate(y.mean((3, 4)).reshape(b, t * c, 1, 1))  # (B, N'*C, 1, 1)
+            return y * gate.view(b, t, c, 1, 1)  # (B, N', C, H, W) stored (B, N', H, W, C)
         x = x.transpose(1, 2).reshape(b, t * c, h, w)  # (B, N'*C, H, W): every window's channels
         return self.attention(x).reshape(b, t, c, h, w)  # (B, N', C, H, W)
 
-    def windows(self, spikes: torch.Tensor) -> torch.Tensor:
+    def windows(self, spikes: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
         """``self.window`` (the 3D convolution) as one 2D convolution over the w frames of every time
         point: the same sums, but on PyTorch's fast 2D path (the CPU's 3D path with one input channel
         is a slow fallback, 2x the time). (B, N, H, W) -> (B, C, N', H, W)."""
@@ -44,7 +54,35 @@ class BSSR(nn.Module):
         length, stride = self.window.kernel_size[0], self.window.stride[0]
         # the time points' frames by slices, not Tensor.unfold: ONNX's exporter cannot follow unfold on a padded
         # input (any side not a multiple of 16 failed to export, colour or mono); the same values
-        frames = torch.stack([spikes[:, t : t + length] for t in range(0, n - length + 1, stride)], 1)  # (B, N', w, H, W)
+        starts = range(0, n - length + 1, stride)
+        if self.channels_last:  # the GPU path: (B*N', w', H, W) NHWC, frames past w zero (w' = 16 when padded)
+            return self._windows_nhwc(spikes, starts, length, mask)
+        frames = torch.stack([spikes[:, t : t + length] for t in starts], 1)  # (B, N', w, H, W)
         frames = frames.reshape(-1, length, h, w)  # (B*N', w, H, W)
         raw = F.conv2d(frames, self.window.weight[:, 0], padding=1)  # (B*N', C, H, W)
         return raw.view(b, -1, raw.shape[1], h, w).transpose(1, 2)  # (B, C, N', H, W)
+
+    def _windows_nhwc(self, spikes: torch.Tensor, starts: range, length: int, mask=None) -> torch.Tensor:
+        """:meth:`windows` written once into NHWC frames, as many as the window weight takes (``window_padded``,
+        (C', 16, 3, 3), from ``cscsr.network.padding``; else w), the spikes multiplied by ``mask`` (B, 1, H, W)
+        on the way in: (B, N, H, W) -> (B, C', N', H, W) stored NDHWC."""
+        b, _, h, w = spikes.shape
+        weight = getattr(self, "window_padded", None)
+        weight = self.window.weight[:, 0] if weight is None else weight  # (C', w', 3, 3)
+        depth, t = weight.shape[1], len(starts)
+        frames = torch.empty((b * t, depth, h, w), dtype=spikes.dtype, device=spikes.device,
+                             memory_format=torch.channels_last)  # (B*N', w', H, W) stored (B*N', H, W, w')
+        view = frames.view(b, t, depth, h, w)
+        for i, start in enumerate(starts):
+            if mask is None:
+                view[:, i, :length].copy_(spikes[:, start : start + length])
+            else:
+                written = view[:, i, :length]
+                if torch.compiler.is_compiling():  # out= into a view breaks a graph; the compiler fuses the copy
+                    written.copy_(spikes[:, start : start + length] * mask)
+                else:
+                    torch.mul(spikes[:, start : start + length], mask, out=written)
+        if depth > length:
+            view[:, :, length:].zero_()
+        raw = F.conv2d(frames, weight, padding=1)  # (B*N', C', H, W) NHWC
+        return raw.view(b, t, raw.shape[1], h, w).transpose(1, 2)  # (B, C', N', H, W) stored (B, N', H, W, C')

@@ -9,7 +9,7 @@ shuffle in x2 steps; a head after each step gives RGB, so one set of weights ser
 import torch
 from torch import nn
 
-from cscsr.network.blocks import ResBlock
+from cscsr.network.blocks import ResBlock, cat_channels
 
 NETWORK_SCALES = (2, 4)  # one upsampling head each
 LR_IMAGES = 6  # channels of the TFP images the trunk sees: RGB over the whole clip and over its middle
@@ -34,10 +34,15 @@ class Integration(nn.Module):
             nn.init.zeros_(head.weight)  # a random start residual was measured to make the optimiser kill the
             nn.init.zeros_(head.bias)  # features' ReLUs to remove it, leaving the network stuck at its base
 
-    def forward(self, colours: torch.Tensor, images: torch.Tensor, zero_reset: torch.Tensor, scale: int) -> torch.Tensor:
-        b, _, h, w = colours.shape
-        reset = zero_reset.to(colours.dtype)[:, None, None, None].expand(b, 1, h, w)
-        x = self.fuse(torch.cat([colours, reset, 4 * images - 2], 1))  # (B, F, H, W); rates 0..1 centred
+    channels_last = False  # the GPU path (cscsr.network.model.use_channels_last): the fused input written once, NHWC
+
+    def forward(self, colours, images: torch.Tensor, zero_reset: torch.Tensor, scale: int) -> torch.Tensor:
+        """``colours``: (B, 3C, H, W), or the colours' (B, C, H, W) features as a list (joined in one write)."""
+        parts = list(colours) if isinstance(colours, (list, tuple)) else [colours]
+        b, _, h, w = parts[0].shape
+        reset = zero_reset.to(parts[0].dtype)[:, None, None, None].expand(b, 1, h, w)
+        joined = cat_channels([*parts, reset, 4 * images - 2], self.fuse.in_channels, self.channels_last)
+        x = self.fuse(joined)  # (B, F, H, W); rates 0..1 centred
         x = x + self.trunk(x)  # long skip
         for step, factor in enumerate(NETWORK_SCALES):
             x = self.up[step](x)  # (B, F, 2^(step+1) H, 2^(step+1) W)

@@ -28,6 +28,7 @@ from cscsr.network.integration import NETWORK_SCALES, Integration
 from cscsr.network.motion_estimation import MotionEstimation
 from cscsr.network.spike_flow import FlowDecoder
 from cscsr.network.temporal_pixels import TemporalPixels
+from cscsr.network.warp import SharedFlow
 from stages.errors import InputError
 
 MULTIPLE = 16  # LR sides the network runs at: half resolution, then the flow pyramid's 1/4
@@ -56,20 +57,23 @@ class CSCSR(nn.Module):
             raise InputError(f"{len(cfas)} CFA patterns for a batch of {b} clips")
         zero = torch.as_tensor(zero_reset, device=spikes.device).expand(b).bool()
 
-        x = pad_keeping_phase(spikes.float(), MULTIPLE, phase=not mono)  # (B, N, Hp, Wp)
+        x = pad_keeping_phase(spikes.to(self.dtype), MULTIPLE, phase=not mono)  # (B, N, Hp, Wp), weights' dtype
         if self.channels_last:
             x = x.contiguous(memory_format=torch.channels_last)  # (B, N, Hp, Wp) stored as (B, Hp, Wp, N)
-        cells = cell_masks(cfas, x.shape[-2], x.shape[-1], x.device)  # (B, 4, Hp, Wp) R, G1, G2, B (mono: phases)
+        cells = cell_masks(cfas, x.shape[-2], x.shape[-1], x.device, x.dtype)  # (B, 4, Hp, Wp) R, G1, G2, B (mono:
+        # phases), in the network's dtype
         colours = colour_masks(cells, mono)  # (B, 3, Hp, Wp) R, G, B; mono (B, 1, Hp, Wp) ones
         if self.motion is not None:
             flows, key_flows = self.motion(x, cells)  # (B, N', 2, Hp, Wp)
         else:
             flows, key_flows = None, None
         k = self.config.colours
+        if flows is not None:  # every colour warps by the same flows: one sampling plan for all (bf16 GPU path)
+            flows = SharedFlow(flows.flatten(0, 1))  # (B*N', 2, Hp, Wp)
         features = [self.temporal[c](self.bssr[c](x, colours[:, c : c + 1]), colours[:, c : c + 1], flows)
                     for c in range(k)]  # k x (B, C, Hp, Wp)
         images = lr_images(x, colours, zero, self.config.length)  # (B, 2k, Hp, Wp)
-        residual = self.integration(torch.cat(features, 1), images, zero, scale)  # (B, k, s*Hp, s*Wp)
+        residual = self.integration(features, images, zero, scale)  # (B, k, s*Hp, s*Wp)
         base = base_image(images[:, :k], scale)  # (B, k, s*Hp, s*Wp)
         image = (base + residual)[..., : scale * h, : scale * w]
         if mono:  # grey as the video store's three equal channels: export, evaluate, open_video need no case
@@ -77,6 +81,11 @@ class CSCSR(nn.Module):
         if key_flows is not None:
             key_flows = tuple(f[..., :h, :w] for f in key_flows)
         return {"image": image, "flows": key_flows, "base": base[..., : scale * h, : scale * w]}
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """The network's arithmetic without autocast: its weights' dtype (float32; bfloat16 on the GPU path)."""
+        return self.integration.fuse.weight.dtype
 
     def check_input(self, spikes: torch.Tensor, scale: int) -> tuple[int, int, int, int]:
         if spikes.ndim != 4:
@@ -102,10 +111,13 @@ def use_channels_last(model: CSCSR, on: bool = True) -> CSCSR:
     GPUs' tensor cores, measured on the CPU in docs/performance.md); the same result within float rounding,
     not bit for bit. ``on=False`` goes back to the default layout. Returns the model."""
     model.channels_last = on
-    layout = torch.channels_last if on else torch.contiguous_format
     for module in model.modules():
+        if hasattr(type(module), "channels_last"):  # the network's steps that lay their own tensors out (#53)
+            module.channels_last = on
         for name, tensor in [*module.named_parameters(recurse=False), *module.named_buffers(recurse=False)]:
-            if tensor.dim() == 4:
+            if tensor.dim() in (4, 5):  # the 3D convolutions' weights NDHWC
+                layout = (torch.channels_last if tensor.dim() == 4 else torch.channels_last_3d) if on \
+                    else torch.contiguous_format
                 tensor.data = tensor.data.contiguous(memory_format=layout)
     return model
 

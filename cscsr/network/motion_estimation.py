@@ -15,12 +15,15 @@ import torch.nn.functional as F
 from torch import nn
 
 from cscsr.network.bayer import split_half
+from cscsr.network.blocks import stack_channels
 from cscsr.network.config import CSCSRConfig
 from cscsr.network.spike_flow import SpikeFlowNet
 
 
 class MotionEstimation(nn.Module):
     """(B, N, H, W) spikes, (B, 4, H, W) cell masks -> flows (B, N', 2, H, W), and the two key flows."""
+
+    channels_last = False  # the GPU path (cscsr.network.model.use_channels_last): clips stacked NHWC in one write
 
     def __init__(self, config: CSCSRConfig):
         super().__init__()
@@ -37,10 +40,16 @@ class MotionEstimation(nn.Module):
     def _flow(self, a: torch.Tensor, b: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
         """Two (B, 4, K, h, w) clips -> (B, 2, 2h, 2w) flow at full LR resolution."""
         bsz, _, k, h, w = a.shape
+        into = self.flow.encoder[0][0][0].in_channels  # 4K (1K assembled), or a multiple of 8 when padded
+
+        def stacked(clip):  # (B, 4, K, h, w) -> (B, 4K, h, w), or assembled (4B, K, h, w): the reshape, padded
+            clip = clip if self.config.motion == "joint" else clip.reshape(bsz * 4, 1, k, h, w)
+            return stack_channels(clip, into, self.channels_last)
+
         if self.config.motion == "joint":
-            half_flow = self.flow(a.reshape(bsz, 4 * k, h, w), b.reshape(bsz, 4 * k, h, w))  # (B, 2, h, w)
+            half_flow = self.flow(stacked(a), stacked(b))  # (B, 2, h, w)
             return 2 * F.interpolate(half_flow, scale_factor=2, mode="bilinear", align_corners=False)
-        per_channel = self.flow(a.reshape(bsz * 4, k, h, w), b.reshape(bsz * 4, k, h, w))  # (4B, 2, h, w)
+        per_channel = self.flow(stacked(a), stacked(b))  # (4B, 2, h, w)
         per_channel = 2 * per_channel.reshape(bsz, 4, 2, h, w)
         return assemble(per_channel, cells)
 

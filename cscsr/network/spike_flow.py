@@ -13,7 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from cscsr.network.blocks import ConvBlock
+from cscsr.network.blocks import ConvBlock, cat_channels
 from cscsr.network.warp import warp
 
 
@@ -49,6 +49,8 @@ class SpikeFlowNet(nn.Module):
     """(B, K, h, w) clip stacks a and b -> (B, 2, h, w) flow from a's centre to b's centre."""
 
     RADII = (1, 2, 3)  # correlation radius at levels 1/1, 1/2, 1/4
+    channels_last = False  # the GPU path (cscsr.network.model.use_channels_last): NHWC, concatenations written once
+    real_widths = None  # (f0, f1, f2) before cscsr.network.padding padded the features: the correlation's mean
 
     def __init__(self, in_channels: int, features: int):
         super().__init__()
@@ -79,7 +81,10 @@ class SpikeFlowNet(nn.Module):
                 flow = upsample_flow(flow)  # (B, 2, size of this level)
                 target = warp(target, flow)
             cost = correlation(fa[level], target, self.RADII[level])
+            if self.real_widths is not None:  # a mean over the padded channels, whose features are 0: over the real
+                cost = cost * (fa[level].shape[1] / self.real_widths[level])
             inputs = [cost, fa[level]] + ([flow] if flow is not None else [])
-            update = self.decoders[level](torch.cat(inputs, 1))
+            into = self.decoders[level].body[0][0].in_channels  # or a multiple of 8 when padded
+            update = self.decoders[level](cat_channels(inputs, into, self.channels_last))  # torch.cat if not padded
             flow = update if flow is None else flow + update
         return flow  # (B, 2, h, w)

@@ -22,40 +22,99 @@ def warp(x: torch.Tensor, flow: torch.Tensor, padding: str = "border") -> torch.
     know where real samples landed.
     """
     _, _, h, w = x.shape
+    if uses_sampler(x):  # reduced-precision features (the bf16 GPU path): no cast of them
+        return sample(x, sampling_plan(flow, h, w, padding, x.dtype))
     # (B, 2, H, W) absolute positions, float32 whatever the features' dtype or autocast: bfloat16 holds integers
     # exactly only up to 256 (at LR 1008 a bf16 grid put samples up to 4.3 px off); a bf16 flow adds to the
     # float32 grid by type promotion, so the sum is float32 too, with no cast
     where = pixel_grid(h, w, x.device) + flow
-    if x.dtype != torch.float32 and not torch.is_autocast_enabled(x.device.type):
-        return bilinear(x, where, padding)  # reduced-precision features (the bf16 GPU path): no cast of them
     gx = 2 * where[:, 0] / max(w - 1, 1) - 1
     gy = 2 * where[:, 1] / max(h - 1, 1) - 1
     grid = torch.stack([gx, gy], dim=-1)  # (B, H, W, 2) in [-1, 1], float32
     return F.grid_sample(x, grid, mode="bilinear", padding_mode=padding, align_corners=True)
 
 
-def bilinear(x: torch.Tensor, where: torch.Tensor, padding: str = "border") -> torch.Tensor:
-    """``grid_sample`` (bilinear, ``align_corners=True``) for features of any dtype at float32 positions, with no
-    cast of the features: each output pixel is the weighted sum of its four neighbours' rows of the NHWC table
-    (one ``embedding_bag``). Positions and weights are float32; only the four weights a pixel are rounded to the
-    features' dtype. (B, C, H, W) features, (B, 2, H, W) positions (x, y) in pixels -> (B, C, H, W), channels-last."""
+def uses_sampler(x: torch.Tensor) -> bool:
+    """Features in a reduced precision outside autocast (the GPU path's bf16) go through :func:`sample`;
+    float32, and anything under autocast (which runs ``grid_sample`` in float32), through ``grid_sample``."""
+    return x.dtype not in (torch.float32, torch.float64) and not torch.is_autocast_enabled(x.device.type)
+
+
+class SharedFlow:
+    """A flow (B, 2, H, W) that several tensors are warped by (every colour's features and masks): the
+    sampler's plan is worked out once per padding and dtype, not once per tensor (and its indices once for
+    both paddings). ``warp(x, padding)``."""
+
+    def __init__(self, flow: torch.Tensor):
+        self.flow, self._plans, self._indices = flow, {}, {}
+
+    def warp(self, x: torch.Tensor, padding: str = "border") -> torch.Tensor:
+        if not uses_sampler(x):
+            return warp(x, self.flow, padding)
+        h, w = x.shape[-2:]
+        key = (padding, x.dtype, h, w)
+        if key not in self._plans:
+            if (h, w) not in self._indices:
+                self._indices[(h, w)] = sampling_indices(self.flow, h, w)
+            self._plans[key] = sampling_plan(self.flow, h, w, padding, x.dtype, self._indices[(h, w)])
+        return sample(x, self._plans[key])
+
+
+def sampling_indices(flow: torch.Tensor, h: int, w: int):
+    """The float32 positions' corners for a (B, 2, H, W) flow: the four neighbours' rows of a (B*H*W, C) NHWC
+    table, (B, H, W, 4) int32, clamped into the frame; the top-left corner (B, 2, H, W) int32 and the
+    fractions (B, 2, H, W) float32."""
+    b = flow.shape[0]
+    where = pixel_grid(h, w, flow.device) + flow  # (B, 2, H, W) float32 positions (a bf16 flow promotes)
+    corner = where.floor()
+    fraction = where - corner  # in [0, 1)
+    corner = corner.to(torch.int32)  # positions -> pixel indices
+    ix, iy = corner[:, 0], corner[:, 1]  # (B, H, W)
+    first = torch.arange(b, device=flow.device, dtype=torch.int32)[:, None, None] * (h * w)  # each clip's row 0
+    cols = [ix.clamp(0, w - 1), (ix + 1).clamp_(0, w - 1)]
+    rows = [iy.clamp(0, h - 1).mul_(w).add_(first), (iy + 1).clamp_(0, h - 1).mul_(w).add_(first)]
+    index = torch.empty((b, h, w, 4), dtype=torch.int32, device=flow.device)
+    if torch.compiler.is_compiling():  # out= into a view breaks a graph; the compiler fuses these anyway
+        return torch.stack([rows[dy] + cols[dx] for dy, dx in CORNERS], -1), corner, fraction
+    for k, (dy, dx) in enumerate(CORNERS):
+        torch.add(rows[dy], cols[dx], out=index[..., k])
+    return index, corner, fraction
+
+
+CORNERS = ((0, 0), (0, 1), (1, 0), (1, 1))  # (dy, dx) of the four neighbours, in the plan's order
+
+
+def sampling_plan(flow: torch.Tensor, h: int, w: int, padding: str, dtype: torch.dtype, indices=None):
+    """Where ``grid_sample`` (bilinear, ``align_corners=True``) reads for a (B, 2, H, W) flow: the four
+    neighbours' rows of a (B*H*W, C) NHWC table, (B, H, W, 4) int32, and their weights, (B, H, W, 4) in
+    ``dtype``. Positions and weights are worked out in float32; the weights are written in ``dtype``.
+    ``border``: corners clamped into the frame with their weights kept, which is grid_sample's clamping of
+    the position (both corners outside land on the edge pixel, their weights summing to 1); ``zeros``:
+    corners outside weigh 0."""
+    b = flow.shape[0]
+    index, corner, fraction = indices or sampling_indices(flow, h, w)
+    fx, fy = fraction[:, 0], fraction[:, 1]
+    wx, wy = [1 - fx, fx], [1 - fy, fy]
+    if padding == "zeros":
+        ix, iy = corner[:, 0], corner[:, 1]
+        for d in (0, 1):
+            wx[d] = wx[d].masked_fill((ix + d < 0) | (ix + d >= w), 0)
+            wy[d] = wy[d].masked_fill((iy + d < 0) | (iy + d >= h), 0)
+    if torch.compiler.is_compiling():
+        return index, torch.stack([wy[dy] * wx[dx] for dy, dx in CORNERS], -1).to(dtype)
+    weights = torch.empty((b, h, w, 4), dtype=dtype, device=flow.device)
+    for k, (dy, dx) in enumerate(CORNERS):
+        torch.mul(wy[dy], wx[dx], out=weights[..., k])  # float32 product written in dtype: no cast op
+    return index, weights
+
+
+def sample(x: torch.Tensor, plan) -> torch.Tensor:
+    """(B, C, H, W) features (any dtype; no cast of them) and a :func:`sampling_plan` -> (B, C, H, W) warped,
+    stored channels-last: each output pixel the weighted sum of four rows of the NHWC table (one
+    ``embedding_bag``)."""
+    index, weights = plan
     b, c, h, w = x.shape
-    px, py = where[:, 0], where[:, 1]  # (B, H, W) each, float32
-    if padding == "border":  # grid_sample's border padding clips the positions to the frame
-        px, py = px.clamp(0, w - 1), py.clamp(0, h - 1)
-    x0, y0 = px.floor(), py.floor()
-    fx, fy = px - x0, py - y0  # (B, H, W) in [0, 1)
-    ix, iy = x0.long(), y0.long()
-    base = torch.arange(b, device=x.device)[:, None, None] * (h * w)  # (B, 1, 1): each clip's first row
-    index, weights = [], []
-    for dy in (0, 1):
-        for dx in (0, 1):
-            cx, cy = ix + dx, iy + dy  # (B, H, W) the corner's pixel
-            weight = (fx if dx else 1 - fx) * (fy if dy else 1 - fy)
-            inside = (cx >= 0) & (cx < w) & (cy >= 0) & (cy < h)  # zeros padding: corners outside give 0
-            weights.append(weight * inside)
-            index.append(base + cy.clamp(0, h - 1) * w + cx.clamp(0, w - 1))
     table = x.permute(0, 2, 3, 1).reshape(b * h * w, c)  # (B*H*W, C): a view of a channels-last x
-    out = F.embedding_bag(torch.stack(index, -1).view(-1, 4), table, mode="sum",
-                          per_sample_weights=torch.stack(weights, -1).view(-1, 4).to(x.dtype))  # (B*H*W, C)
+    out = F.embedding_bag(index.view(-1, 4), table, mode="sum", per_sample_weights=weights.view(-1, 4))
     return out.view(b, h, w, c).permute(0, 3, 1, 2)  # (B, C, H, W) stored channels-last
+
