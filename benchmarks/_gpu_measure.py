@@ -47,10 +47,21 @@ def timed(fn, device: str, repeats: int = 3) -> float:
     return float(np.median(times))
 
 
-def window(side: int, device: str, dtype) -> torch.Tensor:
-    """(1, 41, side, side) spikes of a still natural picture (tests/test_bf16_exact.py's clip, tiled)."""
-    from tests.test_bf16_exact import natural_clip
+def natural_clip(side: int, cfa: str = "grbg", frames: int = 41, seed: int = 0) -> torch.Tensor:
+    """(1, 41, side, side) spikes of a still natural picture (chelsea) through a Bayer CFA: tests/test_bf16_exact.py's
+    clip, here too so that the GPU machine needs no pytest."""
+    import skimage.data
 
+    picture = skimage.data.chelsea()[:side, :side].astype(np.float32) / 255
+    mosaic = np.empty((side, side), np.float32)
+    for (dy, dx), c in zip([(0, 0), (0, 1), (1, 0), (1, 1)], cfa):
+        mosaic[dy::2, dx::2] = picture[dy::2, dx::2, "rgb".index(c)]
+    g = torch.Generator().manual_seed(seed)
+    return (torch.rand(1, frames, side, side, generator=g) < 0.05 + 0.6 * torch.from_numpy(mosaic)).float()
+
+
+def window(side: int, device: str, dtype) -> torch.Tensor:
+    """(1, 41, side, side) spikes of a still natural picture (:func:`natural_clip`, tiled)."""
     clip = natural_clip(min(side, 288))
     reps = -(-side // clip.shape[-1])
     return clip.repeat(1, 1, reps, reps)[..., :side, :side].to(device, dtype)
