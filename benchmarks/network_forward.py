@@ -59,11 +59,12 @@ def one_case(config: str, height: int, width: int, repeats: int, device: str, dt
     spikes = (rng.random((41, height, width)) < 0.2).astype(np.uint8)
     x = torch.from_numpy(spikes).float()[None].to(device)
     model = use_channels_last(CSCSR(named(config)).eval().to(device), channels_last)
+    cfa = "mono" if model.config.mono else "rggb"  # a mono configuration (lite-mono) takes mono clips
     network = torch.compile(model) if compile else model
 
     def forward():
         with torch.inference_mode(), torch.autocast(device, torch.bfloat16, enabled=dtype == "bf16"):
-            out = network(x, "rggb", scale=4)["image"]
+            out = network(x, cfa, scale=4)["image"]
         if device == "cuda":
             torch.cuda.synchronize()
         return out
@@ -88,7 +89,7 @@ def one_case(config: str, height: int, width: int, repeats: int, device: str, dt
         forward()
     flops = counter.get_total_flops()
     tfp = classic("tfp")
-    window = Window(pack_rows(spikes), width, "rggb", "subtract", 2.0, 4)
+    window = Window(pack_rows(spikes), width, cfa, "subtract", 2.0, 4)
     tfp(window)
     tfp_times = []
     for _ in range(repeats):

@@ -155,7 +155,8 @@ def _about(step: int, options: TrainOptions, command: str) -> dict:
 
         start = {"initialised_from": f"{options.init} ({read_metadata(options.init).get('steps', '?')} steps)"}
     return {**start, "steps": str(step), "command": command, "options": json.dumps(asdict(options)),
-            "data": f"simulated on the fly{' on the GPU' if options.on_device_synthesis else ''}: dead leaves "
+            "data": f"simulated on the fly{f' by the torch synthesis on {options.device}' if options.on_device_synthesis else ''}"
+                    ": dead leaves "
                     f"({options.dead_leaves:.0%} of clips) and "
                     + (f"the pictures in {', '.join(options.picture_folders())} (sequences of frames with their own motion)"
                         if options.pictures else
