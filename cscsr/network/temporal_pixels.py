@@ -53,8 +53,8 @@ class TemporalPixels(nn.Module):
             if self.mask_slot is None or not self.flow_guidance:
                 refined = self.refine(joined)
             total = x.view(b, t, c, h, w), refined.view(b, t, c, h, w)  # residual refinement (a mask in x's padding
-            if torch.compiler.is_compiling():  # weighs 0 next); out= into a view breaks a graph: the compiler fuses
-                fused = torch.add(*total).permute(0, 3, 4, 1, 2).contiguous()
+            if torch.compiler.is_compiling() or torch.is_grad_enabled():  # weighs 0 next); out= into a view breaks
+                fused = torch.add(*total).permute(0, 3, 4, 1, 2).contiguous()  # a graph (the compiler fuses) and autograd
             else:
                 torch.add(*total, out=fused.permute(0, 3, 4, 1, 2))
             return self.fuse(fused.view(b, h, w, t * c).permute(0, 3, 1, 2))  # (B, C, H, W)
