@@ -28,7 +28,7 @@ import json
 import sys
 from collections import defaultdict
 
-from _common import markdown_table, save_results
+from _common import markdown_table, random_window, save_results
 from _traffic import count, extrapolate
 
 # bf16 dense tensor-core peak (FLOP/s) and memory bandwidth (bytes/s), from NVIDIA's data sheets (SXM)
@@ -38,16 +38,21 @@ TARGET_SIDE = 1008  # 1000 padded to a multiple of 16, as the network runs it
 SCALE = 4
 
 
-def counted(config: str, precision: str, side: int):
-    import torch
-
-    from cscsr.inference.reconstructor import precision_context, prepare_model
+def prepared(config: str, precision: str):
+    """The shipped ``config`` network as a GPU worker runs it in ``precision`` (padded, channels-last)."""
+    from cscsr.inference.reconstructor import prepare_model
     from cscsr.weights.weights_io import default_weights, load_model
 
-    torch.manual_seed(0)
     model, _ = load_model(default_weights(config))
-    model = prepare_model(model.eval(), "cuda", precision, channels_last=True)
-    spikes = (torch.rand(1, model.config.frames, side, side) < 0.3).float()
+    return prepare_model(model.eval(), "cuda", precision, channels_last=True)
+
+
+def counted(model, precision: str, side: int):
+    import torch
+
+    from cscsr.inference.reconstructor import precision_context
+
+    spikes = torch.from_numpy(random_window(side, model.config.frames))
     spikes = spikes.to(model.dtype)  # as the device path unpacks them (the network's dtype)
     if getattr(model, "channels_last", False):
         spikes = spikes.contiguous(memory_format=torch.channels_last)
@@ -103,7 +108,8 @@ def main() -> None:
     results = {"precision": args.precision, "lr_side": TARGET_SIDE, "scale": SCALE, "counted_at": [small, large],
                "peaks": PEAKS, "configs": {}}
     for config in args.configs.split(","):
-        ops = extrapolate(counted(config, args.precision, small), counted(config, args.precision, large),
+        model = prepared(config, args.precision)
+        ops = extrapolate(counted(model, args.precision, small), counted(model, args.precision, large),
                           (small * small, large * large), TARGET_SIDE * TARGET_SIDE)
         results["configs"][config] = summary(ops, args.top)
     save_results("network_traffic", results)

@@ -13,7 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from cscsr.network.blocks import ChannelAttention
+from cscsr.network.blocks import ChannelAttention, to_channels_last
 
 
 class BSSR(nn.Module):
@@ -34,7 +34,7 @@ class BSSR(nn.Module):
         samples = F.conv2d(mask, torch.ones(1, 1, 3, 3, device=mask.device, dtype=mask.dtype), padding=1)
         if self.channels_last:  # the GPU path: the partial convolution's scale and bias in one pass, ReLU in place
             x = torch.addcmul(self.bias[:, None, None, None], raw, (9 / samples.clamp(min=1))[:, :, None]).relu_()
-            x = self.mix(x).contiguous(memory_format=torch.channels_last_3d)  # (B, C, N', H, W) stored (B, N', H, W,
+            x = to_channels_last(self.mix(x))  # (B, C, N', H, W) stored (B, N', H, W,
             # C): a no-op where the Conv3d keeps the layout (cuDNN, oneDNN's bf16); a CPU without native bf16 (AVX2)
             # returns it NCDHW, which every convolution after it would then read
         else:

@@ -45,17 +45,15 @@ class TemporalPixels(nn.Module):
             inner.view(b, t, *inner.shape[1:]).add_(self.refine_c(middle)[:, None]).relu_()  # + middle's, once a clip
             refined = self.refine[1](inner)
         elif self.channels_last:  # the middle time point broadcast into the concatenation, not repeated first
-            joined = cat_channels([x, middle, m], into, channels_last=True, repeats=[1, t, 1])  # (B*N', into, H, W)
+            refined = self.refine(cat_channels([x, middle, m], into, channels_last=True, repeats=[1, t, 1]))
         else:
             joined = cat_channels([x, middle.repeat_interleave(t, 0), m], into)  # torch.cat when not padded
         if self.channels_last:  # the residual sum written straight into (B, N'*C, H, W) NHWC: no reshape copy
-            fused = torch.empty((b, h, w, t, c), dtype=x.dtype, device=x.device)  # stored as the fuse reads it
-            if self.mask_slot is None or not self.flow_guidance:
-                refined = self.refine(joined)
             total = x.view(b, t, c, h, w), refined.view(b, t, c, h, w)  # residual refinement (a mask in x's padding
             if torch.compiler.is_compiling() or torch.is_grad_enabled():  # weighs 0 next); out= into a view breaks
                 fused = torch.add(*total).permute(0, 3, 4, 1, 2).contiguous()  # a graph (the compiler fuses) and autograd
             else:
+                fused = torch.empty((b, h, w, t, c), dtype=x.dtype, device=x.device)  # stored as the fuse reads it
                 torch.add(*total, out=fused.permute(0, 3, 4, 1, 2))
             return self.fuse(fused.view(b, h, w, t * c).permute(0, 3, 1, 2))  # (B, C, H, W)
         x = x + self.refine(joined)  # residual refinement

@@ -31,11 +31,12 @@ def make_batch(step: int, options: TrainOptions, cache: dict, pool: dict | None 
     if options.distinct_batches:
         step = 1 + (step - 1) % options.distinct_batches
     scale = scale_of(step, options)
+    mono = options.network().mono
     if options.on_device_synthesis:
         from cscsr.training.synthesis import prepare
 
         return prepare([random_plan([options.seed, step, i], lr_side=options.lr_side, scale=scale, pictures=pictures,
-                                    cache=cache, dead_leaves_share=options.dead_leaves, mono=options.network().mono)
+                                    cache=cache, dead_leaves_share=options.dead_leaves, mono=mono)
                           for i in range(options.batch)])
     if pool:
         rng = np.random.default_rng([options.seed, step, 998])
@@ -43,7 +44,7 @@ def make_batch(step: int, options: TrainOptions, cache: dict, pool: dict | None 
         return batch_arrays([reoriented(clips[i], int(k)) for i, k in
                              zip(rng.integers(len(clips), size=options.batch), rng.integers(8, size=options.batch))])
     clips = [random_clip([options.seed, step, i], lr_side=options.lr_side, scale=scale, pictures=pictures,
-                         cache=cache, dead_leaves_share=options.dead_leaves, mono=options.network().mono)
+                         cache=cache, dead_leaves_share=options.dead_leaves, mono=mono)
              for i in range(options.batch)]
     return batch_arrays(clips)
 

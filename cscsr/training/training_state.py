@@ -7,7 +7,7 @@ refusing options that would change the weights, the clips or the schedule so far
 
 import json
 import os
-from dataclasses import asdict, replace
+from dataclasses import asdict
 from pathlib import Path
 
 import torch
@@ -111,12 +111,12 @@ def load_checkpoint(path: Path, model: CSCSR, optimiser: torch.optim.Optimizer, 
 
 def initial_weights(options: TrainOptions) -> dict:
     """The state dict of ``options.init``, refused unless it holds the network this run trains."""
+    from cscsr.weights.mono_init import mono_config_of, mono_state
     from cscsr.weights.weights_io import load_model
 
     model, _ = load_model(options.init)
     target = options.network()
-    if target.mono and model.config.colours == 3 and replace(model.config, name=target.name, colours=1) == target:
-        from cscsr.weights.mono_init import mono_state
+    if target.mono and model.config.colours == 3 and mono_config_of(model.config, target.name) == target:
 
         return mono_state(model.state_dict(), model.config)  # a mono run from a colour file: its green branch
     if model.config != target:
