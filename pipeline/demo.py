@@ -118,7 +118,7 @@ def helicopter_through_the_network(heli: str, gain: float):
     """One 41-frame window of the real mono helicopter recording at x2: TFP beside the mono network (``lite-mono``,
     the default for a mono recording), the same frames and gain, labelled. One window in this process: seconds."""
     from pipeline.jobs.reconstruct import reconstructor
-    from stages.reconstruction.methods import WINDOW, Window
+    from stages.reconstruction.methods import Window
 
     store = open_spike_store(heli)
     half = WINDOW // 2

@@ -26,7 +26,7 @@ from distributed import Client, LocalCluster, get_task_stream
 from cscsr import lazy
 from pipeline.compute.cluster import GPU, GPU_SHARE
 from pipeline.lazy import written as lazy_written
-from pipeline.lazy.video import MARGIN
+from pipeline.lazy.windows import MARGIN
 from pipeline.lazy.windows import WINDOW_BLOCKS
 from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct
 from pipeline.stores.spike_store import SPIKES, SpikeMeta, SpikeStoreWriter

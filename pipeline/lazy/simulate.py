@@ -91,10 +91,10 @@ def check_intensities(frames: np.ndarray, first_frame: int) -> None:
     NaN, inf, negatives, or a scene of 0..255 given as floats (clipping would make it white)."""
     if not np.issubdtype(frames.dtype, np.floating) or frames.size == 0:
         return
-    low, high = np.nanmin(frames) if not np.isnan(frames).all() else np.nan, np.nanmax(frames)
-    if not np.isfinite(frames).all() or low < 0 or high > 1:
-        bad = int(np.argmax(~(np.isfinite(frames) & (frames >= 0) & (frames <= 1)).reshape(len(frames), -1).all(1)))
-        values = frames[bad][~(np.isfinite(frames[bad]) & (frames[bad] >= 0) & (frames[bad] <= 1))]
+    ok = np.isfinite(frames) & (frames >= 0) & (frames <= 1)  # one pass: NaN compares false
+    if not ok.all():
+        bad = int(np.argmin(ok.reshape(len(frames), -1).all(1)))  # the first frame holding a value out of [0, 1]
+        values = frames[bad][~ok[bad]]
         raise InputError(f"frames: scene frame {first_frame + bad} holds {values.flat[0]!r} (float frames are "
                          f"intensities in [0, 1], never clipped: divide a 0..255 scene by 255, or give it as uint8)")
 

@@ -31,7 +31,7 @@ from dask.base import tokenize
 from pipeline.compute.cluster import GPU, GPU_SHARE
 from pipeline.jobs.reconstruct_plan import Plan, ReconstructOptions
 from pipeline.lazy.spikes import python_words
-from pipeline.lazy.windows import MARGIN, WINDOW_DIMS, check_windows, windows  # noqa: F401 - the stages
+from pipeline.lazy.windows import check_windows
 from stages.capture.bits import pack_rows, unpack_rows
 from stages.errors import InputError, InputTypeError
 from stages.numbers import check_number, check_text

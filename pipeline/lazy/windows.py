@@ -171,9 +171,6 @@ def check_windows(win, what: str = "windows") -> xr.DataArray:
         raise InputError(f"{what} are a selection along dt ({len(dt)} of the {attrs['window']} frames of each window, "
                          f"from dt={dt[0] if len(dt) else None}): a window is all its frames in order; make shorter "
                          f"ones with lazy.windows(spikes, length=...)")
-    for dim in ("y", "x"):
-        if dim in win.coords:
-            run_of(win.coords[dim].values, dim, what)
     y0, y1, x0, x1 = attrs["region"]
     ys, xs = (run_of(win.coords[d].values, d, what) if d in win.coords else (0, n) for d, n in
               (("y", win.shape[2]), ("x", win.shape[3])))
