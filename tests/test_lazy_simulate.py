@@ -4,10 +4,12 @@ an uninterrupted one, gives the same bytes on a two-process cluster, and refuses
 anything is written."""
 
 import os
+import shutil
 
 import dask
 import dask.array as da
 import imageio.v3 as iio
+
 import numpy as np
 import pytest
 import xarray as xr
@@ -120,6 +122,12 @@ def test_to_spikes_writes_the_job_s_truth_and_evaluate_scores_a_lazy_video_besid
                tmp_path / "cli", "--scheduler", client.scheduler.address)
     assert done.exit_code == 0 and "mine" in done.stdout and "written" in done.stdout, done.stdout + done.stderr
     assert f"{rows[1]['psnr']:.2f}" in done.stdout
+    shutil.copytree(tmp_path / "mine.zarr", tmp_path / "lost.zarr")
+    next(p for p in (tmp_path / "lost.zarr" / "video").rglob("*") if p.is_file() and p.name.isdigit()).unlink()
+    with pytest.raises(InputError, match="has lost data") as raised:  # it would be scored as black
+        evaluate(out, ["tfp"], str(tmp_path / "refused"), videos={"lost": str(tmp_path / "lost.zarr")}, workers=1,
+                 progress=False)
+    assert "\n" not in str(raised.value) and not (tmp_path / "refused").exists()
     bad = cli("evaluate", out, "--video", "mine", "--out", tmp_path / "cli2", "--scheduler", client.scheduler.address)
     assert bad.exit_code != 0 and "give NAME=URL" in bad.stdout + bad.stderr and not (tmp_path / "cli2").exists()
     with pytest.raises(InputError, match="truth= must be the scene"):

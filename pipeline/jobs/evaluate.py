@@ -21,7 +21,7 @@ from pipeline.stores.outputs import EVALUATION, mark_folder, new_output
 from pipeline.jobs.reconstruct import ReconstructOptions, checked_method, reconstruct
 from pipeline.stores.spike_store import open_spike_store, store_identity
 from pipeline.stores.storage import check_apart, resolve
-from pipeline.stores.video_store import FRAMES, VIDEO, open_video_store
+from pipeline.stores.video_store import FRAMES, VIDEO, lost_frames, open_video_store
 from stages.errors import InputError
 from stages.measures.metrics import psnr, ssim
 from stages.reconstruction.methods import METHODS, NETWORKS, WINDOW, output_centres
@@ -72,24 +72,27 @@ def checked_videos(videos: dict, store, truth, truth_frames, methods: list[str])
         attrs = dict(group.attrs)
         if attrs.get("state") != "complete":
             raise InputError(f"--video {name}={url} is incomplete (state {attrs.get('state')!r}): finish it first")
+        if lost := lost_frames(group):  # as lazy.open_video refuses it: a lost chunk would be scored as black
+            raise InputError(f"--video {name}={url} has lost data: {lost}: make it again")
         if attrs.get("source_identity") not in (None, store_identity(store)):
             raise InputError(f"--video {name}={url} was made from another recording (source {attrs.get('source')}), "
                              f"not {store.url}")
-        frames = group[FRAMES][:]
-        at = np.searchsorted(frames, truth_frames).clip(0, max(len(frames) - 1, 0))
-        if not len(frames) or not np.array_equal(frames[at], truth_frames):
-            missing = [int(f) for f in truth_frames if f not in set(frames.tolist())]
+        frames, video = group[FRAMES][:], group[VIDEO]
+        present = np.isin(truth_frames, frames)
+        if not present.all():
+            missing = [int(f) for f in np.asarray(truth_frames)[~present]]
             raise InputError(f"--video {name}={url} lacks the truth's frames {missing[:4]}...: reconstruct every "
                              f"{int(store.attrs.get('truth_every', WINDOW))} frames with window {WINDOW} (the truth's)")
+        at = np.searchsorted(frames, truth_frames)
         height, width = truth.shape[1:3]
         scale = attrs.get("scale")
         region = attrs.get("region") or [0, store.shape[1], 0, store.shape[2]]
         crop = [side * scale for side in region] if isinstance(scale, int) else [0, height, 0, width]
-        if group[VIDEO].shape[1:3] != (crop[1] - crop[0], crop[3] - crop[2]) or crop[1] > height or crop[3] > width:
-            raise InputError(f"--video {name}={url} is {group[VIDEO].shape[2]}x{group[VIDEO].shape[1]} HR at scale "
+        if video.shape[1:3] != (crop[1] - crop[0], crop[3] - crop[2]) or crop[1] > height or crop[3] > width:
+            raise InputError(f"--video {name}={url} is {video.shape[2]}x{video.shape[1]} HR at scale "
                              f"{scale}, region {region}; the truth is {width}x{height}: give a video at the truth's "
                              f"scale")
-        checked[name] = (group[VIDEO], at, tuple(crop))
+        checked[name] = (video, at, tuple(crop))
     return checked
 
 
