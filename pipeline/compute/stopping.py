@@ -38,6 +38,30 @@ def interrupt_on(*signals: signal.Signals) -> None:
         _handled.add(signum)
 
 
+@contextlib.contextmanager
+def interrupts_deferred():
+    """Hold a SIGTERM or Ctrl-C that arrives inside the block until the block ends, then raise it as
+    :func:`interrupt_on`'s handler would: for a write that must not be cut in two (a frame piped to ffmpeg, which,
+    handed half a frame as its input closes, prints "Invalid buffer size" after the command's one line). Only where
+    :func:`interrupt_on` set up the signal, from the main thread; elsewhere nothing changes."""
+    held = [signum for signum in _handled if threading.current_thread() is threading.main_thread()
+            and callable(signal.getsignal(signum))]
+    if not held:
+        yield
+        return
+    handlers, arrived = {signum: signal.getsignal(signum) for signum in held}, []
+    for signum in held:
+        signal.signal(signum, lambda signum, frame: arrived.append((signum, frame)))
+    try:
+        yield
+    finally:
+        for signum, handler in handlers.items():
+            signal.signal(signum, handler)
+        if arrived:
+            signum, frame = arrived[0]
+            handlers[signum](signum, frame)
+
+
 def quiet_finalizers() -> None:
     """After an interrupt, in a process that :func:`interrupt_on` set up (the command line's, a segment's: it is about
     to exit), drop the errors of finalizers: an object whose construction the interrupt cut short can fail in its

@@ -13,6 +13,7 @@ import tempfile
 
 from pipeline.stores.lease import claimed
 from pipeline.compute.progress import progress_bar
+from pipeline.compute.stopping import interrupts_deferred
 from pipeline.stores.spike_store import open_spike_store
 from pipeline.stores.outputs import FRAME_FOLDER, new_output
 from pipeline.stores.storage import check_apart, open_group, resolve
@@ -78,7 +79,9 @@ def export_mp4(store_url: str, dest: str, *, overwrite: bool = False, progress: 
                              pixelformat="yuv420p", macro_block_size=MP4_BLOCK, ffmpeg_log_level="error") as writer, \
                 progress_bar(f"export {dest}", video.shape[0], enabled=progress) as advance:
             for index in range(video.shape[0]):
-                writer.append_data(padded_to(video[index], MP4_BLOCK))  # sides already even: imageio resizes nothing
+                frame = padded_to(video[index], MP4_BLOCK)  # sides already even: imageio resizes nothing
+                with interrupts_deferred():  # never half a frame in ffmpeg's pipe
+                    writer.append_data(frame)
                 advance(1)
         fs.put_file(local, path)
 

@@ -15,6 +15,7 @@ unfinished store is kept for it; the next ``watch --once`` for the ``watch`` ser
 import os
 import signal
 import subprocess
+import sys
 import time
 
 import numpy as np
@@ -169,6 +170,31 @@ def test_sigterm_during_export_leaves_no_encoder_no_temporary_mp4_and_no_partial
     again = subprocess.run([CSCSR, "-q", "export", video, dest], cwd=work, capture_output=True, text=True, timeout=120)
     assert again.returncode == 0, again.stderr  # not "already exists"
     assert png_count(work / dest) == 120 if dest == "frames" else os.path.getsize(work / dest) > 0
+
+
+DEFERRED = """
+import os, signal, sys
+from pipeline.compute.stopping import Terminated, interrupt_on, interrupts_deferred
+interrupt_on(signal.SIGTERM)
+try:
+    with interrupts_deferred():
+        os.kill(os.getpid(), signal.SIGTERM)
+        print("the frame went out whole", flush=True)
+    print("never: the block ended", flush=True)
+except Terminated:
+    print("terminated after the block", flush=True)
+os.kill(os.getpid(), signal.SIGTERM)  # the handler is back: a second signal is ignored, as interrupt_on promises
+print("still here")
+"""
+
+
+def test_an_interrupt_inside_a_deferred_write_is_raised_when_the_write_ends():
+    """A frame piped to the mp4 encoder is never cut in two (the encoder then printed "Invalid buffer size" after
+    the one line, CI 2026-11-27): the interrupt waits for the end of the block, then is raised as it would have
+    been."""
+    result = subprocess.run([sys.executable, "-c", DEFERRED], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.splitlines() == ["the frame went out whole", "terminated after the block", "still here"]
 
 
 @pytest.mark.parametrize("ctrl_c", [False, True], ids=["sigterm", "ctrl-c"])
