@@ -31,13 +31,14 @@ class BSSR(nn.Module):
     def forward(self, spikes: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         b, _, h, w = spikes.shape
         raw = self.windows(spikes, mask) if self.channels_last else self.windows(spikes * mask)  # (B, C, N', H, W)
-        samples = F.conv2d(mask, torch.ones(1, 1, 3, 3, device=mask.device, dtype=mask.dtype), padding=1)
         if self.channels_last:  # the GPU path: the partial convolution's scale and bias in one pass, ReLU in place
+            samples = F.avg_pool2d(mask, 3, 1, 1, divisor_override=1)  # the 3x3 sum of the 0/1 mask (exact), no conv
             x = torch.addcmul(self.bias[:, None, None, None], raw, (9 / samples.clamp(min=1))[:, :, None]).relu_()
             x = to_channels_last(self.mix(x))  # (B, C, N', H, W) stored (B, N', H, W,
             # C): a no-op where the Conv3d keeps the layout (cuDNN, oneDNN's bf16); a CPU without native bf16 (AVX2)
             # returns it NCDHW, which every convolution after it would then read
         else:
+            samples = F.conv2d(mask, torch.ones(1, 1, 3, 3, device=mask.device, dtype=mask.dtype), padding=1)
             x = raw * (9 / samples.clamp(min=1))[:, :, None] + self.bias[:, None, None, None]  # partial conv
             x = self.mix(torch.relu(x))  # (B, C, N', H, W)
         c, t = x.shape[1], x.shape[2]

@@ -40,7 +40,10 @@ class Integration(nn.Module):
         """``colours``: (B, 3C, H, W), or the colours' (B, C, H, W) features as a list (joined in one write)."""
         parts = list(colours) if isinstance(colours, (list, tuple)) else [colours]
         b, _, h, w = parts[0].shape
-        reset = zero_reset.to(parts[0].dtype)[:, None, None, None].expand(b, 1, h, w)
+        if self.channels_last:  # the GPU path: the 0/1 flag written in the features' dtype, no cast
+            reset = parts[0].new_zeros(b).masked_fill_(zero_reset, 1)[:, None, None, None].expand(b, 1, h, w)
+        else:
+            reset = zero_reset.to(parts[0].dtype)[:, None, None, None].expand(b, 1, h, w)
         joined = cat_channels([*parts, reset, 4 * images - 2], self.fuse.in_channels, self.channels_last)
         x = self.fuse(joined)  # (B, F, H, W); rates 0..1 centred
         x = x + self.trunk(x)  # long skip

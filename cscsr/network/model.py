@@ -72,7 +72,8 @@ class CSCSR(nn.Module):
             flows = SharedFlow(flows.flatten(0, 1))  # (B*N', 2, Hp, Wp)
         features = [self.temporal[c](self.bssr[c](x, colours[:, c : c + 1]), colours[:, c : c + 1], flows)
                     for c in range(k)]  # k x (B, C, Hp, Wp)
-        images = lr_images(x, colours, zero, self.config.length)  # (B, 2k, Hp, Wp)
+        kernel = getattr(self, "demosaic_kernel", None)  # the GPU path's (cscsr.network.padding): one aligned conv
+        images = lr_images(x, colours, zero, self.config.length, kernel)  # (B, 2k, Hp, Wp)
         residual = self.integration(features, images, zero, scale)  # (B, k, s*Hp, s*Wp)
         base = base_image(images[:, :k], scale)  # (B, k, s*Hp, s*Wp)
         image = (base + residual)[..., : scale * h, : scale * w]

@@ -15,6 +15,8 @@ fp32 outputs equal the unpadded model's within float rounding (tested: within 1e
 import torch
 from torch import nn
 
+from cscsr.network.base_image import aligned_kernel
+
 MULTIPLE = 8
 
 
@@ -103,6 +105,9 @@ def pad_channels(model: nn.Module) -> nn.Module:
         temporal.fuse[0][0] = _conv(temporal.fuse[0][0], _per_time(t, c), t * cp, list(range(c)), cp)
         temporal.fuse[1][0] = _prefix(temporal.fuse[1][0], c, c)
     _pad_integration(model.integration, c, f, k)
+    if not cfg.mono:  # the base image's demosaicking: its two 3-channel grouped convolutions as one of 8 channels
+        model.register_buffer("demosaic_kernel", aligned_kernel(MULTIPLE).to(model.integration.fuse.weight),
+                              persistent=False)
     if model.motion is not None:
         _pad_flow(model.motion.flow)
     return model

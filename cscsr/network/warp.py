@@ -62,23 +62,30 @@ class SharedFlow:
 
 def sampling_indices(flow: torch.Tensor, h: int, w: int):
     """The float32 positions' corners for a (B, 2, H, W) flow: the four neighbours' rows of a (B*H*W, C) NHWC
-    table, (B, H, W, 4) int32, clamped into the frame; the top-left corner (B, 2, H, W) int32 and the
-    fractions (B, 2, H, W) float32."""
+    table, (B, H, W, 4) int32, clamped into the frame; per axis (x, y), the top-left corner, (B, H, W) float32
+    (exact integers), and the fraction, (B, H, W) float32 in [0, 1).
+
+    Positions become pixel indices with no dtype conversion: ``floor(p)`` clamped into [0, W-1] is the number of
+    pixel boundaries 1..W-1 at or before ``p``, and ``floor(p) + 1`` clamped the number of boundaries 0..W-2,
+    which ``torch.bucketize`` counts straight into int32."""
     b = flow.shape[0]
-    where = pixel_grid(h, w, flow.device) + flow  # (B, 2, H, W) float32 positions (a bf16 flow promotes)
-    corner = where.floor()
-    fraction = where - corner  # in [0, 1)
-    corner = corner.to(torch.int32)  # positions -> pixel indices
-    ix, iy = corner[:, 0], corner[:, 1]  # (B, H, W)
+    edges = torch.arange(max(h, w), device=flow.device, dtype=torch.float32)  # pixel boundaries 0, 1, 2, ...
+    grids = edges[:w], edges[:h, None]  # x of each column, y of each row: float32 integers
     first = torch.arange(b, device=flow.device, dtype=torch.int32)[:, None, None] * (h * w)  # each clip's row 0
-    cols = [ix.clamp(0, w - 1), (ix + 1).clamp_(0, w - 1)]
-    rows = [iy.clamp(0, h - 1).mul_(w).add_(first), (iy + 1).clamp_(0, h - 1).mul_(w).add_(first)]
-    index = torch.empty((b, h, w, 4), dtype=torch.int32, device=flow.device)
+    corners, fractions, near = [], [], []
+    for axis, size in ((0, w), (1, h)):
+        where = torch.empty((b, h, w), dtype=torch.float32, device=flow.device)  # contiguous, as bucketize reads
+        torch.add(grids[axis], flow[:, axis], out=where)  # float32 positions (a bf16 flow promotes by the add)
+        corners.append(where.floor())
+        fractions.append(where - corners[-1])
+        near.append([torch.bucketize(where, edges[d : size - 1 + d], out_int32=True, right=True) for d in (1, 0)])
+    cols, rows = near[0], [r.mul_(w).add_(first) for r in near[1]]  # floor(p) + d clamped; rows of the table
     if torch.compiler.is_compiling():  # out= into a view breaks a graph; the compiler fuses these anyway
-        return torch.stack([rows[dy] + cols[dx] for dy, dx in CORNERS], -1), corner, fraction
+        return torch.stack([rows[dy] + cols[dx] for dy, dx in CORNERS], -1), corners, fractions
+    index = torch.empty((b, h, w, 4), dtype=torch.int32, device=flow.device)
     for k, (dy, dx) in enumerate(CORNERS):
         torch.add(rows[dy], cols[dx], out=index[..., k])
-    return index, corner, fraction
+    return index, corners, fractions
 
 
 CORNERS = ((0, 0), (0, 1), (1, 0), (1, 1))  # (dy, dx) of the four neighbours, in the plan's order
@@ -93,13 +100,13 @@ def sampling_plan(flow: torch.Tensor, h: int, w: int, padding: str, dtype: torch
     corners outside weigh 0."""
     b = flow.shape[0]
     index, corner, fraction = indices or sampling_indices(flow, h, w)
-    fx, fy = fraction[:, 0], fraction[:, 1]
+    fx, fy = fraction
     wx, wy = [1 - fx, fx], [1 - fy, fy]
-    if padding == "zeros":
-        ix, iy = corner[:, 0], corner[:, 1]
+    if padding == "zeros":  # corner + d outside [0, size - 1], compared in float32 (exact integers)
+        ix, iy = corner
         for d in (0, 1):
-            wx[d] = wx[d].masked_fill((ix + d < 0) | (ix + d >= w), 0)
-            wy[d] = wy[d].masked_fill((iy + d < 0) | (iy + d >= h), 0)
+            wx[d] = wx[d].masked_fill((ix < -d) | (ix >= w - d), 0)
+            wy[d] = wy[d].masked_fill((iy < -d) | (iy >= h - d), 0)
     if torch.compiler.is_compiling():
         return index, torch.stack([wy[dy] * wx[dx] for dy, dx in CORNERS], -1).to(dtype)
     weights = torch.empty((b, h, w, 4), dtype=dtype, device=flow.device)
