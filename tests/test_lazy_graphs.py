@@ -77,6 +77,36 @@ def test_to_video_writes_what_the_job_writes(recording, case, tmp_path):
     assert np.array_equal(hr.coords["t"].values, job[1] / FPS)  # centre times in seconds
 
 
+SELECTIONS = {  # windows of: the store, a selection of its spikes (x from 2: not on a byte), a run of windows
+    "whole": lambda s, every: lazy.windows(s, every=every),
+    "spikes selected": lambda s, every: lazy.windows(s.isel(t=slice(13, 170), y=slice(4, 40), x=slice(2, 58)),
+                                                     every=every),
+    "windows selected": lambda s, every: lazy.windows(s, every=every, region="8:40,16:48").isel(t=slice(1, 4)),
+}
+
+
+@pytest.mark.parametrize("method, selection", [*(("tfp", name) for name in SELECTIONS), ("lite", "spikes selected")])
+def test_windows_of_a_store_are_read_packed_by_each_block_with_the_bytes_of_the_windows_themselves(
+        recording, selection, method):
+    """The reconstruction of windows of a store (or of one selection) reads each block's tile and halo packed from
+    the store in the block's own task: no windows (unpacked) are any task's input. A function between stages makes
+    it reconstruct the windows themselves: the same bytes."""
+    win = SELECTIONS[selection](lazy.open_spikes(recording), 7 if method == "tfp" else 41)  # lite: 3 or 4 windows
+
+    def made(windows):
+        if method == "tfp":
+            return lazy.tfp(windows, tile=16, gain=2.0)
+        return lazy.reconstruct(windows, method="cscsr", weights="lite", tile=16, gain=2.0)
+
+    direct, between = made(win), made(win.copy(data=win.data.map_blocks(np.copy)))
+    graph = direct.data.__dask_graph__()
+    stages = {key[0].rsplit("-", 1)[0] for key in graph if isinstance(key, tuple)}
+    assert stages == {direct.attrs["method"], "concatenate"}, stages  # its blocks, and the tiles put together
+    assert any(key[0].startswith("windows") for key in between.data.__dask_graph__() if isinstance(key, tuple))
+    with threaded():
+        assert np.array_equal(direct.values, between.values)
+
+
 def test_the_stages_are_lazy_and_say_what_they_hold(recording):
     spikes = lazy.open_spikes(recording)
     assert spikes.dims == ("t", "y", "x") and spikes.dtype == bool and spikes.shape == (FRAMES, HEIGHT, WIDTH)

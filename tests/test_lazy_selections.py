@@ -255,9 +255,13 @@ def test_a_resume_refuses_another_graph_and_finishes_the_same_one(recording, tmp
 # ---- the graph's tools ----
 
 def test_tasks_are_named_by_stage_and_counted_in_the_job_s_units(recording, tmp_path):
-    hr = lazy.tfp(lazy.windows(lazy.open_spikes(recording), every=20), tile=32)  # 8 frames, 2x2 tiles
+    win = lazy.windows(lazy.open_spikes(recording), every=20)
+    hr = lazy.tfp(win, tile=32)  # 8 frames, 2x2 tiles
     stages = {key[0].rsplit("-", 1)[0] for key in hr.data.__dask_graph__() if isinstance(key, tuple)}
-    assert {"spikes", "windows", "tfp"} <= stages, stages  # read and unpacked, windowed, reconstructed
+    assert "tfp" in stages and "windows" not in stages, stages  # each block reads its own tile from the store
+    between = lazy.tfp(win.copy(data=win.data.map_blocks(np.copy)), tile=32)  # a function between stages
+    stages = {key[0].rsplit("-", 1)[0] for key in between.data.__dask_graph__() if isinstance(key, tuple)}
+    assert {"spikes", "windows", "copy", "tfp"} <= stages, stages  # read and unpacked, windowed, its, reconstructed
     out = str(tmp_path / "hr.zarr")
     fresh = lazy.to_video(hr, out)
     again = lazy.to_video(hr, out, resume=True)  # nothing left to do

@@ -12,6 +12,7 @@ from pipeline.jobs.reconstruct_plan import (
 )
 from pipeline.stores.spike_store import open_spike_store, read_frames
 from pipeline.stores.video_store import TileWriter
+from stages.capture.bits import pack_rows, unpack_rows
 from stages.errors import InputError
 from stages.reconstruction.colour import auto_gain
 from stages.reconstruction.methods import NETWORKS, Reconstructor, Window, classic
@@ -73,11 +74,8 @@ def _reconstruct_tiles(plan: Plan, frames: tuple[tuple[int, int], ...],
     spikes, writer = _opened(plan.spikes, plan.out, plan.run)
     method = reconstructor(plan.method, plan.weights, plan.precision, plan.backend, plan.weights_sha256,
                            fast_gpu=bool(plan.fast_gpu))
-    windows = []
-    for _, _, tile in tiles:
-        region = (slice(tile.ry0, tile.ry1), slice(tile.rx0 // 8, -(-tile.rx1 // 8)))
-        windows.append([Window(read_frames(spikes, plan.spikes, c - half, c + half + 1, region), tile.rx1 - tile.rx0,
-                               plan.cfa, plan.reset, plan.gain, plan.scale) for _, c in frames])
+    windows = [tile_windows(spikes, plan.spikes, [c for _, c in frames], half, tile, plan.cfa, plan.reset, plan.gain,
+                            plan.scale) for _, _, tile in tiles]
     first = frames[0][0]  # a task's output frames are consecutive
     top, _, left, _ = plan.region or (0, None, 0, None)  # the output's corner in the recording (LR)
     for (ty, tx, tile), images in zip(tiles, method.many_tiles(windows, plan.gpu_batch)):
@@ -85,6 +83,24 @@ def _reconstruct_tiles(plan: Plan, frames: tuple[tuple[int, int], ...],
         writer.write_frames(first, (ty, tx), ((tile.y0 - top) * plan.scale, (tile.x0 - left) * plan.scale),
                             [image[ys, xs] for image in images])  # compressed and stored together
     return len(frames) * len(tiles)
+
+
+def tile_windows(spikes, url: str, centres, half: int, tile: Tile, cfa: str, reset: str, gain: float,
+                 scale: int) -> list[Window]:
+    """The windows centred on spike frames ``centres`` of ``tile``'s read region (halo included), read packed
+    straight from the store's ``spikes`` array (refusing a lost chunk): the store's own bytes where the region starts
+    on a byte (tiles of a whole recording do), else its bits shifted to start the row (a selection of pixels from
+    an even column that is not a multiple of 8)."""
+    width = tile.rx1 - tile.rx0
+    shift = tile.rx0 % 8
+    region = (slice(tile.ry0, tile.ry1), slice(tile.rx0 // 8, -(-tile.rx1 // 8)))
+    windows = []
+    for centre in centres:
+        packed = read_frames(spikes, url, centre - half, centre + half + 1, region)
+        if shift:
+            packed = pack_rows(unpack_rows(packed, shift + width)[..., shift:])
+        windows.append(Window(packed, width, cfa, reset, gain, scale))
+    return windows
 
 
 def _auto_gain(spikes: str, centre: int, window: int, reset: str) -> float:

@@ -189,13 +189,13 @@ class _PackedFrames:
 
     def __getitem__(self, key: tuple[slice, slice, slice]) -> np.ndarray:
         frames, *rest = key
-        spikes = _spike_array(self.url, self.identity)
+        spikes = spike_array(self.url, self.identity)
         return read_frames(spikes, self.url, frames.start or 0, self.shape[0] if frames.stop is None else frames.stop,
                            tuple(rest))
 
 
 @functools.lru_cache(maxsize=8)
-def _spike_array(url: str, identity: str):
+def spike_array(url: str, identity: str):
     """The store's ``spikes`` array, opened once per process and recording (``identity``: another recording at the
     same path is opened afresh, and refused if it is not the one the graph was built on)."""
     store = open_spike_store(url)

@@ -20,6 +20,7 @@ are loaded once here to check them (as the job checks them before any output exi
 
 import contextlib
 import dataclasses
+import functools
 from collections.abc import Callable
 
 import dask
@@ -30,8 +31,8 @@ from dask.base import tokenize
 
 from pipeline.compute.cluster import GPU, GPU_SHARE
 from pipeline.jobs.reconstruct_plan import Plan, ReconstructOptions
-from pipeline.lazy.spikes import python_words
-from pipeline.lazy.windows import check_windows
+from pipeline.lazy.spikes import spike_array, python_words
+from pipeline.lazy.windows import PackedReads, check_windows
 from stages.capture.bits import pack_rows, unpack_rows
 from stages.errors import InputError, InputTypeError
 from stages.numbers import check_number, check_text
@@ -180,21 +181,22 @@ def _reconstructed(win: xr.DataArray, spec: _Method, built: Reconstructor, scale
                                                    f"instead" if cut else
                                                    f": make them with lazy.windows(..., margin={built.halo})"))
     gain = _gain(win, gain)
-    data = win.data.rechunk({1: -1, 2: -1, 3: -1})
-    data = data.rechunk({0: _task_frames(data.chunks[0], built.batch, attrs["first"])})
+    frames = _task_frames(win.data.chunks[0], built.batch, attrs["first"])
+    reads = attrs.get("reads")
+    if isinstance(reads, PackedReads) and reads.holds(win.data, int(win.coords["frame"][0])):
+        read_tile = functools.partial(_read_tile, reads, frames, int(win.coords["frame"][0]), attrs["every"],
+                                      attrs["window"] // 2)  # each block reads its tile from the store
+    else:  # the windows as they are (a function between stages): each block's tile of them
+        data = win.data.rechunk({1: -1, 2: -1, 3: -1}).rechunk({0: frames})
+        read_tile = functools.partial(_windows_tile, data, oy, ox)
     annotation = dask.annotate(resources={GPU: GPU_SHARE}) if gpu else contextlib.nullcontext()
     rows = []
     with annotation:
         for row in grid:
             rows.append([])
             for t in row:
-                read = data[:, :, t.ry0 - oy : t.ry1 - oy, t.rx0 - ox : t.rx1 - ox]
-                ys, xs = t.crop(scale)
-                arguments = (spec, gain, t.rx1 - t.rx0, cfa, attrs["reset"], scale, (ys, xs), most)
-                rows[-1].append(read.map_blocks(
-                    _reconstruct_block, *arguments, name=f"{spec.method}-{tokenize(read.name, *arguments)}",
-                    chunks=(read.chunks[0], ((t.y1 - t.y0) * scale,), ((t.x1 - t.x0) * scale,), (3,)),
-                    dtype=np.uint8, meta=np.empty((0, 0, 0, 0), np.uint8)))
+                rows[-1].append(read_tile(t, (spec, gain, cfa, attrs["reset"], scale, t.crop(scale), most),
+                                          ((t.y1 - t.y0) * scale, (t.x1 - t.x0) * scale)))
     hr = da.concatenate([da.concatenate(row, axis=2) for row in rows], axis=1)  # tiles side by side, rows down
     plan = Plan(attrs.get("store") or "", "", spec.method, built.weights, attrs["window"], attrs["every"], np.nan, scale,
                 cfa, attrs["reset"], tile, "", spec.precision, most, spec.backend, fast_gpu,
@@ -234,12 +236,51 @@ def _task_frames(chunks: tuple[int, ...], batch: int, first: int) -> tuple[int, 
     return tuple(b - a for a, b in zip(cut, cut[1:]))
 
 
-def _reconstruct_block(block: np.ndarray, spec: _Method, gain, width: int, cfa: str, reset: str, scale: int,
+def _windows_tile(data: da.Array, oy: int, ox: int, t: Tile, arguments: tuple, hr_tile: tuple[int, int]) -> da.Array:
+    """Tile ``t`` of every window (``data``: the windows, kept from LR pixel (oy, ox)) reconstructed, a block per
+    chunk of frames: its windows of the tile and halo unpacked, packed again by the task."""
+    read = data[:, :, t.ry0 - oy : t.ry1 - oy, t.rx0 - ox : t.rx1 - ox]
+    return read.map_blocks(_reconstruct_block, *arguments, name=f"{arguments[0].method}-{tokenize(read.name, *arguments)}",
+                           chunks=(read.chunks[0], *((n,) for n in hr_tile), (3,)), dtype=np.uint8,
+                           meta=np.empty((0, 0, 0, 0), np.uint8))
+
+
+def _read_tile(reads: PackedReads, frames: tuple[int, ...], first_centre: int, every: int, half: int, t: Tile,
+               arguments: tuple, hr_tile: tuple[int, int]) -> da.Array:
+    """Tile ``t`` of the windows centred on ``first_centre``, ``first_centre + every``, ... reconstructed, a block
+    per ``frames`` of them, each block's task reading its windows' tile and halo packed from the store (``reads``)
+    as the jobs' tasks do: no other task's output is an input, but the gain's."""
+    spec, gain, *rest = arguments
+    where = (reads.url, reads.identity, first_centre, every, half, t)
+    return da.map_blocks(_reconstruct_read, gain, spec, where, *rest, chunks=(frames, *((n,) for n in hr_tile), (3,)),
+                         name=f"{spec.method}-{tokenize(reads.name, frames, *where, *arguments)}", dtype=np.uint8,
+                         meta=np.empty((0, 0, 0, 0), np.uint8))
+
+
+def _reconstruct_read(gain, spec: _Method, where: tuple, cfa: str, reset: str, scale: int, crop: tuple[slice, slice],
+                      most: int, block_info=None) -> np.ndarray:
+    """Task: the windows of one block (output frames ``block_info``'s location along t) of one tile, read packed
+    from the store, reconstructed -> (n, tile_h*s, tile_w*s, 3) uint8, the halo cropped."""
+    from pipeline.jobs.reconstruct_tasks import tile_windows
+
+    url, identity, first_centre, every, half, tile = where
+    j0, j1 = block_info[None]["array-location"][0]
+    centres = [first_centre + j * every for j in range(j0, j1)]
+    windows = tile_windows(spike_array(url, identity), url, centres, half, tile, cfa, reset, float(gain), scale)
+    return _reconstructed_windows(spec, windows, crop, most)
+
+
+def _reconstruct_block(block: np.ndarray, spec: _Method, gain, cfa: str, reset: str, scale: int,
                        crop: tuple[slice, slice], most: int) -> np.ndarray:
     """Task: (n, N, h, w) bool windows of one tile with its halo -> (n, tile_h*s, tile_w*s, 3) uint8, the halo cropped."""
-    method = spec.built()
+    width = block.shape[3]
     windows = [Window(pack_rows(window), width, cfa, reset, float(gain), scale) for window in block]
-    images = method.many_tiles([windows], most)[0] if windows else []
+    return _reconstructed_windows(spec, windows, crop, most)
+
+
+def _reconstructed_windows(spec: _Method, windows: list[Window], crop: tuple[slice, slice], most: int) -> np.ndarray:
+    """One tile's ``windows`` reconstructed together (the network's batch) -> (n, h, w, 3) uint8, cropped to ``crop``."""
+    images = spec.built().many_tiles([windows], most)[0] if windows else []
     ys, xs = crop
     out = np.empty((len(images), ys.stop - ys.start, xs.stop - xs.start, 3), np.uint8)
     for n, image in enumerate(images):

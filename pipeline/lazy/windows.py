@@ -97,6 +97,10 @@ def windows(spikes: xr.DataArray, length: int = WINDOW, every: int = WINDOW, sta
                           meta=np.empty((0, 0, 0, 0), bool), starts=tuple(int(s) for s in starts),
                           centre0=int(centres[0]), centre1=int(centres[-1]), every=every, half=half, align_arrays=False,
                           name=f"windows-{tokenize(read.name, starts, centres[0], centres[-1], every, half)}")
+    store = _store_spikes(spikes)
+    if store is not None and _as_read(store.data, chosen).name == spikes.data.name:  # nothing between store and here
+        attrs = {**attrs, "reads": PackedReads(store.attrs["store"], store.attrs["identity"], data.name, data.chunks,
+                                               part.centres[0], every)}
     fps = float(attrs["fps"])
     out = xr.DataArray(
         data, dims=WINDOW_DIMS, name="windows",
@@ -108,15 +112,47 @@ def windows(spikes: xr.DataArray, length: int = WINDOW, every: int = WINDOW, sta
                "region": list(part.region), "first": part.first, "frames": frames, "height": height, "width": width,
                "bounds": list(chosen.box), "kept": list(around)})
     if attrs.get("gain") is None:  # the job's automatic exposure: the whole frame's middle window, made when needed
-        whole = spikes.data if chosen.whole else _whole_recording(spikes)
+        whole = spikes.data if chosen.whole else None if store is None else store.data  # the whole recording's
         if whole is not None:
             out.coords["auto_gain"] = ((), _whole_recording_gain(whole, length, every, attrs["reset"]))
     return out
 
 
-def _whole_recording(spikes: xr.DataArray) -> da.Array | None:
-    """The whole recording a selection of spikes was cut from, read again from its store (its automatic gain is
-    the whole recording's); None where it was not read from a store (then ``gain=`` must be given)."""
+class PackedReads:
+    """What windows made by :func:`windows` of a store's spikes, or of one selection of them, with nothing in
+    between, are: their reconstruction (``pipeline.lazy.video``) reads each block's tile and halo as packed bytes
+    straight from the store inside the block's task, as the jobs' tasks do, so unpacked windows never travel between
+    workers. Known by the windows' graph name: a function, a rechunk or a second selection in between (a new
+    name) makes the reconstruction read the windows themselves. One selection along ``t`` (``isel``/``sel``) of
+    the windows is still theirs (:meth:`holds`)."""
+
+    def __init__(self, url: str, identity: str, name: str, chunks: tuple, first_centre: int, every: int):
+        self.url, self.identity, self.name, self.chunks = url, identity, name, chunks
+        self.first_centre, self.every = first_centre, every
+
+    def holds(self, data: da.Array, first_centre: int) -> bool:
+        """Whether ``data`` are these windows, or one run of them along t from the window centred on
+        ``first_centre`` (the name Dask gives that selection of them)."""
+        if data.name == self.name:
+            return True
+        start = (first_centre - self.first_centre) // self.every
+        if start < 0 or start + data.shape[0] > sum(self.chunks[0]) or data.shape[1:] != self.shape[1:]:
+            return False
+        ours = da.Array({}, self.name, self.chunks, meta=np.empty((0, 0, 0, 0), bool))  # the name and shape alone
+        return ours[start : start + data.shape[0]].name == data.name
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return tuple(sum(c) for c in self.chunks)
+
+    def __repr__(self) -> str:
+        return f"PackedReads(read straight from {self.url})"
+
+
+def _store_spikes(spikes: xr.DataArray) -> xr.DataArray | None:
+    """The whole recording ``spikes`` were read from, opened again from its store (its automatic gain is the whole
+    recording's); None where they were not read from a store (then ``gain=`` must be given). One line where the
+    store holds another recording now."""
     url, identity = spikes.attrs.get("store"), spikes.attrs.get("identity")
     if not isinstance(url, str) or not isinstance(identity, str):
         return None
@@ -124,7 +160,14 @@ def _whole_recording(spikes: xr.DataArray) -> da.Array | None:
     if whole.attrs.get("identity") != identity:
         raise InputError(f"spike store {url} is not the recording these spikes were read from (it was replaced): "
                          f"open it again")
-    return whole.data
+    return whole
+
+
+def _as_read(bits: da.Array, chosen) -> da.Array:
+    """``bits`` of the whole recording cut as ``chosen`` (one selection): what a selection of the spikes as read
+    gives, name included."""
+    y0, y1, x0, x1 = chosen.box
+    return bits if chosen.whole else bits[chosen.f0 : chosen.f1, y0:y1, x0:x1]
 
 
 def _windows_of(block: np.ndarray, *, starts: tuple[int, ...], centre0: int, centre1: int, every: int, half: int,
