@@ -237,6 +237,36 @@ def test_a_failed_to_video_resumes_to_the_bytes_of_one_run(recording, tmp_path, 
                       str(tmp_path / "resumed.zarr"), resume=True)
 
 
+def test_on_a_cluster_every_block_is_tried_and_the_failed_ones_are_named_by_their_output_frames(recording, tmp_path):
+    """As the job does: a block that fails does not stop the others; the error names the output frames lost (each
+    frame's second row of tiles here) and the cause once; a resume runs only those blocks, to the bytes of one run."""
+    failing = tmp_path / "fail"
+
+    def grey(window):  # refuses the windows of the frame's second tile row (32 rows with its halo) while flagged
+        if failing.exists() and window.shape[1] == 32:
+            raise RuntimeError("disk full")
+        return np.repeat(np.repeat(np.uint8(window.mean(axis=0) * 255), 4, 0), 4, 1)[..., None].repeat(3, -1)
+
+    def hr():
+        return lazy.apply(lazy.windows(lazy.open_spikes(recording), every=7), grey, scale=4, halo=8, tile=16)
+
+    with threaded():
+        lazy.to_video(hr(), str(tmp_path / "whole.zarr"))
+    out = str(tmp_path / "resumed.zarr")
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0") as local, \
+            Client(local):
+        failing.touch()
+        with pytest.raises(RuntimeError) as caught:
+            lazy.to_video(hr(), out)
+        assert str(caught.value).startswith("23 of 23 output frames failed (frames 0, 1, 2, "), caught.value
+        assert str(caught.value).count("disk full") == 1 and "to_video(..., resume=True)" in str(caught.value)
+        assert zarr.open_group(out, mode="r").attrs["state"] == "writing"
+        failing.unlink()
+        counts = lazy.to_video(hr(), out, resume=True)
+    assert counts == {"frames": 23, "tasks_run": 23 * 4, "tasks_skipped": 23 * 8}  # the second row's 4 tiles
+    assert np.array_equal(stored(out)[0], stored(str(tmp_path / "whole.zarr"))[0])
+
+
 def test_a_users_function_between_stages_and_as_a_method_with_a_halo(recording, tmp_path):
     win = lazy.windows(lazy.open_spikes(recording), every=20)
     hr = lazy.tfp(win, tile=16)

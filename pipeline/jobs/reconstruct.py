@@ -286,7 +286,7 @@ def _check_output(out: str, options: ReconstructOptions) -> None:
 class JobIncomplete(RuntimeError):
     """Some tasks raised: which output frames are missing and why; the rest is committed."""
 
-    def __init__(self, out: str, failed: dict[int, str], n_frames: int):
+    def __init__(self, out: str, failed: dict[int, str], n_frames: int, again: str = "--resume"):
         frames = sorted(failed)
         shown = ", ".join(map(str, frames[:20])) + (", ..." if len(frames) > 20 else "")
         first = failed[frames[0]]
@@ -298,7 +298,7 @@ class JobIncomplete(RuntimeError):
         rest = (f"the other frames are committed in {out}" if len(frames) < n_frames
                 else f"what was written is kept in {out}")
         super().__init__(f"{len(frames)} of {n_frames} output frames failed (frames {shown}; {first}); {rest}: "
-                         f"fix the cause and run again with --resume")
+                         f"fix the cause and run again with {again}")
         self.failed = failed
 
 

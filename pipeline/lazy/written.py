@@ -38,7 +38,9 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
     """Write ``hr`` (t, y, x, rgb) uint8 as a video store at ``url`` (the job's format: ``video`` one chunk per
     (frame, tile) of ``hr``'s chunks, ``frames``, ``committed``, the attributes, ``state``), computed on the active
     ``distributed`` client if there is one, else on dask's default scheduler, ``BLOCKS_AT_ONCE`` blocks a round. Each
-    block is checked against its chunk (shape, uint8), written, then committed; ``resume=True`` continues a store a
+    block is checked against its chunk (shape, uint8), written, then committed. On a client, as in the jobs, a block
+    that fails does not stop the others, and the call then fails naming the output frames lost (``JobIncomplete``);
+    on dask's own scheduler the first error stops it. ``resume=True`` continues a store a
     failed or killed call left, computing only the blocks not committed (the same bytes as one uninterrupted call),
     and refuses one written by another graph (``committed``'s ``graph``: the token of ``hr``'s graph, which covers
     every function in it where Dask can hash it). -> {frames, tasks_run, tasks_skipped}, counted in the job's tasks
@@ -69,6 +71,9 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
     tiles = (len(data.chunks[1]), len(data.chunks[2]))
     centres = [int(c) for c in hr.coords["frame"].values]
     gain = hr.coords["gain"].data if "gain" in hr.coords else None
+    client = _distributed_client(hr.data)
+    if client is not None and isinstance(gain, da.Array):  # the automatic exposure: computed once for every round,
+        gain = client.persist(gain)  # held by the cluster (the same key) until this call returns
     attrs["gain"] = None if gain is None else float(dask.compute(gain)[0])
     fps = attrs.get("fps")
     graph = graph_token(hr.data)
@@ -95,18 +100,61 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
         units = [1 if per_block else data.chunks[0][b] for b, _, _ in blocks]
         total = (sum(1 for c in data.chunks[0] if c) if per_block else n) * tiles[0] * tiles[1]
         piped = progress and not sys.stderr.isatty()  # no bar to draw: a line a round
+        failed = {}
         with held(url), progress_bar(f"to_video {url}", sum(units), unit="tasks", enabled=progress) as advance:
             for at in range(0, len(blocks), BLOCKS_AT_ONCE):
                 chosen = blocks[at : at + BLOCKS_AT_ONCE]
-                # unoptimised: each stage's tasks keep their names (windows, tfp, write ...) and annotations
-                dask.compute(*(written.blocks[b, ty, tx, 0] for b, ty, tx in chosen), optimize_graph=False)
-                advance(sum(units[at : at + BLOCKS_AT_ONCE]))
+                unit_of = dict(zip(chosen, units[at : at + BLOCKS_AT_ONCE]))
+                if client is None:  # dask's own scheduler: the first error stops the call
+                    # unoptimised: each stage's tasks keep their names (windows, tfp, write ...) and annotations
+                    dask.compute(*(written.blocks[b, ty, tx, 0] for b, ty, tx in chosen), optimize_graph=False)
+                    advance(sum(unit_of.values()))
+                else:  # a cluster: every block is tried, each failed one named by its output frames
+                    for (b, ty, tx), error in _outcomes(client, written, chosen):
+                        if error is None:
+                            advance(unit_of[b, ty, tx])
+                        else:
+                            failed.update({i: f"tile ({ty}, {tx}): {error}" for i in range(starts[b], starts[b + 1])})
                 if piped:
                     print(f"to_video {url}: {sum(units[: at + len(chosen)])} of {sum(units)} tasks", file=sys.stderr,
                           flush=True)
+        if failed:
+            from pipeline.jobs.reconstruct import JobIncomplete
+
+            raise JobIncomplete(url, failed, n, again="to_video(..., resume=True)")
         remove_partial_writes(url)
         open_video_store(url, writable=True).attrs["state"] = "complete"
     return {"frames": n, "tasks_run": sum(units), "tasks_skipped": total - sum(units)}
+
+
+def _distributed_client(collection):
+    """The ``distributed`` client that would compute ``collection`` (the active one, unless Dask's own scheduler is
+    chosen: ``dask.config.set(scheduler=...)``), or None."""
+    from dask.base import get_scheduler
+
+    client = getattr(get_scheduler(collections=[collection]), "__self__", None)
+    try:
+        from distributed import Client
+    except ImportError:
+        return None
+    return client if isinstance(client, Client) else None
+
+
+def _outcomes(client, written: da.Array, chosen: list[tuple[int, int, int]]):
+    """Compute blocks ``chosen`` of ``written`` on ``client``, their keys the graph's own (unoptimised: each stage's
+    tasks keep their names and annotations); yield (block, None or why it failed, in one line) as each finishes."""
+    from dask.delayed import Delayed
+    from distributed import as_completed
+
+    from pipeline.compute.executor import failure
+
+    graph = written.__dask_graph__()
+    blocks = [Delayed((written.name, b, ty, tx, 0), graph, layer=written.name) for b, ty, tx in chosen]
+    futures = client.compute(blocks, optimize_graph=False)
+    block_of = {future.key: block for future, block in zip(futures, chosen)}
+    for future in as_completed(futures):
+        yield block_of[future.key], failure(future)
+        future.release()
 
 
 def graph_token(data: da.Array) -> str:
