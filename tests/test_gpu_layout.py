@@ -57,6 +57,21 @@ def test_padded_channels_compute_the_same_function_in_fp32(name):
                 torch.testing.assert_close(got["flows"][1], expected["flows"][1], rtol=0, atol=1e-5)
 
 
+@pytest.mark.parametrize("scale", [2, 4])
+def test_the_gpu_path_s_heads_before_the_pixel_shuffle_and_lite_s_wider_features_compute_the_same_function(scale):
+    """lite's 24 colour features leave no padded channel for the warped mask: the BSSR writes 32 (the refinement's
+    first convolution split, no concatenation); each head reads the upsampling conv's output before its pixel
+    shuffle."""
+    model = network("lite")
+    padded = use_channels_last(pad_channels(copy.deepcopy(model)))
+    assert padded.bssr[0].width == 32 and padded.temporal[0].mask_slot == 24
+    assert [h.out_channels for h in padded.integration.shuffled_heads] == [16, 16]
+    spikes = clip(32, 32, batch=2)
+    with torch.inference_mode():
+        got, expected = (m(spikes, "gbrg", True, scale)["image"] for m in (padded, model))
+        torch.testing.assert_close(got, expected, rtol=0, atol=1e-5)
+
+
 def test_the_shipped_weights_load_padded_for_the_gpu_and_their_files_stay_as_they_are():
     path = default_weights("lite")
     before = hashlib.sha256(path.read_bytes()).hexdigest()

@@ -20,6 +20,7 @@ class BSSR(nn.Module):
     """One colour's encoder: (B, N, H, W) spikes and (B, 1, H, W) mask -> (B, N', C, H, W)."""
 
     channels_last = False  # the GPU path (cscsr.network.model.use_channels_last): NDHWC, gated in place
+    width = None  # cscsr.network.padding: the channels the GPU path writes its output into (C and zeros after them)
 
     def __init__(self, features: int, length: int, stride: int, time_points: int):
         super().__init__()
@@ -44,8 +45,18 @@ class BSSR(nn.Module):
         c, t = x.shape[1], x.shape[2]
         if self.channels_last:  # x stored (B, N', H, W, C): the same attention without the reshape's copy
             y = x.transpose(1, 2)  # (B, N', C, H, W), a view
-            gate = self.attention.gate(y.mean((3, 4)).reshape(b, t * c, 1, 1))  # (B, N'*C, 1, 1)
-            return y * gate.view(b, t, c, 1, 1)  # (B, N', C, H, W) stored (B, N', H, W, C)
+            gate = self.attention.gate(y.mean((3, 4)).reshape(b, t * c, 1, 1)).view(b, t, c, 1, 1)  # (B, N'*C, 1, 1)
+            if (self.width or c) == c:
+                return y * gate  # (B, N', C, H, W) stored (B, N', H, W, C)
+            # written into (B, N', W', H, W) stored (B, N', H, W, W'), zeros after C: the temporal pixels' width, with
+            # a channel free for the warped mask (lite's 24 channels have none: 32)
+            out = torch.empty((b, t, h, w, self.width), dtype=y.dtype, device=y.device).permute(0, 1, 4, 2, 3)
+            if torch.compiler.is_compiling():  # out= into a view breaks a graph; the compiler fuses the copy
+                out[:, :, :c].copy_(y * gate)
+            else:
+                torch.mul(y, gate, out=out[:, :, :c])
+            out[:, :, c:].zero_()
+            return out
         x = x.transpose(1, 2).reshape(b, t * c, h, w)  # (B, N'*C, H, W): every window's channels
         return self.attention(x).reshape(b, t, c, h, w)  # (B, N', C, H, W)
 

@@ -7,6 +7,7 @@ shuffle in x2 steps; a head after each step gives RGB, so one set of weights ser
 """
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from cscsr.network.blocks import ResBlock, cat_channels
@@ -47,7 +48,12 @@ class Integration(nn.Module):
         joined = cat_channels([*parts, reset, 4 * images - 2], self.fuse.in_channels, self.channels_last)
         x = self.fuse(joined)  # (B, F, H, W); rates 0..1 centred
         x = x + self.trunk(x)  # long skip
-        for step, factor in enumerate(NETWORK_SCALES):
+        shuffled = getattr(self, "shuffled_heads", None)  # cscsr.network.padding: the heads as convolutions of the
+        for step, factor in enumerate(NETWORK_SCALES):  # features before their last pixel shuffle (a ModuleList)
+            if factor == scale and self.channels_last and shuffled is not None:  # the GPU path: the head before the
+                # shuffle, then the shuffle of its K colours' 4 sub-pixels (not a shuffle of F features at 4x)
+                sub = shuffled[step](self.up[step][0](x))  # (B, 4K padded, H', W')
+                return F.pixel_shuffle(sub[:, : 4 * self.heads[step].channels], 2)  # (B, K, 2H', 2W')
             x = self.up[step](x)  # (B, F, 2^(step+1) H, 2^(step+1) W)
             if factor == scale:
                 return self.heads[step](x)  # (B, 3, sH, sW)

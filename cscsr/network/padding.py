@@ -78,7 +78,11 @@ def pad_channels(model: nn.Module) -> nn.Module:
     cfg = model.config
     c, t, f, k = cfg.colour_features, cfg.time_points, cfg.features, cfg.colours
     cp = padded(c)
+    # the colour features as the temporal pixels take them: with a spare padded channel for the warped mask (50 -> 56);
+    # where there is none (lite's 24), 8 more channels, which the BSSR writes its output into (24 -> 32)
+    width = padded(c + 1) if cfg.flow_guidance else cp
     for bssr in model.bssr:
+        bssr.width = width
         window = bssr.window  # (C, 1, w, 3, 3): a Conv3d run as a 2D convolution over the w frames
         bssr.window = _conv(window, [0], 1, list(range(c)), cp)
         w = window.kernel_size[0]
@@ -95,10 +99,10 @@ def pad_channels(model: nn.Module) -> nn.Module:
         refine = temporal.refine[0][0]  # [warped x (C'), middle (C'), warped mask (1)] -> C
         joined = list(range(c)) + list(range(cp, cp + c)) + [2 * cp]
         temporal.refine[0][0] = _conv(refine, joined, padded(2 * cp + 1), list(range(c)), cp)
-        if cp > c:  # a spare channel in x for the mask: the first conv split in two, no concatenation (GPU path)
-            temporal.refine_x = _conv(_part(refine, list(range(c)) + [2 * c], bias=False), list(range(c + 1)), cp,
-                                      list(range(c)), cp)  # (x, mask in x's channel C) -> C
-            temporal.refine_c = _conv(_part(refine, list(range(c, 2 * c)), bias=True), list(range(c)), cp,
+        if cfg.flow_guidance:  # a spare channel in x for the mask: the first conv split in two, no concatenation
+            temporal.refine_x = _conv(_part(refine, list(range(c)) + [2 * c], bias=False), list(range(c + 1)), width,
+                                      list(range(c)), cp)  # (x, mask in x's channel C) -> C  (the GPU path)
+            temporal.refine_c = _conv(_part(refine, list(range(c, 2 * c)), bias=True), list(range(c)), width,
                                       list(range(c)), cp)  # middle -> C, with the bias: once a clip, broadcast
             temporal.mask_slot = c
         temporal.refine[1] = _prefix(temporal.refine[1], c, c)
@@ -125,8 +129,36 @@ def _pad_integration(integration, c: int, f: int, k: int) -> None:
     integration.trunk[-1] = _prefix(integration.trunk[-1], f, f)
     for up in integration.up:  # conv to 4F, pixel shuffle: output channel 4i + j becomes feature i
         up[0] = _conv(up[0], list(range(f)), fp, [4 * i + j for i in range(f) for j in range(4)], 4 * fp)
+    # the GPU path's heads read the upsampling conv's output before its pixel shuffle (no 4x-size shuffle of F channels)
+    integration.shuffled_heads = nn.ModuleList([_shuffled_head(head, 4 * fp) for head in integration.heads])
     for step, head in enumerate(integration.heads):
         integration.heads[step] = Narrow(_prefix(head, f, head.out_channels), head.out_channels)
+
+
+def _shuffled_head(head, into: int):
+    """A 3x3 head (F -> K) of pixel-shuffled features (B, F, 2H, 2W) as a 3x3 convolution of the (B, ``into``, H, W)
+    features before the shuffle (channel 4i + 2p + q: feature i at sub-pixel (p, q), as ``pixel_shuffle`` reads
+    them): output channel 4k + 2p + q is colour k at sub-pixel (p, q), so ``pixel_shuffle`` of the first 4K gives the
+    head's output. The same sums: each of the head's 3x3 taps of an output sub-pixel lands on one tap of one
+    sub-pixel channel. Outputs padded to a multiple of 8 (zeros)."""
+    k, f = head.out_channels, head.in_channels
+    new = nn.Conv2d(into, padded(4 * k), 3, 1, 1).to(head.weight.device, head.weight.dtype)
+    colours = torch.arange(k, device=head.weight.device)
+    features = torch.arange(f, device=head.weight.device)
+    with torch.no_grad():
+        new.weight.zero_()
+        new.bias.zero_()
+        for p in (0, 1):
+            for q in (0, 1):
+                rows = 4 * colours + 2 * p + q
+                new.bias[rows] = head.bias
+                for dy in (-1, 0, 1):
+                    for dx in (-1, 0, 1):
+                        ey, sp = divmod(p + dy, 2)  # the shuffled row 2y + p + dy is sub-pixel row sp of row y + ey
+                        ex, sq = divmod(q + dx, 2)
+                        cols = 4 * features + 2 * sp + sq
+                        new.weight[rows[:, None], cols[None, :], ey + 1, ex + 1] = head.weight[:, :, dy + 1, dx + 1]
+    return new
 
 
 def _pad_flow(net) -> None:

@@ -19,7 +19,8 @@ class TemporalPixels(nn.Module):
     """(B, N', C, H, W) features, (B, 1, H, W) mask, (B, N', 2, H, W) flows -> (B, C, H, W)."""
 
     channels_last = False  # the GPU path (cscsr.network.model.use_channels_last): NHWC, concatenations written once
-    mask_slot = None  # cscsr.network.padding: the first padded channel of x, where the warped mask goes (split refine)
+    mask_slot = None  # cscsr.network.padding: the first padded channel of x, where the warped mask goes (split refine;
+    # lite's 24 features have no padded channel: the BSSR then writes 32, cscsr.network.padding's ``width``)
 
     def __init__(self, features: int, time_points: int, flow_guidance: bool = True):
         super().__init__()
@@ -49,9 +50,11 @@ class TemporalPixels(nn.Module):
         else:
             joined = cat_channels([x, middle.repeat_interleave(t, 0), m], into)  # torch.cat when not padded
         if self.channels_last:  # the residual sum written straight into (B, N'*C, H, W) NHWC: no reshape copy
-            total = x.view(b, t, c, h, w), refined.view(b, t, c, h, w)  # residual refinement (a mask in x's padding
-            if torch.compiler.is_compiling() or torch.is_grad_enabled():  # weighs 0 next); out= into a view breaks
-                fused = torch.add(*total).permute(0, 3, 4, 1, 2).contiguous()  # a graph (the compiler fuses) and autograd
+            c = refined.shape[1]  # x may be wider (lite: the mask's channel after C): its first C, a view
+            total = x[:, :c].view(b, t, c, h, w), refined.view(b, t, c, h, w)  # residual refinement (a mask in x's
+            if torch.compiler.is_compiling() or torch.is_grad_enabled():  # padding weighs 0 next); out= into a view
+                fused = torch.add(*total).permute(0, 3, 4, 1, 2).contiguous()  # breaks a graph (the compiler fuses)
+                # and autograd
             else:
                 fused = torch.empty((b, h, w, t, c), dtype=x.dtype, device=x.device)  # stored as the fuse reads it
                 torch.add(*total, out=fused.permute(0, 3, 4, 1, 2))
