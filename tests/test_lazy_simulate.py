@@ -3,6 +3,7 @@ nothing until asked; ``lazy.to_spikes`` writes the job's store (its identity), r
 an uninterrupted one, gives the same bytes on a two-process cluster, and refuses bad input in one line before
 anything is written."""
 
+import importlib
 import os
 import shutil
 
@@ -90,12 +91,15 @@ def test_to_spikes_writes_the_job_s_recording(job, tmp_path):
     assert store_identity(open_spike_store(copy)) == store_identity(made)
 
 
-def test_to_spikes_writes_the_job_s_truth_and_evaluate_scores_a_lazy_video_beside_the_methods(job, client, tmp_path, cli):
+def test_to_spikes_writes_the_job_s_truth_and_evaluate_scores_a_lazy_video_beside_the_methods(job, client, tmp_path, cli,
+                                                                                             monkeypatch):
     """``truth=`` the scene: the simulate job's ground truth, byte for byte; ``evaluate(videos=)`` then scores a
-    video written by ``lazy.to_video`` beside the built-in methods, and it scores exactly as the job's tfp."""
+    video written by ``lazy.to_video`` beside the built-in methods (the truth read once for both), and it scores
+    exactly as the job's tfp."""
     from cscsr import lazy
+    import pipeline.jobs.evaluate as evaluation
     from pipeline.jobs.evaluate import evaluate
-    from pipeline.stores.ground_truth import TRUTH, TRUTH_FRAMES
+    from pipeline.stores.ground_truth import TRUTH, TRUTH_FRAMES, read_truth
 
     frames, settings, store = job
     out = str(tmp_path / "lazy.zarr")
@@ -106,9 +110,15 @@ def test_to_spikes_writes_the_job_s_truth_and_evaluate_scores_a_lazy_video_besid
     assert written.group[TRUTH].shape[0] == 1 and written.complete  # 70 frames: one centre, 20
     with dask.config.set(scheduler="threads"):
         lazy.to_video(lazy.tfp(lazy.windows(open_spikes(out), every=41)), str(tmp_path / "mine.zarr"))
+    truth_reads = []
+    monkeypatch.setattr(evaluation, "read_truth", lambda store: truth_reads.append(store.url) or read_truth(store))
     rows = evaluate(out, ["tfp"], str(tmp_path / "evaluation"), videos={"mine": str(tmp_path / "mine.zarr")},
                     workers=1, progress=False)
+    assert truth_reads == [out]  # once: for the checks of the store and the video, and for the scores
+    monkeypatch.undo()
     assert [row["method"] for row in rows] == ["tfp", "mine"] and rows[1]["seconds_per_image"] is None
+    metrics = (tmp_path / "evaluation" / "metrics.csv").read_text().splitlines()
+    assert [line.split(",")[0] for line in metrics[1:]] == ["tfp", "mine"]  # per frame too: the methods, then videos
     assert rows[0]["psnr"] == rows[1]["psnr"] and rows[0]["ssim"] == rows[1]["ssim"]  # the same bytes, scored alike
     summary = (tmp_path / "evaluation" / "summary.csv").read_text()
     assert summary.splitlines()[2].startswith("mine,") and (tmp_path / "evaluation" / "comparison.png").exists()
@@ -178,6 +188,32 @@ def test_a_failed_to_spikes_resumes_to_the_bytes_of_an_uninterrupted_one(tmp_pat
         result = to_spikes(failing, resumed, resume=True)
     assert result["tasks_skipped"] == (committed >= 0).sum() and result["tasks_run"] == (committed < 0).sum()
     assert store_files(resumed) == store_files(whole)  # every byte: chunks, commit record, attributes, identity
+
+
+def test_a_resume_needs_the_truth_it_was_begun_with_and_opens_the_store_once_a_purpose(tmp_path, monkeypatch):
+    """A failed ``to_spikes(truth=)`` resumes only with the truth again, to the bytes of an uninterrupted one; the
+    resume opens the store once for the checks before the claim (its cut and its truth) and once under the claim."""
+    lazy_simulate = importlib.import_module("pipeline.lazy.simulate")  # pipeline.lazy.simulate is the function
+
+    frames = frames_array(scene(), 10)
+    spikes = simulate(frames, reset="subtract", noise="realistic", seed=2)
+    flag = str(tmp_path / "fixed")
+    failing = spikes.copy(data=spikes.data.map_blocks(_fails_until, flag, 55, dtype=bool))
+    whole, resumed = str(tmp_path / "whole.zarr"), str(tmp_path / "resumed.zarr")
+    with dask.config.set(scheduler="synchronous"):  # the tasks before the failure run first
+        to_spikes(spikes, whole, chunk_frames=8, truth=frames)
+        with pytest.raises(SpikesIncomplete, match="disk full"):
+            to_spikes(failing, resumed, chunk_frames=8, truth=frames)
+        with pytest.raises(InputError, match="begun with truth=: give the same scene frames"):
+            to_spikes(failing, resumed, resume=True)
+        open(flag, "w").close()
+        opened = []
+        monkeypatch.setattr(lazy_simulate, "open_spike_store",
+                            lambda url, **kwargs: opened.append(url) or open_spike_store(url, **kwargs))
+        result = to_spikes(failing, resumed, resume=True, truth=frames)
+    assert opened == [resumed, resumed]  # the checks before the claim, the check under it (the writer its own)
+    assert result["tasks_skipped"] > 0 and result["attrs"]["state"] == "complete"
+    assert store_files(resumed) == store_files(whole)  # the truth too
 
 
 def _noting_process(block: np.ndarray, folder: str) -> np.ndarray:

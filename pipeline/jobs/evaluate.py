@@ -97,11 +97,19 @@ def checked_videos(videos: dict, store, truth, truth_frames, methods: list[str])
 
 
 def checked_evaluation(store_url: str, methods: list[str], weights: str | None, videos: dict | None = None) -> tuple:
+    """Every check of an evaluation that needs no output (:func:`_checked_evaluation`), for a caller that only
+    checks (``evaluate-testset``, before its output). -> (store, truth frames, options per method)."""
+    store, _, truth_frames, options = _checked_evaluation(store_url, methods, weights, videos)
+    return store, truth_frames, options
+
+
+def _checked_evaluation(store_url: str, methods: list[str], weights: str | None, videos: dict | None = None) -> tuple:
     """Every check of an evaluation that needs no output: the store's truth, and every method's options
-    and weights against it. -> (store, truth frames, options per method)."""
+    and weights against it. -> (store, truth, truth frames, options per method): the truth read here once,
+    for the checks of the videos and the scores."""
     check_methods(methods, weights, videos)
     store = open_spike_store(store_url)
-    _, truth_frames = read_truth(store)
+    truth, truth_frames = read_truth(store)
     every = int(store.attrs.get("truth_every", WINDOW))
     if list(truth_frames) != output_centres(store.n_frames, WINDOW, every)[: len(truth_frames)] or not len(truth_frames):
         raise InputError(f"{store_url}: truth frames {list(truth_frames)[:4]}... are not the {WINDOW}-frame window centres {WINDOW // 2}, {WINDOW // 2}+{every}, ...")
@@ -109,7 +117,7 @@ def checked_evaluation(store_url: str, methods: list[str], weights: str | None, 
                for method in methods}  # into OUT, claimed new by evaluate: never over an existing store
     for method in methods:
         checked_method(store, options[method])
-    return store, truth_frames, options
+    return store, truth, truth_frames, options
 
 
 def evaluate(store_url: str, methods: list[str], out_dir: str, *, weights: str | None = None,
@@ -125,30 +133,28 @@ def evaluate(store_url: str, methods: list[str], out_dir: str, *, weights: str |
     check_apart(out_dir, store_url, weights, *(videos.values() if isinstance(videos, dict) else ()))
     check_workers(workers)
     check_in_memory((store_url, out_dir, weights), client=client)  # the reconstructions' tasks read and write them
-    store, truth_frames, options = checked_evaluation(store_url, methods, weights, videos)
-    written = checked_videos(videos, store, read_truth(store)[0], truth_frames, methods)
+    store, truth, truth_frames, options = _checked_evaluation(store_url, methods, weights, videos)
+    written = checked_videos(videos, store, truth, truth_frames, methods)
     if client is None:
         check_scheduler(scheduler)  # a named scheduler answers (within seconds) before OUT exists
     with new_output(out_dir, overwrite=overwrite, kind=EVALUATION):
         mark_folder(out_dir, EVALUATION)
-        return _evaluate(store_url, store, truth_frames, options, methods, out_dir, workers=workers,
+        return _evaluate(store_url, truth, truth_frames, options, methods, out_dir, workers=workers,
                          scheduler=scheduler, client=client, progress=progress, written=written)
 
 
-def _evaluate(store_url: str, store, truth_frames, options: dict, methods: list[str], out_dir: str, *,
+def _evaluate(store_url: str, truth, truth_frames, options: dict, methods: list[str], out_dir: str, *,
               workers: int | None, scheduler: str | None, client, progress: bool, written: dict) -> list[dict]:
-    truth, _ = read_truth(store)
+    """Score the written videos (read, nothing to run: before any method runs), then reconstruct and score every
+    method, each by :func:`_scored`; write the CSVs and the picture, and return the summary rows, in the order the
+    user reads them: the methods, then the videos."""
     fs, root = resolve(out_dir)
-
-    rows, per_frame, videos = [], [], {}
-    for name, (video, at, (y0, y1, x0, x1)) in written.items():  # written videos: read, nothing to run
+    whole = (0, truth.shape[1], 0, truth.shape[2])  # (y0, y1, x0, x1): a method's output covers all the truth
+    scores, shown = {}, {}  # name -> (its summary row, its rows per frame); name -> its frames for the picture
+    for name, (video, at, crop) in written.items():
         frames = [video[int(i)] for i in at]
-        scores = [(psnr(frame, truth[k][y0:y1, x0:x1]), ssim(frame, truth[k][y0:y1, x0:x1]))
-                  for k, frame in enumerate(frames)]
-        per_frame += [{"method": name, "frame": int(f), "psnr": p, "ssim": s} for f, (p, s) in zip(truth_frames, scores)]
-        rows.append({"method": name, "psnr": float(np.mean([p for p, _ in scores])),
-                     "ssim": float(np.mean([s for _, s in scores])), "frames": len(scores), "seconds_per_image": None})
-        videos[name] = _in_frame(frames, truth.shape[1:3], (y0, x0))
+        scores[name] = _scored(name, frames, truth, truth_frames, crop, seconds=None)
+        shown[name] = _in_frame(frames, truth.shape[1:3], (crop[0], crop[2]))
     with contextlib.nullcontext(client) if client else dask_client(workers=workers, scheduler=scheduler) as client:
         for method in methods:
             out = f"{str(out_dir).rstrip('/')}/{method}.zarr"
@@ -156,18 +162,32 @@ def _evaluate(store_url: str, store, truth_frames, options: dict, methods: list[
             reconstruct(store_url, out, options[method], client=client, progress=progress)
             seconds = time.perf_counter() - start
             video = open_video_store(out)[VIDEO]
-            scores = [(psnr(video[k], truth[k]), ssim(video[k], truth[k])) for k in range(len(truth_frames))]
-            per_frame += [{"method": method, "frame": int(f), "psnr": p, "ssim": s} for f, (p, s) in zip(truth_frames, scores)]
-            rows.insert(len(rows) - len(written), {"method": method, "psnr": float(np.mean([p for p, _ in scores])),
-                                                   "ssim": float(np.mean([s for _, s in scores])),
-                                                   "frames": len(scores), "seconds_per_image": seconds / len(scores)})
-            videos[method] = video
-    videos = {**{m: videos[m] for m in methods}, **{name: videos[name] for name in written}}
-    per_frame.sort(key=lambda row: [*methods, *written].index(row["method"]))
-    _write_csv(f"{root}/metrics.csv", fs, per_frame)
+            scores[method] = _scored(method, video, truth, truth_frames, whole, seconds=seconds)
+            shown[method] = video
+    names = [*methods, *written]
+    rows = [scores[name][0] for name in names]
+    _write_csv(f"{root}/metrics.csv", fs, [row for name in names for row in scores[name][1]])
     _write_csv(f"{root}/summary.csv", fs, rows)
-    write_image(f"{str(out_dir).rstrip('/')}/comparison.png", comparison_picture(truth, truth_frames, videos))
+    write_image(f"{str(out_dir).rstrip('/')}/comparison.png",
+                comparison_picture(truth, truth_frames, {name: shown[name] for name in names}))
     return rows
+
+
+def _scored(name: str, frames, truth, truth_frames, crop: tuple[int, int, int, int],
+           seconds: float | None) -> tuple[dict, list[dict]]:
+    """One video's scores against the truth, a method's and a written video's alike: ``frames`` at the truth
+    frames (frame ``k`` at ``truth_frames[k]``; a method's video may hold more after them), of the part ``crop``
+    (y0, y1, x0, x1) of the truth, made in ``seconds`` (None: not timed here). -> (its summary row, its rows per
+    frame)."""
+    y0, y1, x0, x1 = crop
+    pairs = []  # (PSNR, SSIM) per truth frame, each truth frame read once
+    for k in range(len(truth_frames)):
+        frame, truth_part = frames[k], truth[k][y0:y1, x0:x1]
+        pairs.append((psnr(frame, truth_part), ssim(frame, truth_part)))
+    per_frame = [{"method": name, "frame": int(f), "psnr": p, "ssim": s} for f, (p, s) in zip(truth_frames, pairs)]
+    row = {"method": name, "psnr": float(np.mean([p for p, _ in pairs])), "ssim": float(np.mean([s for _, s in pairs])),
+           "frames": len(pairs), "seconds_per_image": None if seconds is None else seconds / len(pairs)}
+    return row, per_frame
 
 
 def _in_frame(frames: list[np.ndarray], size: tuple[int, int], origin: tuple[int, int]) -> list[np.ndarray]:

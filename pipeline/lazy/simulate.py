@@ -33,8 +33,8 @@ from pipeline.lazy.spikes import as_spikes, check_here, check_spikes, python_wor
 from pipeline.stores.lease import check_free, claimed, held
 from pipeline.stores.outputs import SPIKE_STORE, check_existing, new_output
 from pipeline.jobs.simulate import SimulateOptions, check_options, fire_chunk, simulated_meta, state_after
-from pipeline.stores.spike_store import (COMMITTED, SPIKES, SpikeMeta, SpikeStoreWriter, chunk_frames_for,
-                                  open_spike_store, write_region)
+from pipeline.stores.spike_store import (COMMITTED, SPIKES, SpikeMeta, SpikeStore, SpikeStoreWriter,
+                                  chunk_frames_for, open_spike_store, write_region)
 from pipeline.stores.ground_truth import declare_truth, has_truth, write_truth
 from pipeline.stores.storage import check_apart, exists
 from stages.simulation import sensor
@@ -174,7 +174,7 @@ def to_spikes(spikes: xr.DataArray, url: str, *, chunk_frames: int | None = None
     """
     url = url_text(url)
     plan = _ToSpikes.checked(spikes, url, chunk_frames, task_frames, overwrite, resume)
-    centres = _checked_truth(truth, spikes, url, resume)
+    centres = _checked_truth(truth, spikes, url, plan.resumed)
     with claimed(url):  # one job per store, taken atomically before the store is touched
         if resume:
             check_free(url)  # and no live lease (a job on a machine that shares no claim file with us)
@@ -204,12 +204,13 @@ def to_spikes(spikes: xr.DataArray, url: str, *, chunk_frames: int | None = None
             "tasks": plan.n_tasks, "tasks_run": len(todo), "tasks_skipped": plan.n_tasks - len(todo)}
 
 
-def _checked_truth(truth, spikes: xr.DataArray, url: str, resume: bool) -> list[int]:
+def _checked_truth(truth, spikes: xr.DataArray, url: str, resumed: SpikeStore | None) -> list[int]:
     """The truth's centres (the ``simulate`` job's: ``output_centres(frames, WINDOW, truth_every)``) if ``truth`` is
     the HR scene of ``spikes`` (one frame per spike frame, ``scale`` times its pixels), else one line; and a resume
-    must give truth exactly where the store was begun with it."""
-    if resume:
-        has = has_truth(open_spike_store(url, allow_incomplete=True).group)
+    (``resumed``: the store to finish, as the checks opened it; None for a new store) must give truth exactly where
+    the store was begun with it."""
+    if resumed is not None:
+        has = has_truth(resumed.group)
         if has != (truth is not None):
             raise InputError(f"cannot resume {url}: it was begun {'with' if has else 'without'} truth=: "
                              f"{'give the same scene frames' if has else 'leave truth out'}")
@@ -250,13 +251,15 @@ def _write_truth_block(frame: np.ndarray, url: str, cfa: str, centres: tuple[int
 
 class _ToSpikes:
     """A :func:`to_spikes` checked and cut into tasks, before anything is written: the store's chunks of ``chunk``
-    frames, task ``i`` its frames ``[i * task_frames, (i + 1) * task_frames)``."""
+    frames, task ``i`` its frames ``[i * task_frames, (i + 1) * task_frames)``; ``resumed``: the store to finish
+    (``resume``) as these checks opened it, before the claim, else None."""
 
     def __init__(self, url: str, meta: SpikeMeta, n_frames: int, chunk_frames: int | None, task_frames: int | None):
         self.url, self.meta, self.n_frames = url, meta, n_frames
         # as the caller gave them (None: the default, or the store's cut), at most the whole recording
         chunk_frames, task_frames = (None if n is None else min(n, n_frames) for n in (chunk_frames, task_frames))
         self.asked = (chunk_frames, task_frames)
+        self.resumed: SpikeStore | None = None
         self.cut(chunk_frames or chunk_frames_for(meta, n_frames), task_frames)
 
     def cut(self, chunk: int, task_frames: int | None) -> None:
@@ -301,14 +304,17 @@ class _ToSpikes:
         if not resume:
             check_existing(url, overwrite=overwrite, kind=SPIKE_STORE, flag=RESUME_FLAG)
         plan = cls(url, meta, n_frames, chunk_frames, task_frames)
-        if resume:
-            plan.resumable()
+        if resume:  # opened once for the checks before the claim: its cut here, its truth by _checked_truth
+            plan.resumed = open_spike_store(url, allow_incomplete=True)
+            plan.resumable(plan.resumed)
         return plan
 
-    def resumable(self) -> np.ndarray:
+    def resumable(self, store: SpikeStore | None = None) -> np.ndarray:
         """Cut as the unfinished store at ``url`` was (a cut the caller gives must be that one); refuse a store of
-        other attributes or frames; -> the spike counts of its tasks (-1: not committed). Reads, never writes."""
-        store = open_spike_store(self.url, allow_incomplete=True)  # a video store, a folder, ...: refused by name
+        other attributes or frames; -> the spike counts of its tasks (-1: not committed). ``store``: the store at
+        ``url`` as the caller opened it, else opened now (under the claim: as it is then). Reads, never writes."""
+        if store is None:
+            store = open_spike_store(self.url, allow_incomplete=True)  # a video store, a folder, ...: refused by name
         committed = store.group[COMMITTED] if COMMITTED in store.group else None
         if not isinstance(committed, zarr.Array):
             raise InputError(f"cannot resume {self.url}: it holds no record of its tasks (a store written by a job "
