@@ -42,7 +42,8 @@ class Integration(nn.Module):
         parts = list(colours) if isinstance(colours, (list, tuple)) else [colours]
         b, _, h, w = parts[0].shape
         if self.channels_last:  # the GPU path: the 0/1 flag written in the features' dtype, no cast
-            reset = parts[0].new_zeros(b).masked_fill_(zero_reset, 1)[:, None, None, None].expand(b, 1, h, w)
+            reset = torch.zeros(b, dtype=parts[0].dtype, device=zero_reset.device).masked_fill_(zero_reset, 1)
+            reset = reset[:, None, None, None].expand(b, 1, h, w)
         else:
             reset = zero_reset.to(parts[0].dtype)[:, None, None, None].expand(b, 1, h, w)
         joined = cat_channels([*parts, reset, 4 * images - 2], self.fuse.in_channels, self.channels_last)

@@ -68,9 +68,13 @@ class CSCSR(nn.Module):
         else:
             flows, key_flows = None, None
         k = self.config.colours
+        warped = [None] * k  # the colours' masks warped by the flows (the GPU path: all k in one pass)
         if flows is not None:  # every colour warps by the same flows: one sampling plan for all (bf16 GPU path)
             flows = SharedFlow(flows.flatten(0, 1))  # (B*N', 2, Hp, Wp)
-        features = [self.temporal[c](self.bssr[c](x, colours[:, c : c + 1]), colours[:, c : c + 1], flows)
+            if self.channels_last:
+                masks = flows.warp(per_time_point(colours, self.config.time_points), padding="zeros")
+                warped = [masks[:, c : c + 1] for c in range(k)]  # k x (B*N', 1, Hp, Wp)
+        features = [self.temporal[c](self.bssr[c](x, colours[:, c : c + 1]), colours[:, c : c + 1], flows, warped[c])
                     for c in range(k)]  # k x (B, C, Hp, Wp)
         kernel = getattr(self, "demosaic_kernel", None)  # the GPU path's (cscsr.network.padding): one aligned conv
         images = lr_images(x, colours, zero, self.config.length, kernel)  # (B, 2k, Hp, Wp)
@@ -121,6 +125,14 @@ def use_channels_last(model: CSCSR, on: bool = True) -> CSCSR:
                     else torch.contiguous_format
                 tensor.data = tensor.data.contiguous(memory_format=layout)
     return model
+
+
+def per_time_point(x: torch.Tensor, t: int) -> torch.Tensor:
+    """(B, K, H, W) -> (B*t, K, H, W) as ``x.repeat_interleave(t, 0)``, stored channels-last: one write."""
+    b, k, h, w = x.shape
+    out = torch.empty((b, t, h, w, k), dtype=x.dtype, device=x.device)
+    out.copy_(x.permute(0, 2, 3, 1)[:, None])  # broadcast over the t time points
+    return out.view(b * t, h, w, k).permute(0, 3, 1, 2)
 
 
 def initialise(model: nn.Module) -> None:

@@ -28,17 +28,19 @@ class TemporalPixels(nn.Module):
         self.refine = nn.Sequential(ConvBlock(2 * features + 1, features), nn.Conv2d(features, features, 3, 1, 1))
         self.fuse = nn.Sequential(ConvBlock(time_points * features, features, kernel=1), ConvBlock(features, features))
 
-    def forward(self, features: torch.Tensor, mask: torch.Tensor, flows) -> torch.Tensor:
+    def forward(self, features: torch.Tensor, mask: torch.Tensor, flows, warped_mask=None) -> torch.Tensor:
         """``flows``: (B, N', 2, H, W), or a :class:`SharedFlow` of them as (B*N', 2, H, W) (every colour's
-        warps then share one sampling plan)."""
+        warps then share one sampling plan); ``warped_mask``: (B*N', 1, H, W), the mask warped already (with
+        zeros outside: the GPU path warps every colour's at once)."""
         b, t, c, h, w = features.shape
         middle = features[:, t // 2]  # (B, C, H, W)
         x = features.reshape(b * t, c, h, w)
-        m = mask.repeat_interleave(t, 0)  # (B*N', 1, H, W)
+        m = mask.repeat_interleave(t, 0) if warped_mask is None else warped_mask  # (B*N', 1, H, W)
         if self.flow_guidance:
             shared = flows if isinstance(flows, SharedFlow) else SharedFlow(flows.reshape(b * t, 2, h, w))
             x = shared.warp(x)  # (B*N', C, H, W) on the middle time point's grid
-            m = shared.warp(m, padding="zeros")  # where the colour's samples landed
+            if warped_mask is None:
+                m = shared.warp(m, padding="zeros")  # where the colour's samples landed
         into = self.refine[0][0].in_channels  # 2C + 1, or a multiple of 8 when padded (cscsr.network.padding)
         if self.channels_last and self.flow_guidance and self.mask_slot is not None:  # refine's first conv split:
             x[:, self.mask_slot : self.mask_slot + 1].copy_(m)  # x's (warped: its own) padded channel <- the mask
