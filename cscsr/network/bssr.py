@@ -87,15 +87,14 @@ class BSSR(nn.Module):
         frames = torch.empty((b * t, depth, h, w), dtype=spikes.dtype, device=spikes.device,
                              memory_format=torch.channels_last)  # (B*N', w', H, W) stored (B*N', H, W, w')
         view = frames.view(b, t, depth, h, w)
-        for i, start in enumerate(starts):
-            if mask is None:
-                view[:, i, :length].copy_(spikes[:, start : start + length])
+        if mask is not None:  # every time point's frames at once: (B, N', w, H, W), a view of the spikes (overlapping)
+            windows = spikes.unfold(1, length, starts.step).permute(0, 1, 4, 2, 3)  # (the GPU path is not exported)
+            if torch.compiler.is_compiling():  # out= into a view breaks a graph; the compiler fuses the copy
+                view[:, :, :length].copy_(windows * mask[:, None])
             else:
-                written = view[:, i, :length]
-                if torch.compiler.is_compiling():  # out= into a view breaks a graph; the compiler fuses the copy
-                    written.copy_(spikes[:, start : start + length] * mask)
-                else:
-                    torch.mul(spikes[:, start : start + length], mask, out=written)
+                torch.mul(windows, mask[:, None], out=view[:, :, :length])
+        for i, start in enumerate(starts if mask is None else ()):
+            view[:, i, :length].copy_(spikes[:, start : start + length])
         if depth > length:
             view[:, :, length:].zero_()
         raw = F.conv2d(frames, weight, padding=1)  # (B*N', C', H, W) NHWC
