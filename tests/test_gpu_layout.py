@@ -127,6 +127,20 @@ def test_the_gpu_path_s_demosaicking_and_sample_count_are_the_same_sums_without_
     assert torch.equal(F.avg_pool2d(mask, 3, 1, 1, divisor_override=1), F.conv2d(mask, torch.ones(1, 1, 3, 3), padding=1))
 
 
+def test_the_gpu_path_picks_the_half_resolution_channels_out_as_the_masks_and_pooling_do():
+    """The joint motion's four half-resolution channels: a gather of each channel's pixel of every 2x2 cell, the
+    same values as masking and 2x2 max pooling (0/1 spikes), for every pattern and mono, in a mixed batch."""
+    from cscsr.network.bayer import cell_masks, pick_half, split_half
+    from stages.reconstruction.cfa import BAYER_PATTERNS
+
+    spikes = (torch.rand(len(BAYER_PATTERNS), 41, 16, 24, generator=torch.Generator().manual_seed(0)) < 0.3).float()
+    for dtype in (torch.float32, torch.bfloat16):
+        x = spikes.to(dtype).contiguous(memory_format=torch.channels_last)
+        for cfas in (list(BAYER_PATTERNS), ["mono"] * len(BAYER_PATTERNS)):
+            cells = cell_masks(cfas, 16, 24, dtype=dtype)
+            assert torch.equal(pick_half(x, cells), split_half(x, cells))
+
+
 @pytest.mark.parametrize("path", ["default", "gpu-bf16"])
 def test_the_network_traces_as_one_graph_with_no_breaks(path):
     """torch._dynamo.explain on the whole pass: 0 graph breaks, as the CPU runs it and as the GPU path runs it."""

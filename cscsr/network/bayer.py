@@ -68,3 +68,14 @@ def split_half(spikes: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
     b, t, h, w = spikes.shape
     masked = spikes[:, None] * cells[:, :, None]  # (B, 4, T, H, W)
     return F.max_pool2d(masked.reshape(b * 4 * t, 1, h, w), 2).reshape(b, 4, t, h // 2, w // 2)
+
+
+def pick_half(spikes: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
+    """:func:`split_half` for spikes that are not negative (0/1) and masks with one pixel per 2x2 cell (every
+    channel of :func:`cell_masks`, Bayer or mono): the maximum of a cell's masked spikes is the spike at the
+    channel's pixel, so that pixel is picked out, by one gather (the GPU path: no (B, 4, T, H, W) product, no
+    pooling). (B, T, H, W) -> (B, 4, T, H/2, W/2), the same values."""
+    b, t, h, w = spikes.shape
+    where = cells[:, :, :2, :2].flatten(2).argmax(2)  # (B, 4): each channel's pixel in the cell, 2 dy + dx
+    cell = spikes.view(b, t, h // 2, 2, w // 2, 2).permute(0, 3, 5, 1, 2, 4)  # (B, 2, 2, T, H/2, W/2), a view
+    return cell[torch.arange(b, device=spikes.device)[:, None], where // 2, where % 2]  # (B, 4, T, H/2, W/2)

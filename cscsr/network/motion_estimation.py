@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from cscsr.network.bayer import split_half
+from cscsr.network.bayer import pick_half, split_half
 from cscsr.network.blocks import stack_channels
 from cscsr.network.config import CSCSRConfig
 from cscsr.network.spike_flow import SpikeFlowNet
@@ -56,7 +56,8 @@ class MotionEstimation(nn.Module):
     def forward(self, spikes: torch.Tensor, cells: torch.Tensor) -> tuple[torch.Tensor, tuple]:
         cfg = self.config
         middle = cfg.frames // 2
-        half = split_half(spikes, cells)  # (B, 4, N, H/2, W/2)
+        pick = pick_half if self.channels_last else split_half  # the GPU path: a gather, the same values (0/1 spikes)
+        half = pick(spikes, cells)  # (B, 4, N, H/2, W/2)
         forward = self._flow(self._clip(half, middle, False), self._clip(half, middle + cfg.flow_span, False), cells)
         backward = self._flow(self._clip(half, middle, True), self._clip(half, middle - cfg.flow_span, True), cells)
         flows = [(t - middle) / cfg.flow_span * (forward if t > middle else backward) if t != middle
