@@ -85,7 +85,7 @@ SELECTIONS = {  # windows of: the store, a selection of its spikes (x from 2: no
 }
 
 
-@pytest.mark.parametrize("method, selection", [*(("tfp", name) for name in SELECTIONS), ("lite", "spikes selected")])
+@pytest.mark.parametrize("method, selection", [("tfp", name) for name in SELECTIONS])
 def test_windows_of_a_store_are_read_packed_by_each_block_with_the_bytes_of_the_windows_themselves(
         recording, selection, method):
     """The reconstruction of windows of a store (or of one selection) reads each block's tile and halo packed from

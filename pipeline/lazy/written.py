@@ -152,7 +152,11 @@ def _outcomes(client, written: da.Array, chosen: list[tuple[int, int, int]]):
     blocks = [Delayed((written.name, b, ty, tx, 0), graph, layer=written.name) for b, ty, tx in chosen]
     futures = client.compute(blocks, optimize_graph=False)
     block_of = {future.key: block for future, block in zip(futures, chosen)}
-    for future in as_completed(futures):
+    finished = as_completed(futures)
+    for future in finished:
+        if future.status in ("lost", "pending"):  # its result died with a worker: Dask computes it again
+            finished.add(future)
+            continue
         yield block_of[future.key], failure(future)
         future.release()
 
