@@ -166,11 +166,16 @@ def _fails_until(block: np.ndarray, flag: str, frame: int, block_info=None) -> n
     return block
 
 
-def test_a_failed_to_spikes_resumes_to_the_bytes_of_an_uninterrupted_one(tmp_path):
+def failing_at_frame_55(tmp_path):
+    """(scene frames, their spikes, the same spikes failing at frame 55 until ``flag`` exists, ``flag``)."""
     frames = frames_array(scene(), 10)
     spikes = simulate(frames, reset="subtract", noise="realistic", seed=2)
     flag = str(tmp_path / "fixed")
-    failing = spikes.copy(data=spikes.data.map_blocks(_fails_until, flag, 55, dtype=bool))
+    return frames, spikes, spikes.copy(data=spikes.data.map_blocks(_fails_until, flag, 55, dtype=bool)), flag
+
+
+def test_a_failed_to_spikes_resumes_to_the_bytes_of_an_uninterrupted_one(tmp_path):
+    frames, spikes, failing, flag = failing_at_frame_55(tmp_path)
     whole, resumed = str(tmp_path / "whole.zarr"), str(tmp_path / "resumed.zarr")
     with dask.config.set(scheduler="synchronous"):  # the tasks before the failure run first
         to_spikes(spikes, whole, chunk_frames=8)
@@ -195,10 +200,7 @@ def test_a_resume_needs_the_truth_it_was_begun_with_and_opens_the_store_once_a_p
     resume opens the store once for the checks before the claim (its cut and its truth) and once under the claim."""
     lazy_simulate = importlib.import_module("pipeline.lazy.simulate")  # pipeline.lazy.simulate is the function
 
-    frames = frames_array(scene(), 10)
-    spikes = simulate(frames, reset="subtract", noise="realistic", seed=2)
-    flag = str(tmp_path / "fixed")
-    failing = spikes.copy(data=spikes.data.map_blocks(_fails_until, flag, 55, dtype=bool))
+    frames, spikes, failing, flag = failing_at_frame_55(tmp_path)
     whole, resumed = str(tmp_path / "whole.zarr"), str(tmp_path / "resumed.zarr")
     with dask.config.set(scheduler="synchronous"):  # the tasks before the failure run first
         to_spikes(spikes, whole, chunk_frames=8, truth=frames)
