@@ -49,6 +49,21 @@ def test_the_bf16_warp_is_grid_sample_s_bilinear_sampling():
         assert torch.equal(shared.warp(x.bfloat16(), padding), warp(x.bfloat16(), flow, padding))
 
 
+
+def test_the_compiled_sampler_picks_the_same_corners_as_the_eager_one():
+    """Under torch.compile the sampler's corners come from floor and clamp, not bucketize (inductor in torch 2.11
+    failed to lower bucketize over a slice on CUDA: the H200 lease of 2026-11-27); both give the same indices."""
+    from cscsr.network.warp import sampling_indices
+
+    g = torch.Generator().manual_seed(2)
+    flow = 9 * torch.randn(2, 2, 12, 20, generator=g)  # many positions outside the frame
+    flow[0, 0, 0, :4] = torch.tensor([-0.0, 3.0, 19.0, -1.0])  # exact integers, on and beyond the edges
+    eager = sampling_indices(flow, 12, 20)
+    traced = torch.compile(lambda f: sampling_indices(f, 12, 20), backend="aot_eager", dynamic=False)(flow)
+    assert torch.equal(traced[0], eager[0])
+    for got, expected in zip([*traced[1], *traced[2]], [*eager[1], *eager[2]]):
+        assert torch.equal(got, expected)
+
 def natural_clip(side: int, cfa: str = "grbg", frames: int = 41, seed: int = 0, width: int | None = None) -> torch.Tensor:
     """(1, 41, side, width or side) spikes of a still natural picture (chelsea, the cat) through a Bayer CFA."""
     width = width or side

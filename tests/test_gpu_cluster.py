@@ -14,7 +14,7 @@ import types
 
 import dask
 import pytest
-from distributed import Client, LocalCluster
+from distributed import Client, LocalCluster, WorkerPlugin
 
 from pipeline.compute import cluster as gpu_cluster
 from pipeline.compute.cluster import (GPU, GPU_SHARE, GPU_TASKS_IN_FLIGHT, dask_client, gpu_worker_specs, serve_workers,
@@ -131,6 +131,32 @@ def test_workers_2_on_a_one_gpu_machine_is_a_gpu_worker_and_a_cpu_worker(monkeyp
         assert advertised(client) == {0: ({GPU: 1}, GPU_TASKS_IN_FLIGHT), 1: ({}, 1)}
         assert device_of_each_worker(client) == {0: "0", 1: ""}
 
+
+
+class SlowToExit(WorkerPlugin):
+    """A worker plugin whose teardown takes ``seconds`` (as a GPU worker's CUDA context and compile workers
+    did on the H200) and then writes ``marker``: written only if the worker was let finish its exit."""
+
+    def __init__(self, seconds: float, marker: str):
+        self.seconds, self.marker = seconds, marker
+
+    def setup(self, worker):
+        pass
+
+    def teardown(self, worker):
+        time.sleep(self.seconds)
+        with open(self.marker, "w") as f:
+            f.write(str(worker.name))
+
+
+def test_a_gpu_worker_slow_to_exit_is_let_finish_when_its_cluster_closes(tmp_path):
+    """Dask's nanny kills a worker that has not exited 4 s after being asked; a GPU worker is given
+    GPU_WORKER_EXIT_S, so the cluster of a finished --fast-gpu job closes without an error."""
+    assert gpu_cluster.GPU_WORKER_EXIT_S >= 30
+    marker = tmp_path / "exited"
+    with dask_client(workers=1, gpus=1) as client:
+        client.register_plugin(SlowToExit(6, str(marker)), name="slow-to-exit")
+    assert marker.read_text() == "0"
 
 def test_a_negative_gpu_count_is_refused():
     with pytest.raises(InputError, match="--gpus must be >= 0"), dask_client(workers=1, gpus=-1):

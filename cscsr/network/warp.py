@@ -78,7 +78,10 @@ def sampling_indices(flow: torch.Tensor, h: int, w: int):
         torch.add(grids[axis], flow[:, axis], out=where)  # float32 positions (a bf16 flow promotes by the add)
         corners.append(where.floor())
         fractions.append(where - corners[-1])
-        near.append([torch.bucketize(where, edges[d : size - 1 + d], out_int32=True, right=True) for d in (1, 0)])
+        if torch.compiler.is_compiling():  # inductor (torch 2.11, CUDA) cannot lower bucketize over a slice
+            near.append([(corners[-1] + (1 - d)).clamp(0, size - 1).int() for d in (1, 0)])  # the same counts
+        else:
+            near.append([torch.bucketize(where, edges[d : size - 1 + d], out_int32=True, right=True) for d in (1, 0)])
     cols, rows = near[0], [r.mul_(w).add_(first) for r in near[1]]  # floor(p) + d clamped; rows of the table
     if torch.compiler.is_compiling():  # out= into a view breaks a graph; the compiler fuses these anyway
         return torch.stack([rows[dy] + cols[dx] for dy, dx in CORNERS], -1), corners, fractions

@@ -334,8 +334,22 @@ def _pinned_nanny(specs: list[dict], scheduler: str, *, name, env: dict | None =
     """The local cluster's worker ``name`` (0, 1, ...): a Nanny with LocalCluster's options (loopback, memory
     limit, logs, thread environment) and the threads, resources and device of ``specs[name]``."""
     spec = specs[name] if isinstance(name, int) and 0 <= name < len(specs) else gpu_worker_specs(1, 0)[0]
-    return Nanny(scheduler, name=name, **{**options, "nthreads": spec["nthreads"], "resources": spec["resources"]},
+    nanny = GpuNanny if spec["resources"] else Nanny
+    return nanny(scheduler, name=name, **{**options, "nthreads": spec["nthreads"], "resources": spec["resources"]},
                  env={**(env or {}), **spec["env"]})
+
+
+# Seconds a GPU worker's process is given to exit when its cluster closes, before it is killed. Dask's nanny gives 5
+# (4 to exit, then SIGKILL and 1 to be gone): a worker that ran --fast-gpu (inductor's compile workers, a CUDA
+# context holding tens of GiB) took longer on the H200 (2026-11-27), and the finished job then failed closing.
+GPU_WORKER_EXIT_S = 60
+
+
+class GpuNanny(Nanny):
+    """A Nanny whose worker process gets :data:`GPU_WORKER_EXIT_S` to exit when it is closed."""
+
+    async def close(self, timeout: float = GPU_WORKER_EXIT_S, reason: str = "nanny-close"):
+        return await super().close(timeout=max(timeout, GPU_WORKER_EXIT_S), reason=reason)
 
 
 def serve_workers(scheduler: str, *, memory_limit: str | int | None = "4GiB", gpus: int | None = None,
@@ -396,7 +410,8 @@ async def _serve(scheduler: str, options: list[dict], stop: threading.Event | No
     """Start a Nanny of each of ``options`` and wait until they all finish (their scheduler went away) or a
     stop is asked (SIGTERM, SIGINT, ``stop``); then close them. ``dask worker``'s loop."""
     loop = asyncio.get_running_loop()
-    nannies = [Nanny(scheduler, **each) for each in options]  # made in the loop they run in
+    nannies = [(GpuNanny if each.get("resources") else Nanny)(scheduler, **each)  # made in the loop they run in
+               for each in options]
     stopping = asyncio.Event()
     handled = []
     for signum in (signal.SIGTERM, signal.SIGINT):
