@@ -6,6 +6,7 @@ clusters stopped, temporary files removed). SIGTERM's default ends the process a
 the command line's process and each segment process raise :class:`Terminated`, a ``KeyboardInterrupt``, instead.
 """
 
+import _thread
 import contextlib
 import os
 import signal
@@ -25,7 +26,7 @@ def interrupt_on(*signals: signal.Signals) -> None:
     ``KeyboardInterrupt`` for SIGINT) and ignore the ones after it, so that the clean-up it starts finishes (SIGKILL
     still ends the process at once). Python's own handler, not ``SIG_IGN``: processes started after it (workers,
     encoders) begin with the signals' defaults. Call it from the main thread."""
-    received = []
+    received, redelivered = [], []
 
     def stop(signum, frame) -> None:
         if received:
@@ -33,9 +34,24 @@ def interrupt_on(*signals: signal.Signals) -> None:
         received.append(signum)
         raise Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
 
+    earlier_hook = sys.unraisablehook
+
+    def lost_in_a_finalizer(unraisable) -> None:
+        """The interrupt was raised inside a finalizer (``__del__``: asyncio's ``Future``, CI 2026-11-27), where
+        Python prints and drops it, and the job went on to finish: deliver it again to the main thread, from a
+        timer's thread, once the finalizer is over (again if it lands in another, a few times at most)."""
+        if isinstance(unraisable.exc_value, KeyboardInterrupt) and received and len(redelivered) < 5:
+            redelivered.append(received.pop())
+            again = threading.Timer(0.05, _thread.interrupt_main, args=(redelivered[-1],))
+            again.daemon = True
+            again.start()
+            return
+        earlier_hook(unraisable)
+
     for signum in signals:
         signal.signal(signum, stop)
         _handled.add(signum)
+    sys.unraisablehook = lost_in_a_finalizer
 
 
 @contextlib.contextmanager

@@ -197,6 +197,36 @@ def test_an_interrupt_inside_a_deferred_write_is_raised_when_the_write_ends():
     assert result.stdout.splitlines() == ["the frame went out whole", "terminated after the block", "still here"]
 
 
+IN_A_FINALIZER = """
+import os, signal, sys, time
+from pipeline.compute.stopping import Terminated, interrupt_on
+interrupt_on(signal.SIG{name})
+
+class Dropped:
+    def __del__(self):  # the signal's handler runs here, as it did in an asyncio Future's __del__
+        os.kill(os.getpid(), signal.SIG{name})
+        for _ in range(1000):
+            pass
+
+try:
+    Dropped()
+    for _ in range(200):
+        time.sleep(0.01)  # the job going on
+    print("finished: the interrupt was lost", flush=True)
+except {raised}:
+    print("stopped", flush=True)
+"""
+
+
+@pytest.mark.parametrize("name, raised", [("INT", "KeyboardInterrupt"), ("TERM", "Terminated")])
+def test_an_interrupt_that_lands_in_a_finalizer_still_stops_the_job(name, raised):
+    """Python drops an exception raised in ``__del__`` ("Exception ignored in"): a Ctrl-C that landed in one let
+    `simulate` finish and exit 0 (CI 2026-11-27). It is delivered again, to the main thread."""
+    code = IN_A_FINALIZER.format(name=name, raised=raised)
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert result.stdout.splitlines() == ["stopped"], result.stderr
+    assert "Exception ignored" not in result.stderr
+
 @pytest.mark.parametrize("ctrl_c", [False, True], ids=["sigterm", "ctrl-c"])
 def test_sigterm_during_reconstruct_stops_its_segment_and_cluster_and_resume_finishes(spikes, tmp_path,
                                                                                       tmpdir_of_its_own, ctrl_c):
