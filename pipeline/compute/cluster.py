@@ -6,14 +6,12 @@ workers is not oversubscribed. An address comes from ``--scheduler`` or
 ``DASK_SCHEDULER_ADDRESS`` or Dask's ``scheduler-address`` setting; an unreachable one is a one-line error within seconds.
 Workers started with ``--resources GPU=1`` are GPU workers (:func:`gpu_workers`).
 
-Several GPUs per machine: one worker per GPU, each pinned to its device (``CUDA_VISIBLE_DEVICES``)
-and advertising ``GPU=1``, with :data:`GPU_TASKS_IN_FLIGHT` threads; the rest of the workers are
-1-thread CPU workers that see no GPU. This is dask-cuda's convention (``LocalCUDACluster``,
-``dask cuda worker``), implemented here because dask-cuda does not fit our pins (it requires
-rapids-dask-dependency, which pins dask and distributed to another release, plus cuda-core and
-pandas). A local cluster follows it on a machine where torch sees GPUs (:func:`dask_client`), and
-``cscsr worker`` (:func:`serve_workers`) starts a cluster node's workers by it. Without a GPU
-nothing changes.
+Several GPUs per machine: one worker per GPU, each pinned to its device (``CUDA_VISIBLE_DEVICES``) and advertising
+``GPU=1``, with :data:`GPU_TASKS_IN_FLIGHT` threads; the rest are 1-thread CPU workers that see no GPU. This is
+dask-cuda's convention (``LocalCUDACluster``, ``dask cuda worker``), implemented here because dask-cuda does not fit
+our pins (rapids-dask-dependency pins dask and distributed to another release, plus cuda-core and pandas). A local
+cluster follows it where torch sees GPUs (:func:`dask_client`), and ``cscsr worker`` (:func:`serve_workers`) starts
+a cluster node's workers by it. Without a GPU nothing changes.
 
 A local cluster listens on loopback only: its scheduler, workers and dashboard (the dashboard
 shows task names and file paths, and can run profiling). ``CSCSR_DASHBOARD=HOST:PORT`` (e.g.
@@ -47,10 +45,9 @@ QUIET_WAIT = 2.0  # seconds a job waits for a worker before it says that it is w
 WORKERS_PER_CORE, MOST_WORKERS = 4, 256  # --workers at most 4 per core and 256 in all: beyond that a local
 # cluster only multiplies processes (~100 MiB each) and start-up time, with no core left to run them
 GPU = "GPU"  # the Dask worker resource a GPU worker advertises; network tasks ask for one
-# Threads of a GPU worker. A network task asks for GPU_SHARE = 1 / GPU_TASKS_IN_FLIGHT of the GPU
-# resource (0.25, exact in binary), so up to four network tasks are in flight on one GPU worker: one
-# on the device (the reconstructor serialises device work with a lock) while the others read and
-# decompress their input or compress and write their output.
+# Threads of a GPU worker. A network task asks for GPU_SHARE = 1 / GPU_TASKS_IN_FLIGHT of the GPU resource (0.25,
+# exact in binary), so up to four network tasks are in flight on one GPU worker: one on the device (the reconstructor
+# serialises device work with a lock) while the others read and decompress or compress and write.
 GPU_TASKS_IN_FLIGHT = 4
 GPU_SHARE = 1 / GPU_TASKS_IN_FLIGHT
 DEVICES_VARIABLE = "CUDA_VISIBLE_DEVICES"  # the devices a process sees: what pins a worker to its GPU
@@ -286,10 +283,6 @@ def gpu_worker_specs(workers: int, gpus: int, devices: Sequence[str] | None = No
             + [{"env": {DEVICES_VARIABLE: ""}, "resources": {}, "nthreads": 1} for _ in range(workers - pinned)])
 
 
-def _check_gpus(gpus: int) -> None:
-    check_number("--gpus", gpus, at_least=0, integer=True)
-
-
 @contextlib.contextmanager
 def dask_client(*, workers: int | None = None, scheduler: str | None = None,
                 gpus: int | None = None) -> Iterator[Client]:
@@ -311,7 +304,7 @@ def dask_client(*, workers: int | None = None, scheduler: str | None = None,
         return
     check_workers(workers)
     if gpus is not None:
-        _check_gpus(gpus)
+        check_number("--gpus", gpus, at_least=0, integer=True)
     start_resource_tracker()  # one, deaf to Ctrl-C, shared by the workers (pipeline.compute.stopping)
     workers = workers if workers is not None else os.cpu_count() or 1
     gpus = visible_gpus() if gpus is None else gpus
@@ -339,14 +332,13 @@ def _pinned_nanny(specs: list[dict], scheduler: str, *, name, env: dict | None =
                  env={**(env or {}), **spec["env"]})
 
 
-# Seconds a GPU worker's process is given to exit when its cluster closes, before it is killed. Dask's nanny gives 5
-# (4 to exit, then SIGKILL and 1 to be gone): a worker that ran --fast-gpu (inductor's compile workers, a CUDA
-# context holding tens of GiB) took longer on the H200 (2026-11-27), and the finished job then failed closing.
-GPU_WORKER_EXIT_S = 60
+GPU_WORKER_EXIT_S = 60  # seconds a GPU worker's process is given to exit when its cluster closes (GpuNanny)
 
 
 class GpuNanny(Nanny):
-    """A Nanny whose worker process gets :data:`GPU_WORKER_EXIT_S` to exit when it is closed."""
+    """A Nanny whose worker process gets :data:`GPU_WORKER_EXIT_S` to exit when closed, not Dask's 4 s then SIGKILL
+    and 1 s more: a --fast-gpu worker (a CUDA context of 40 GiB, inductor's compile workers) took longer on the H200
+    (2026-11-27), and the finished job failed closing its cluster."""
 
     async def close(self, timeout: float = GPU_WORKER_EXIT_S, reason: str = "nanny-close"):
         return await super().close(timeout=max(timeout, GPU_WORKER_EXIT_S), reason=reason)
@@ -368,7 +360,7 @@ def serve_workers(scheduler: str, *, memory_limit: str | int | None = "4GiB", gp
     then closes the workers (their tasks go back to the scheduler) and returns. Refuses a bad option or an
     unreachable scheduler first, in one line (:class:`InputError`)."""
     if gpus is not None:
-        _check_gpus(gpus)
+        check_number("--gpus", gpus, at_least=0, integer=True)
     if nthreads is not None:
         check_number("--nthreads", nthreads, at_least=1, integer=True)
     if death_timeout is not None:

@@ -56,11 +56,21 @@ def check_here(urls, *collections) -> None:
     scheduler = get_scheduler(collections=list(collections) or None)
     if scheduler in IN_THIS_PROCESS or scheduler is None:
         return
-    client = getattr(scheduler, "__self__", None)
-    from distributed import Client
-
-    check_in_memory(urls, client=client if isinstance(client, Client) else None,
+    check_in_memory(urls, client=distributed_client(*collections),
                     instead=", or compute with Dask's threads (dask.config.set(scheduler='threads'))")
+
+
+def distributed_client(*collections):
+    """The ``distributed`` client that would compute ``collections`` (the active one if none), or None: no client,
+    or Dask's own scheduler chosen (``dask.config.set(scheduler=...)``)."""
+    from dask.base import get_scheduler
+
+    client = getattr(get_scheduler(collections=list(collections) or None), "__self__", None)
+    try:
+        from distributed import Client
+    except ImportError:
+        return None
+    return client if isinstance(client, Client) else None
 
 
 @contextlib.contextmanager

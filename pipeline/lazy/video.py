@@ -31,7 +31,7 @@ from dask.base import tokenize
 
 from pipeline.compute.cluster import GPU, GPU_SHARE
 from pipeline.jobs.reconstruct_plan import Plan, ReconstructOptions
-from pipeline.lazy.spikes import spike_array, python_words
+from pipeline.lazy.spikes import distributed_client, python_words, spike_array
 from pipeline.lazy.windows import PackedReads, check_windows
 from stages.capture.bits import pack_rows, unpack_rows
 from stages.errors import InputError, InputTypeError
@@ -123,7 +123,7 @@ def reconstruct(win: xr.DataArray, *, method: str = "cscsr", weights: str | None
         options.check()
     from pipeline.jobs.reconstruct import network_options, placed, placement, reconstructor, sized
 
-    where = placement(options, _active_client())
+    where = placement(options, distributed_client(win.data))
     options = placed(options, where, {}, win.attrs["cfa"])  # the weights by where it runs and the CFA
     precision_, backend_ = network_options(options)
     built = reconstructor(options.method, options.weights, precision_, backend_, device="cpu")  # checks the weights
@@ -286,13 +286,3 @@ def _reconstructed_windows(spec: _Method, windows: list[Window], crop: tuple[sli
     for n, image in enumerate(images):
         out[n] = image[ys, xs]
     return out
-
-
-def _active_client():
-    """The ``distributed`` client dask would compute on now, or None (dask's default scheduler)."""
-    try:
-        from distributed import default_client
-
-        return default_client()
-    except (ImportError, ValueError):
-        return None

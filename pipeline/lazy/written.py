@@ -18,7 +18,7 @@ import xarray as xr
 from dask.base import tokenize
 
 from pipeline.compute.progress import progress_bar
-from pipeline.lazy.spikes import check_here, run_of, url_text
+from pipeline.lazy.spikes import check_here, distributed_client, run_of, url_text
 from pipeline.lazy.video import VIDEO_DIMS
 from pipeline.lazy.windows import _output_part
 from pipeline.stores.lease import claimed, held
@@ -71,7 +71,7 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
     tiles = (len(data.chunks[1]), len(data.chunks[2]))
     centres = [int(c) for c in hr.coords["frame"].values]
     gain = hr.coords["gain"].data if "gain" in hr.coords else None
-    client = _distributed_client(hr.data)
+    client = distributed_client(hr.data)
     if client is not None and isinstance(gain, da.Array):  # the automatic exposure: computed once for every round,
         gain = client.persist(gain)  # held by the cluster (the same key) until this call returns
     attrs["gain"] = None if gain is None else float(dask.compute(gain)[0])
@@ -125,19 +125,6 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
         remove_partial_writes(url)
         open_video_store(url, writable=True).attrs["state"] = "complete"
     return {"frames": n, "tasks_run": sum(units), "tasks_skipped": total - sum(units)}
-
-
-def _distributed_client(collection):
-    """The ``distributed`` client that would compute ``collection`` (the active one, unless Dask's own scheduler is
-    chosen: ``dask.config.set(scheduler=...)``), or None."""
-    from dask.base import get_scheduler
-
-    client = getattr(get_scheduler(collections=[collection]), "__self__", None)
-    try:
-        from distributed import Client
-    except ImportError:
-        return None
-    return client if isinstance(client, Client) else None
 
 
 def _outcomes(client, written: da.Array, chosen: list[tuple[int, int, int]]):
