@@ -51,11 +51,12 @@ def scheduler(tmp_path_factory):
                     raise
                 time.sleep(0.5)
         yield address
-    finally:
-        for process in processes:
-            process.terminate()
-        for process in processes:
-            process.wait(timeout=30)
+    finally:  # the workers first, while their scheduler answers (else each waits on it for seconds), then it
+        for group in (processes[1:], processes[:1]):
+            for process in group:
+                process.terminate()
+            for process in group:
+                process.wait(timeout=30)
 
 
 @pytest.fixture(scope="module")

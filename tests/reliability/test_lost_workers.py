@@ -80,12 +80,13 @@ class Cluster:
         wait_for(lambda: not set(pids) & set(self.client.scheduler_info()["workers"]),
                  "the scheduler never noticed its workers died", timeout=60)
 
-    def close(self):
+    def close(self):  # the workers first, while their scheduler answers (else each waits on it for seconds), then it
         self.client.close()
-        for process in self.processes:
-            process.terminate()
-        for process in self.processes:
-            process.wait(timeout=30)
+        for group in (self.processes[1:], self.processes[:1]):
+            for process in group:
+                process.terminate()
+            for process in group:
+                process.wait(timeout=30)
 
 
 def committed(url: str) -> int:
