@@ -204,7 +204,7 @@ def random_weights(tmp_path_factory) -> str:
 
 
 def test_cscsr_on_the_cluster_matches_the_network_run_directly(recording, client, random_weights, tmp_path):
-    """16 tiles per frame, batched frames, two worker processes: the same bytes as one process
+    """4 tiles per frame, batched frames, two worker processes: the same bytes as one process
     running the network on whole frames (the 32-px halo covers this 32x32 frame from every tile)."""
     import torch
 
@@ -214,10 +214,10 @@ def test_cscsr_on_the_cluster_matches_the_network_run_directly(recording, client
     from stages.reconstruction.colour import expose
 
     out = str(tmp_path / "cscsr.zarr")
-    options = ReconstructOptions(method="cscsr", weights=random_weights, every=41, tile=8)
+    options = ReconstructOptions(method="cscsr", weights=random_weights, every=41, tile=16)
     counts = reconstruct(recording, out, options, client=client, progress=False)
     frames, centres, attrs = video(out)
-    assert frames.shape == (3, 128, 128, 3) and counts["tasks_run"] == 3 * 16
+    assert frames.shape == (3, 128, 128, 3) and counts["tasks_run"] == 3 * 4
     assert attrs["state"] == "complete" and attrs["method"] == "cscsr" and attrs["weights"] == random_weights
 
     store = open_spike_store(recording)

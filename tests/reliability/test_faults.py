@@ -149,7 +149,7 @@ def test_two_jobs_on_one_output_never_interleave(recording, tmp_path):
     out, release = str(tmp_path / "out.zarr"), tmp_path / "release"
     # the first job holds after 10 tasks (pipeline.compute.hold) until the rival attempts are over: no race to lose
     first = subprocess.Popen([f"{BIN}/cscsr", "reconstruct", recording, out, "--method", "tfi", "--every", "20",
-                              "--tile", "8", "--workers", "1"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                              "--tile", "16", "--workers", "1"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                              text=True, env={**os.environ, **hold_environment(10, release)})
     deadline = time.time() + 300
     while committed(out) < 10:
@@ -157,7 +157,7 @@ def test_two_jobs_on_one_output_never_interleave(recording, tmp_path):
         time.sleep(0.05)
     for flag in ("--resume", "--overwrite"):
         second = subprocess.run([f"{BIN}/cscsr", "reconstruct", recording, out, "--method", "tfi", "--every", "20",
-                                 "--tile", "8", "--workers", "1", flag], capture_output=True, text=True, timeout=120)
+                                 "--tile", "16", "--workers", "1", flag], capture_output=True, text=True, timeout=120)
         assert second.returncode == 1 and "being written by another job" in second.stderr, second.stderr
         assert len(second.stderr.strip().splitlines()) == 1
     release.touch()
@@ -165,5 +165,5 @@ def test_two_jobs_on_one_output_never_interleave(recording, tmp_path):
     assert zarr.open_group(out, mode="r").attrs["state"] == "complete"
     assert not os.path.exists(f"{out}/lease.json")  # released at the end
     clean = str(tmp_path / "clean.zarr")
-    reconstruct(recording, clean, ReconstructOptions(method="tfi", every=20, tile=8), workers=1, progress=False)
-    assert chunk_files(out) == chunk_files(clean)  # 13 frames x 16 tiles: 208 tasks
+    reconstruct(recording, clean, ReconstructOptions(method="tfi", every=20, tile=16), workers=1, progress=False)
+    assert chunk_files(out) == chunk_files(clean)  # 13 frames x 4 tiles: 52 tasks
