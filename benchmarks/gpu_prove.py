@@ -9,7 +9,8 @@ limit, cut to what is left of the budget; a step that would not fit is recorded 
    ``--fast-gpu`` first (per block, ``dynamic=False``), so that its cost is known, with the compiled pass against
    the eager one and ``torch.profiler``'s top 25 kernels of each at 1000x1000; bf16 against fp32 at 1000x1000 on
    the device; convolution micro-benchmarks (96->96 NCHW against NHWC, Conv3d 50 against 56 channels, 101->50
-   against 104->56). ``pipeline-full-bf16-fast`` is the job with ``--fast-gpu`` (job frames/s per mode);
+   against 104->56). ``pipeline-full-bf16-fast`` (after step 2's eager jobs) is the job with ``--fast-gpu``
+   (job frames/s per mode);
 1. ``smoke``: ``lite`` and ``full`` through the device-side path (``NetworkReconstructor.many``:
    packed bits in, uint8 out), fp32 and bf16, on two 41-frame windows of a clip simulated by the
    simulator of record (LR ``--smoke-side``, x4), each compared with

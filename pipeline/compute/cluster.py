@@ -452,12 +452,13 @@ class QuietExpectedErrors(logging.Filter):
 
     Also drops ``Failed to communicate with scheduler during heartbeat`` (with its traceback), which a
     worker of a local cluster can log when the cluster shuts down at the end of a job or segment while a
-    heartbeat is in flight (seen on a busy machine): the job is over by then, and a scheduler lost
-    mid-job fails the job through the client with its own one-line error."""
+    heartbeat is in flight (seen on a busy machine), and ``failed during get data`` (a peer that closed while
+    this worker sent it a result: a SIGTERM'd simulate job in CI): the job is over by then, a peer lost mid-job is
+    Dask's to recover from, and a scheduler lost mid-job fails the job through the client with its own line."""
 
     EXPECTED = (f"{InputError.__name__}(",  # how the worker writes the exception: its repr
                 f"OSError({errno.ENOSPC}, ", f"OSError({errno.EDQUOT}, ")  # no space left, a full quota
-    SHUTDOWN_NOISE = ("Failed to communicate with scheduler during heartbeat",)
+    SHUTDOWN_NOISE = ("Failed to communicate with scheduler during heartbeat", "failed during get data with")
 
     def filter(self, record: logging.LogRecord) -> bool:
         if str(record.msg).startswith(self.SHUTDOWN_NOISE):
