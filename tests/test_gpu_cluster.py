@@ -132,7 +132,6 @@ def test_workers_2_on_a_one_gpu_machine_is_a_gpu_worker_and_a_cpu_worker(monkeyp
         assert device_of_each_worker(client) == {0: "0", 1: ""}
 
 
-
 class SlowToExit(WorkerPlugin):
     """A worker plugin whose teardown takes ``seconds`` (as a GPU worker's CUDA context and compile workers
     did on the H200) and then writes ``marker``: written only if the worker was let finish its exit."""
@@ -157,6 +156,7 @@ def test_a_gpu_worker_slow_to_exit_is_let_finish_when_its_cluster_closes(tmp_pat
     with dask_client(workers=1, gpus=1) as client:
         client.register_plugin(SlowToExit(6, str(marker)), name="slow-to-exit")
     assert marker.read_text() == "0"
+
 
 def test_a_negative_gpu_count_is_refused():
     with pytest.raises(InputError, match="--gpus must be >= 0"), dask_client(workers=1, gpus=-1):

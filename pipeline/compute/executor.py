@@ -61,8 +61,8 @@ def submitted(client, tasks: Iterable[T], submit: Callable[[T], Future], *,
         return future
 
     def again(future: Future) -> Future | None:
-        if future.status in ("lost", "pending"):  # finished, but its result died with a worker: Dask is
-            return future  # computing it again (it waited here, unread); wait for that
+        if still_computing(future):
+            return future
         if (not idempotent or future.status != "cancelled" or attempt_of[future.key] >= ATTEMPTS
                 or client.status != "running"):
             return None
@@ -72,6 +72,12 @@ def submitted(client, tasks: Iterable[T], submit: Callable[[T], Future], *,
     for future in in_bounded_window(futures, window_size(client), again=again):
         attempt_of.pop(future.key)
         yield task_of.pop(future.key), future
+
+
+def still_computing(future: Future) -> Future | None:
+    """``future`` if it finished but its result died with a worker before it was read (Dask is computing it again:
+    wait for that), else None: an ``again`` for :func:`in_bounded_window`."""
+    return future if future.status in ("lost", "pending") else None
 
 
 ATTEMPTS = 3  # submissions of an idempotent task the cluster keeps dropping, before it is reported failed

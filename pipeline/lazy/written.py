@@ -131,19 +131,14 @@ def _outcomes(client, written: da.Array, chosen: list[tuple[int, int, int]]):
     """Compute blocks ``chosen`` of ``written`` on ``client``, their keys the graph's own (unoptimised: each stage's
     tasks keep their names and annotations); yield (block, None or why it failed, in one line) as each finishes."""
     from dask.delayed import Delayed
-    from distributed import as_completed
 
-    from pipeline.compute.executor import failure
+    from pipeline.compute.executor import failure, in_bounded_window, still_computing
 
     graph = written.__dask_graph__()
     blocks = [Delayed((written.name, b, ty, tx, 0), graph, layer=written.name) for b, ty, tx in chosen]
     futures = client.compute(blocks, optimize_graph=False)
     block_of = {future.key: block for future, block in zip(futures, chosen)}
-    finished = as_completed(futures)
-    for future in finished:
-        if future.status in ("lost", "pending"):  # its result died with a worker: Dask computes it again
-            finished.add(future)
-            continue
+    for future in in_bounded_window(iter(futures), max(1, len(futures)), again=still_computing):
         yield block_of[future.key], failure(future)
         future.release()
 

@@ -227,6 +227,7 @@ def test_an_interrupt_that_lands_in_a_finalizer_still_stops_the_job(name, raised
     assert result.stdout.splitlines() == ["stopped"], result.stderr
     assert "Exception ignored" not in result.stderr
 
+
 @pytest.mark.parametrize("ctrl_c", [False, True], ids=["sigterm", "ctrl-c"])
 def test_sigterm_during_reconstruct_stops_its_segment_and_cluster_and_resume_finishes(spikes, tmp_path,
                                                                                       tmpdir_of_its_own, ctrl_c):
