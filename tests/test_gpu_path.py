@@ -36,6 +36,7 @@ from stages.reconstruction.colour import expose
 from stages.errors import InputError
 from stages.reconstruction.methods import Window
 from stages.reconstruction.tiles import device_tile, tile_grid
+from tests.test_gpu_workers import method_records
 from tests.test_gpu_workers import wide  # noqa: F401 - the module's recording fixture, LR 32x96 RGGB
 from tests.conftest import committed_tasks, kill_mid_job
 from tests.test_simulate import chunk_files
@@ -248,8 +249,8 @@ def test_tasks_overlap_device_passes_do_not_and_a_failed_pass_is_named(wide, cle
             reconstruct(wide, out, LITE, client=client, progress=False)
         assert time.monotonic() - start < 300
         passes = sorted(next(iter(client.run(_device_passes).values())))
-        tasks = sorted((r["startstops"][0]["start"], r["startstops"][-1]["stop"]) for r in stream.data
-                       if r["key"].startswith("_reconstruct_tiles"))
+        tasks = sorted((r["startstops"][0]["start"], r["startstops"][-1]["stop"])
+                       for r in method_records(stream.data))
     assert GPU_SHARE * GPU_TASKS_IN_FLIGHT == 1 and len(tasks) == 4
     assert len(passes) in (5, 6)  # a pass per tile on the CPU (tiles are joined on a GPU): 6, less the failed task's rest
     assert any(b[0] < a[1] for a, b in zip(tasks, tasks[1:])), "no two tasks were in flight together"

@@ -16,16 +16,17 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 import zarr
+from dask.utils import key_split
 from distributed import Client, Nanny, Scheduler, SpecCluster, get_task_stream
 
 from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct
-from pipeline.jobs.reconstruct_plan import task_groups, tile_blocks
+from pipeline.jobs.reconstruct_plan import tile_blocks
+from pipeline.jobs.reconstruct_tasks import MethodSpec, cut
 from pipeline.jobs.simulate import SimulateOptions, simulate
 from stages.reconstruction.tiles import tile_grid
 from tests.test_bad_input import assert_refused
 from tests.test_simulate import chunk_files, picture
 
-NETWORK_TASK = "_reconstruct_tiles"  # the task function's name: the prefix of its keys
 CSCSR = ReconstructOptions(method="cscsr", weights="lite", every=10, tile=32)  # 6 frames (2 groups of 4 and 2) x 3
 # tiles; lite named, as on GPU workers the default is full
 
@@ -70,16 +71,29 @@ def names(client: Client) -> dict[str, str]:
     return {address: worker["name"] for address, worker in client.scheduler_info()["workers"].items()}
 
 
-def run(client: Client, store: str, out: str, options: ReconstructOptions) -> list[tuple[str, str]]:
+def run(client: Client, store: str, out: str, options: ReconstructOptions) -> list[tuple[tuple, str]]:
     """Reconstruct on ``client``; -> (task key, worker name) of every reconstruction task, from the task stream."""
     with get_task_stream(client) as stream:
         reconstruct(store, out, options, client=client, progress=False)
-    return tasks_in(stream.data, client)
+    return tasks_in(stream.data, client, options.method)
 
 
-def tasks_in(records: list[dict], client: Client) -> list[tuple[str, str]]:
+def tasks_in(records: list[dict], client: Client, method: str = "cscsr") -> list[tuple[tuple, str]]:
+    """(key, worker name) of every task that ran ``method`` (:func:`method_records`)."""
     workers = names(client)
-    return sorted({(r["key"], workers[r["worker"]]) for r in records if r["key"].startswith(NETWORK_TASK)})
+    return sorted({(r["key"], workers[r["worker"]]) for r in method_records(records, method)}, key=str)
+
+
+JOINED = {(0, 0), (0, 2)}  # on GPU workers, the two 64-column tiles of ``wide``'s grid join one pass (not the 96)
+
+
+def method_records(records: list[dict], method: str = "cscsr") -> list[dict]:
+    """The task stream's records of the tasks that ran ``method``: a tile's alone (key prefix: the method), or a
+    pass's of tiles joined (``pass-`` and the method; the tiles of :data:`JOINED` then taken from it, under their
+    own keys, are not counted)."""
+    ran = [r for r in records if key_split(r["key"]) in (method, f"pass-{method}")]
+    joined = {r["key"][1] for r in ran if r["key"][0].startswith("pass-")}  # blocks along time with a pass
+    return [r for r in ran if r["key"][0].startswith("pass-") or not (r["key"][1] in joined and r["key"][2:4] in JOINED)]
 
 
 @pytest.fixture(scope="module")
@@ -194,12 +208,15 @@ def test_tile_blocks_hold_tiles_of_one_shape():
         assert 1 <= len(block) <= 3
         assert len({(grid[y][x].ry1 - grid[y][x].ry0, grid[y][x].rx1 - grid[y][x].rx0) for y, x in block}) == 1
     assert len(blocks) == 4 * 2 + 4 * 1 + 1  # 9 shapes: 4 of 4 tiles (2 blocks each), 4 of 2 tiles, 1 of 1
+    joined = cut(MethodSpec("cscsr"), "rec.zarr", "id", list(range(6)), 0, 1, 41, grid, 4, "rggb", "subtract", 4, 12,
+                 1.0, True)  # 12 windows a pass: 3 tiles of 4 frames
+    assert joined.passes == tuple(blocks) and joined.frames == (4, 2)
     done = np.ones((6, 5, 5), bool)
-    done[4, 0, 4] = False  # one (frame, tile) left: only its block's task runs, whole
+    done[4, 0, 4] = False  # one (frame, tile) left: only its pass runs, whole
     block = next(b for b in blocks if (0, 4) in b)
-    assert len(block) == 3 and list(task_groups(6, 4, blocks, done)) == [(range(4, 6), block)]
+    assert len(block) == 3 and list(joined.units(done)) == [(1, blocks.index(block))]
     done[0:4] = False
-    assert len(list(task_groups(6, 4, blocks, done))) == len(blocks) + 1
+    assert len(list(joined.units(done))) == len(blocks) + 1
 
 
 def test_one_pass_per_tile_shape_when_tiles_are_joined(wide):

@@ -77,6 +77,29 @@ def test_to_video_writes_what_the_job_writes(recording, case, tmp_path):
     assert np.array_equal(hr.coords["t"].values, job[1] / FPS)  # centre times in seconds
 
 
+@pytest.mark.parametrize("case", ["tfp", "lite-part"])
+def test_on_one_client_the_job_runs_the_lazy_graphs_tasks(recording, client, case, tmp_path):
+    """The job is a front door to the lazy stages: on one client its Dask tasks are those of the equivalent
+    ``to_video(reconstruct(windows(open_spikes(...))))``: the same key prefixes (the automatic exposure, a block of a
+    tile read from the store and reconstructed, its write), the same blocks, the same bytes."""
+    from dask.utils import key_split
+
+    options = CASES[case]
+    with get_task_stream(client) as job:
+        reconstruct(recording, str(tmp_path / "job.zarr"), ReconstructOptions(**options), client=client,
+                    progress=False)
+    with get_task_stream(client) as graph:
+        lazy.to_video(lazily(recording, **options), str(tmp_path / "lazy.zarr"))
+    ran = {name: sorted((key_split(r["key"]), *r["key"][1:]) for r in stream.data if isinstance(r["key"], tuple))
+           for name, stream in (("job", job), ("graph", graph))}
+    method = options["method"]
+    assert ran["job"] == ran["graph"] and {key for key, *_ in ran["job"]} == {"auto-gain", method, "write"}
+    blocks = [rest for key, *rest in ran["job"] if key == method]
+    assert blocks == [rest for key, *rest in ran["job"] if key == "write"]  # each block reconstructed, then written
+    job_video, made = stored(str(tmp_path / "job.zarr")), stored(str(tmp_path / "lazy.zarr"))
+    assert np.array_equal(job_video[0], made[0]) and job_video[2] == made[2]
+
+
 SELECTIONS = {  # windows of: the store, a selection of its spikes (x from 2: not on a byte), a run of windows
     "whole": lambda s, every: lazy.windows(s, every=every),
     "spikes selected": lambda s, every: lazy.windows(s.isel(t=slice(13, 170), y=slice(4, 40), x=slice(2, 58)),
@@ -101,7 +124,7 @@ def test_windows_of_a_store_are_read_packed_by_each_block_with_the_bytes_of_the_
     direct, between = made(win), made(win.copy(data=win.data.map_blocks(np.copy)))
     graph = direct.data.__dask_graph__()
     stages = {key[0].rsplit("-", 1)[0] for key in graph if isinstance(key, tuple)}
-    assert stages == {direct.attrs["method"], "concatenate"}, stages  # its blocks, and the tiles put together
+    assert stages == {direct.attrs["method"]}, stages  # its blocks alone, a tile each: the job's tasks
     assert any(key[0].startswith("windows") for key in between.data.__dask_graph__() if isinstance(key, tuple))
     with threaded():
         assert np.array_equal(direct.values, between.values)

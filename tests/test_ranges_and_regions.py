@@ -22,7 +22,7 @@ import zarr
 from pipeline.compute.estimate import hours, hours_table, output_bytes
 from pipeline.jobs.ingest import IngestOptions, ingest
 from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct
-from pipeline.jobs.reconstruct_plan import task_count, task_groups
+from pipeline.jobs.reconstruct_tasks import block_frames
 from stages.errors import InputError, InputTypeError
 from stages.reconstruction.ranges import parse_region, parse_time, spike_frame
 from tests.conftest import smooth_rate
@@ -125,10 +125,9 @@ def test_times_in_seconds_become_spike_frames_exactly():
 def test_a_network_range_keeps_the_whole_runs_batches():
     """A range's tasks batch the frames a whole run batches together (the network's numbers may depend on its
     batch): [first, first + n) of the whole run's output, cut at the whole run's multiples of the batch."""
-    done = np.zeros((7, 1, 1), bool)
-    groups = [list(frames) for frames, _ in task_groups(7, 4, [((0, 0),)], done, first=3)]
-    assert groups == [[0], [1, 2, 3, 4], [5, 6]]  # whole-run frames 3 | 4..7 | 8, 9
-    assert task_count(7, 4, 2, first=3) == 6 and task_count(8, 4, 1) == 2 and task_count(0, 4, 1) == 0
+    assert block_frames(7, 4, first=3) == (1, 4, 2)  # whole-run frames 3 | 4..7 | 8, 9
+    assert block_frames(8, 4, first=0) == (4, 4) and block_frames(0, 4, first=0) == (0,)
+    assert block_frames(3000, 1, first=5) == (3,) * 1000  # one window a pass: at most WINDOW_BLOCKS blocks
 
 
 # --- regions ---------------------------------------------------------------------------------

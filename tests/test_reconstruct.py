@@ -277,14 +277,16 @@ def test_network_refusals(method, cli, recording, random_weights, tmp_path):
     assert out.exists()  # a refused --overwrite leaves the old output alone
 
 
-def test_task_groups_are_fixed_by_frame_number():
-    from pipeline.jobs.reconstruct_plan import task_groups
+def test_blocks_are_fixed_by_frame_number():
+    from pipeline.jobs.reconstruct_tasks import MethodSpec, cut
+    from stages.reconstruction.tiles import tile_grid
 
+    grid = tile_grid(16, 32, 16, 0)  # two tiles, one a block
+    blocks = cut(MethodSpec("tfp"), "rec.zarr", "id", list(range(20, 30)), 0, 1, 41, grid, 4, "rggb", "subtract", 4,
+                 16, 1.0, False)  # a method of 4 windows a pass
+    assert blocks.frames == (4, 4, 2) and list(blocks.units())[:3] == [(0, 0), (0, 1), (1, 0)]
     done = np.zeros((10, 1, 2), bool)
-    tiles = [((0, 0),), ((0, 1),)]  # one tile per task
-    assert [(list(f), *b[0]) for f, b in task_groups(10, 4, tiles, done)][:3] == \
-        [([0, 1, 2, 3], 0, 0), ([0, 1, 2, 3], 0, 1), ([4, 5, 6, 7], 0, 0)]
     done[0:4, 0, 0] = True
-    done[4, 0, 1] = True  # a partly done group runs whole, exactly as it did the first time
-    groups = [(list(f), *b[0]) for f, b in task_groups(10, 4, tiles, done)]
-    assert ([0, 1, 2, 3], 0, 0) not in groups and ([4, 5, 6, 7], 0, 1) in groups and ([8, 9], 0, 1) in groups
+    done[4, 0, 1] = True  # a partly done block runs whole, exactly as it did the first time
+    units = list(blocks.units(done))
+    assert (0, 0) not in units and (1, 1) in units and (2, 1) in units

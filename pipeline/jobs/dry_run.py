@@ -7,7 +7,6 @@ turns the measured tasks into hours and bytes).
 import contextlib
 import dataclasses
 import functools
-import itertools
 import os
 import shutil
 import tempfile
@@ -24,20 +23,17 @@ from pipeline.jobs.reconstruct_plan import (
     Part,
     Placement,
     Plan,
-    task_count,
-    task_groups,
 )
-from pipeline.jobs.reconstruct_tasks import _opened, _reconstruct_tiles
+from pipeline.jobs.reconstruct_tasks import TileBlocks, writer
 from pipeline.stores.storage import remove, resolve
 from pipeline.stores.video_store import VIDEO, create_video_store
 from stages.errors import InputError
 from stages.reconstruction.methods import NETWORKS
-from stages.reconstruction.tiles import Tile
 
 
-def plan_job(plan: Plan, part: Part, grid: list[list[Tile]], blocks: list, batch: int, done: np.ndarray,
-             hr_size: tuple[int, int], where: Placement, *, client=None, workers: int | None = None,
-             resources: dict | None = None, store: str | None = None, segment_tasks: int = SEGMENT_TASKS) -> dict:
+def plan_job(plan: Plan, part: Part, blocks: TileBlocks, done: np.ndarray, hr_size: tuple[int, int],
+             where: Placement, *, client=None, workers: int | None = None, store: str | None = None,
+             segment_tasks: int = SEGMENT_TASKS) -> dict:
     """The plan of a checked job, priced by some of its own tasks run for real on the workers that would run
     them, all busy at once, into a temporary store that is not ``out``'s (:func:`_measured`, :func:`_scratch`): on
     the job's cluster, or, for a job that would start its own local cluster, in a segment alike (its own process
@@ -45,9 +41,9 @@ def plan_job(plan: Plan, part: Part, grid: list[list[Tile]], blocks: list, batch
     Their time and compressed bytes give the hours on 1, 8 and 64 such workers, this job's time on its
     workers, and the output's size (``pipeline.compute.estimate``)."""
     centres = part.centres
-    tasks = task_count(len(centres), batch, len(blocks), part.first)
-    to_run = tasks if not done.any() else sum(1 for _ in task_groups(len(centres), batch, blocks, done, part.first))
-    job = (plan, part, grid, blocks, batch, hr_size, resources)
+    tasks = sum(1 for _ in blocks.units())  # a block of frames along time and a pass of its tiles (one on CPUs)
+    to_run = tasks if not done.any() else sum(1 for _ in blocks.units(done))
+    job = (plan, part, blocks, hr_size)
     if client is not None:
         measured = _measured(client, *job, seconds=SAMPLE_SECONDS)
         start_up, segments, on = 0.0, 1, "of the cluster"
@@ -63,6 +59,7 @@ def plan_job(plan: Plan, part: Part, grid: list[list[Tile]], blocks: list, batch
     # tasks measured, over the pixels of the job's average task
     per_task = measured["seconds_per_task"] / (measured["hr_pixels"] / measured["tasks"]) * total / tasks
     runs_on = ("GPU workers" if where.gpus else "CPU workers") if plan.method in NETWORKS else "any worker"
+    grid = blocks.grid
     return {
         "store": store, "out": plan.out, "method": plan.method, "weights": plan.weights,
         "runs_on": runs_on, "precision": plan.precision, "backend": plan.backend,
@@ -70,7 +67,7 @@ def plan_job(plan: Plan, part: Part, grid: list[list[Tile]], blocks: list, batch
         "window": plan.window, "start": plan.start, "stop": plan.stop, "region": list(plan.region),
         "hr_height": hr_size[0], "hr_width": hr_size[1], "scale": plan.scale, "gain": plan.gain,
         "tile_lr": plan.tile, "tiles_per_frame": len(grid) * len(grid[0]),
-        "frames_per_task": batch, "tiles_per_task": max(map(len, blocks)),
+        "frames_per_task": max(blocks.frames), "tiles_per_task": max(map(len, blocks.passes)),
         "tasks": tasks, "tasks_to_run": to_run,
         "measured_on": (f"{measured['workers']} {'local ' if on == 'local' else ''}{'GPU ' if where.gpus else ''}"
                         f"worker{'s' if measured['workers'] > 1 else ''}{' of the cluster' if on != 'local' else ''}"),
@@ -84,23 +81,28 @@ def plan_job(plan: Plan, part: Part, grid: list[list[Tile]], blocks: list, batch
     }
 
 
-def _sampled(plan: Plan, frames: tuple[tuple[int, int], ...], tiles: tuple[tuple[int, int, Tile], ...]) -> dict:
-    """Task of a dry run: a task of the job, written into the dry run's temporary store (:func:`_scratch`) -> the
-    compressed bytes and HR pixels of video it wrote, which it then drops (a sample holds one task's output at a
-    time)."""
-    _reconstruct_tiles(plan, frames, tiles)
-    video = _opened(plan.spikes, plan.out, plan.run)[1].video
-    fs, root = resolve(f"{plan.out}/{VIDEO}")
+def _sampled(blocks: TileBlocks, b: int, k: int, url: str, run: str) -> dict:
+    """Task of a dry run: pass ``k`` of block ``b`` of the job, its tasks (the graph's own: reconstructed, written)
+    run here into the dry run's temporary store (:func:`_scratch`) -> the compressed bytes and HR pixels of video
+    it wrote, which it then drops (a sample holds one task's output at a time)."""
+    from dask.local import get_sync
+
+    for ty, tx in blocks.passes[k]:
+        tasks, write, key = blocks.written(b, k, ty, tx, url, run)
+        get_sync({**tasks, **write}, key)
+    video = writer(url, run).video
+    fs, root = resolve(f"{url}/{VIDEO}")
     written = pixels = 0
-    for index, _ in frames:
-        for ty, tx, tile in tiles:
+    for index in range(blocks.starts[b], blocks.starts[b + 1]):
+        for ty, tx in blocks.passes[k]:
+            tile = blocks.grid[ty][tx]
             path = f"{root}/{video.metadata.encode_chunk_key((index, ty, tx, 0))}"
             try:  # a task of a small job may run twice at once on a worker of several threads: counted once
                 written += fs.size(path)
                 fs.rm_file(path)
             except FileNotFoundError:
                 continue
-            pixels += (tile.y1 - tile.y0) * (tile.x1 - tile.x0) * plan.scale ** 2
+            pixels += (tile.y1 - tile.y0) * (tile.x1 - tile.x0) * blocks.scale ** 2
     return {"bytes": written, "hr_pixels": pixels}
 
 
@@ -112,7 +114,7 @@ def _trial_store(url: str, attrs: dict | None = None, layout: dict | None = None
         return
     if not keep:
         remove(url.rsplit("/", 1)[0] if url.startswith("memory://") else url)
-    _opened.cache_clear()  # the writer of a store that is gone
+    writer.cache_clear()  # the writer of a store that is gone
 
 
 @contextlib.contextmanager
@@ -155,8 +157,8 @@ SAMPLE_SECONDS = 3.0  # about how long a dry run keeps them busy after a task ea
 MOST_TASKS = 100  # a worker, in that time (tasks of milliseconds)
 
 
-def _measured(client, plan: Plan, part: Part, grid: list[list[Tile]], blocks: list, batch: int,
-              hr_size: tuple[int, int], resources: dict | None, *, seconds: float = SAMPLE_SECONDS) -> dict:
+def _measured(client, plan: Plan, part: Part, blocks: TileBlocks, hr_size: tuple[int, int], *,
+              seconds: float = SAMPLE_SECONDS) -> dict:
     """Run tasks of the job (from its middle on) on every worker that would run them (at most
     ``TRIAL_WORKERS``), all at once as the job keeps them busy (workers that share a machine share its
     cores, caches and memory bandwidth: one worker measured alone runs up to twice as fast as in the job),
@@ -169,39 +171,36 @@ def _measured(client, plan: Plan, part: Part, grid: list[list[Tile]], blocks: li
     client's and scheduler's work included, and the workers' waits for it), "bytes" and "hr_pixels" of video
     they wrote}."""
     workers = client.scheduler_info()["workers"]
+    resources = (blocks.annotations or {}).get("resources")
     able = [address for address, worker in workers.items()
             if all((worker.get("resources") or {}).get(k, 0) >= v for k, v in (resources or {}).items())]
     if not able:
         raise InputError("the cluster has no worker that would run this job's tasks: add workers, then plan again")
     of, able = len(able), able[:TRIAL_WORKERS]
     with _scratch(client, able) as url:
-        return _measured_into(client, url, able, of, plan, part, grid, blocks, batch, hr_size, resources, seconds)
+        return _measured_into(client, url, able, of, plan, part, blocks, hr_size, resources, seconds)
 
 
-def _measured_into(client, url: str, able: list[str], of: int, plan: Plan, part: Part, grid: list[list[Tile]],
-                   blocks: list, batch: int, hr_size: tuple[int, int], resources: dict | None,
-                   seconds: float) -> dict:
+def _measured_into(client, url: str, able: list[str], of: int, plan: Plan, part: Part, blocks: TileBlocks,
+                   hr_size: tuple[int, int], resources: dict | None, seconds: float) -> dict:
     """:func:`_measured` on the workers ``able`` (of ``of``), its tasks writing into the store at ``url``."""
     shared = not url.startswith("memory://")  # one store that every worker reaches, else one in each worker process
     # workers that share a process (a client's in-process workers) share its memory: the store made once there
     owners = list({process: address for address, process in client.run(_process, workers=able).items()}.values())
     trial = dataclasses.replace(plan, out=url, run=uuid.uuid4().hex)
-    first = grid[0][0]
-    layout = {"centres": part.centres, "hr_size": hr_size, "tiles": (len(grid), len(grid[0])),
-              "tile_hr": ((first.y1 - first.y0) * plan.scale, (first.x1 - first.x0) * plan.scale)}
-    groups = _from_the_middle(len(part.centres), batch, blocks, part.first)
+    layout = {"centres": part.centres, "hr_size": hr_size, "tiles": (len(blocks.grid), len(blocks.grid[0])),
+              "tile_hr": (blocks.hr_tiles[0][0], blocks.hr_tiles[1][0])}
+    groups = _from_the_middle(blocks)
 
-    def submit(group, where: list[str] = able):
-        frames, block = group
-        return client.submit(_sampled, trial, tuple((i, part.centres[i]) for i in frames),
-                             tuple((ty, tx, grid[ty][tx]) for ty, tx in block), pure=False, workers=where,
+    def submit(unit, where: list[str] = able):
+        return client.submit(_sampled, blocks, *unit, trial.out, trial.run, pure=False, workers=where,
                              allow_other_workers=False, resources=resources)
 
-    most = _most_sampled(task_count(len(part.centres), batch, len(blocks), part.first), len(able))
+    most = _most_sampled(sum(1 for _ in blocks.units()), len(able))
 
     def sample() -> Iterator:  # for about ``seconds``, and 3 tasks a worker at least
         for n, group in enumerate(groups):
-            if n >= most or (n >= 3 * len(able) and time.perf_counter() - began >= seconds):
+            if n >= most or (n >= 3 * len(able) and n % len(able) == 0 and time.perf_counter() - began >= seconds):
                 return
             yield group
 
@@ -233,15 +232,14 @@ def _measured_here(client, items, *, job: tuple, seconds: float) -> Iterator[dic
     yield _measured(client, *job, seconds=seconds)
 
 
-def _from_the_middle(n_frames: int, batch: int, blocks: list, first: int) -> Iterator[tuple[range, tuple]]:
-    """The job's tasks (frames, block) from its middle frames on, round and round for ever: the sample a dry run
-    measures (the ends of a recording are often dark, or still)."""
-    starts = range(-(first % batch), n_frames, batch)  # as task_groups cuts them
-    middle = (n_frames // 2 + first % batch) // batch
+def _from_the_middle(blocks: TileBlocks) -> Iterator[tuple[int, int]]:
+    """The job's units (block along time, pass) from its middle frames on, round and round for ever: the sample a
+    dry run measures (the ends of a recording are often dark, or still)."""
+    units = list(blocks.units())
+    middle = next(n for n, (b, _) in enumerate(units) if blocks.starts[b + 1] > blocks.starts[-1] // 2)
     while True:
-        for k in itertools.chain(range(middle, len(starts)), range(middle)):
-            for block in blocks:
-                yield range(max(starts[k], 0), min(starts[k] + batch, n_frames)), block
+        yield from units[middle:]
+        yield from units[:middle]
 
 
 def _most_sampled(job_tasks: int, workers: int) -> int:

@@ -47,7 +47,6 @@ import numpy as np
 
 from pipeline.compute.cluster import (
     GPU,
-    GPU_SHARE,
     check_in_memory,
     check_scheduler,
     check_workers,
@@ -69,13 +68,18 @@ from pipeline.jobs.reconstruct_plan import (
     default_weights,
     job_part,
     made_from,
-    task_groups,
-    tile_blocks,
 )
-from pipeline.jobs.reconstruct_tasks import _auto_gain, _reconstruct_tiles, reconstructor
+from pipeline.jobs.reconstruct_tasks import (
+    MethodSpec,
+    TileBlocks,
+    cut,
+    gain_key,
+    reconstructor,
+    store_gain,
+)
 from pipeline.stores.lease import check_free, claimed, held
 from pipeline.stores.outputs import VIDEO_STORE, check_existing, new_output
-from pipeline.stores.spike_store import SpikeStore, open_spike_store
+from pipeline.stores.spike_store import SpikeStore, open_spike_store, store_identity
 from pipeline.stores.storage import check_apart, exists, recorded, remove_partial_writes
 from pipeline.stores.video_store import VIDEO, committed_mask, create_video_store, open_video_store
 from stages.errors import InputError
@@ -231,26 +235,24 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
         gain = options.gain or meta.gain
         if gain is None:  # one window: on the cluster if there is one, else here (not worth a cluster of its own)
             whole = output_centres(store.n_frames, options.window, options.every)  # the same gain for any part
-            args = (store_url, whole[len(whole) // 2], options.window, meta.reset)
-            gain = client.submit(_auto_gain, *args).result() if client else _auto_gain(*args)
+            args = (recorded(store_url), store_identity(store), meta.width, whole[len(whole) // 2], options.window,
+                    meta.reset)
+            gain = client.submit(store_gain, *args, key=gain_key(*args)).result() if client else store_gain(*args)
         # the spike store as workers find it, whatever their working directory (and as the output records it)
         plan = Plan(recorded(store_url), out, options.method, method.weights, options.window, options.every, float(gain),
                     scale, meta.cfa, meta.reset, options.tile, uuid.uuid4().hex, precision, options.gpu_batch, backend,
                     fast_gpu=options.fast_gpu and where.gpus if options.method in NETWORKS else None,
                     **made_from(store, method.weights_sha256),  # what --resume checks beside the paths
                     start=part.start, stop=part.stop, region=part.region)
-        batch = method.batch
         hr_size = ((y1 - y0) * scale, (x1 - x0) * scale)
-        blocks = tile_blocks(grid, max(1, options.gpu_batch // batch) if where.gpus else 1)
-        resources = {GPU: GPU_SHARE} if where.gpus else None
+        blocks = planned_blocks(plan, method, centres, part.first, grid, where.gpus)
         if dry_run:
             done = (_check_resumable(plan, open_video_store(out), centres) if options.resume
                     else np.zeros((len(centres), len(grid), len(grid[0])), bool))
-            return plan_job(plan, part, grid, blocks, batch, done, hr_size, where, client=client, workers=workers,
-                            resources=resources, store=store_url, segment_tasks=options.segment_tasks)
+            return plan_job(plan, part, blocks, done, hr_size, where, client=client, workers=workers,
+                            store=store_url, segment_tasks=options.segment_tasks)
         done = _prepare_output(plan, options.resume, centres, grid, hr_size, fps=meta.fps / options.every)
-        groups = task_groups(len(centres), batch, blocks, done, part.first)
-        work = functools.partial(run_groups, plan=plan, centres=centres, grid=grid, resources=resources)
+        work = functools.partial(run_blocks, blocks=blocks, out=plan.out, run=plan.run)
         log.debug("%s -> %s: %s%s, %d output frames x %d tiles of %d LR pixels (x%d), gain %.4g; %d of %d tiles "
                   "committed already; on %s", store_url, out, options.method,
                   f" (weights {method.weights})" if method.weights else "", len(centres), len(grid) * len(grid[0]),
@@ -261,9 +263,10 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
             if client:
                 if progress and not is_quiet():
                     _show_dashboard_once(client)
-                outcomes = work(client, groups)
+                outcomes = work(client, blocks.units(done))
             else:  # our own local cluster: a fresh one per segment keeps memory bounded
-                outcomes = in_segments(work, groups, options.segment_tasks, workers=workers, show_dashboard=progress)
+                outcomes = in_segments(work, blocks.units(done), options.segment_tasks, workers=workers,
+                                       show_dashboard=progress)
             failed = _tally(outcomes, done, advance)
         if failed:
             raise JobIncomplete(out, failed, len(centres))
@@ -312,20 +315,33 @@ class Outcome(NamedTuple):
     error: str | None
 
 
-def run_groups(client, groups: Iterable, *, plan: Plan, centres: list[int], grid,
-               resources: dict | None = None) -> Iterator[Outcome]:
-    """Run the plan's ``groups`` on ``client`` (``pipeline.compute.executor``), each task needing ``resources``
-    (e.g. ``{"GPU": 1}``: only workers that advertise them run it); yield the outcome of each of a
-    group's tiles as it finishes."""
-    def submit(group):  # the plan travels in each task (scattered data dies with the workers holding it)
-        frames, block = group
-        return client.submit(_reconstruct_tiles, plan, tuple((i, centres[i]) for i in frames),
-                             tuple((ty, tx, grid[ty][tx]) for ty, tx in block), pure=False, resources=resources)
+def planned_blocks(plan: Plan, method: Reconstructor, centres: list[int], first: int, grid: list[list[Tile]],
+                   gpus: bool) -> TileBlocks:
+    """The job's blocks (:func:`pipeline.jobs.reconstruct_tasks.cut`): the lazy graph's (``lazy.reconstruct``) for the
+    same options."""
+    spec = MethodSpec(plan.method, plan.weights, plan.precision, plan.backend, plan.weights_sha256,
+                      bool(plan.fast_gpu))
+    return cut(spec, plan.spikes, plan.source_identity, centres, first, plan.every, plan.window, grid, method.batch,
+               plan.cfa, plan.reset, plan.scale, plan.gpu_batch, plan.gain, gpus and plan.method in NETWORKS)
 
-    for (frames, block), future in submitted(client, groups, submit, idempotent=True):
-        error = failure(future)  # the task raised, or the cluster failed it: report it, go on with the others
-        for ty, tx in block:
-            yield Outcome(frames.start, frames.stop, ty, tx, error)
+
+def run_blocks(client, units: Iterable[tuple[int, int]], *, blocks: TileBlocks, out: str,
+               run: str) -> Iterator[Outcome]:
+    """Run ``units`` (block along time, pass) of ``blocks`` on ``client`` (``pipeline.compute.executor``: a bounded
+    window), written into the video store at ``out``, each tile's two tasks (reconstructed, written) the lazy
+    graph's; yield the outcome of each tile as it finishes."""
+    def tiles():
+        for b, k in units:
+            for ty, tx in blocks.passes[k]:
+                yield b, k, ty, tx
+
+    def submit(tile):  # everything a task needs travels in it (scattered data dies with the workers holding it)
+        tasks, write, key = blocks.written(*tile, out, run)
+        return client.get(blocks.layered(tasks, write), [key], sync=False)[0]
+
+    for (b, _, ty, tx), future in submitted(client, tiles(), submit, idempotent=True):
+        # the task raised, or the cluster failed it: report it, go on with the others
+        yield Outcome(blocks.starts[b], blocks.starts[b + 1], ty, tx, failure(future))
 
 
 def _tally(outcomes: Iterable[Outcome], done: np.ndarray, advance) -> dict[int, str]:

@@ -1,13 +1,12 @@
 """What a reconstruction job will do, as frozen data: its options, what every task shares (``Plan``)
-and which tasks there are (``tile_blocks``, ``task_groups``). Nothing here touches a cluster or a
-store; ``pipeline.jobs.reconstruct`` checks a job, makes its plan and runs it (``pipeline.compute.executor``).
+and which tiles join one network pass (``tile_blocks``). Nothing here touches a cluster or a store;
+``pipeline.jobs.reconstruct`` checks a job, makes its plan, cuts its blocks (``pipeline.jobs.reconstruct_tasks``) and runs
+them (``pipeline.compute.executor``).
 """
 
-from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import NamedTuple
 
-import numpy as np
 
 from cscsr.network.config import BACKENDS, PRECISIONS
 from pipeline.stores.storage import recorded
@@ -229,30 +228,6 @@ def tile_blocks(grid: list[list[Tile]], per_task: int) -> list[tuple[tuple[int, 
             by_shape.setdefault((tile.ry1 - tile.ry0, tile.rx1 - tile.rx0), []).append((ty, tx))
     blocks = [tuple(tiles[i : i + per_task]) for tiles in by_shape.values() for i in range(0, len(tiles), per_task)]
     return sorted(blocks)
-
-
-def task_groups(n_frames: int, batch: int, blocks: list[tuple[tuple[int, int], ...]],
-                done: np.ndarray, first: int = 0) -> Iterator[tuple[range, tuple[tuple[int, int], ...]]]:
-    """(frames, tiles) of every task still to run: ``batch`` consecutive output frames of a block of tiles.
-    ``first``: the index of output frame 0 in the whole recording's output (a time range's): groups keep the
-    whole recording's batches, so that a range's frames are made in the batches a whole run makes them in
-    (the range's first and last groups may be part of one).
-
-    Groups are fixed by frame number and tile block, not by what is left, so a resumed job runs
-    every batch exactly as an uninterrupted one would (a batch's numbers can depend on its size);
-    a group with any (frame, tile) not committed runs whole. Generated as consumed: a terabyte
-    capture has millions of tasks, and the job's process should not hold them all.
-    """
-    for start in range(-(first % batch), n_frames, batch):
-        frames = range(max(start, 0), min(start + batch, n_frames))
-        for block in blocks:
-            if not all(done[frames.start : frames.stop, ty, tx].all() for ty, tx in block):
-                yield frames, block
-
-
-def task_count(n_frames: int, batch: int, blocks: int, first: int = 0) -> int:
-    """How many tasks :func:`task_groups` makes of a job with nothing done: its frame groups times its tile blocks."""
-    return (-(-(first % batch + n_frames) // batch) if n_frames else 0) * blocks
 
 
 class Placement(NamedTuple):

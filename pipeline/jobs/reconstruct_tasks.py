@@ -1,16 +1,28 @@
-"""What a reconstruction's workers run: the method built once per process (a network loaded once per weights file),
-the stores opened once per run, the task that reconstructs a block of tiles, the automatic exposure. The job
-(``pipeline.jobs.reconstruct``), its dry run (``pipeline.jobs.dry_run``) and the lazy graphs (``pipeline.lazy``) send them.
+"""A reconstruction's tasks, one home for both front doors: the ``reconstruct`` job (``pipeline.jobs.reconstruct``,
+its dry run ``pipeline.jobs.dry_run``) and the lazy graphs (``pipeline.lazy.video``, ``pipeline.lazy.written``).
+
+:class:`TileBlocks` is a reconstruction read straight from a spike store, as frozen data: output frames cut into
+blocks along time (the network's batches) and into tiles. The graph of any of its blocks is built on demand
+(:meth:`TileBlocks.graph`): a task per block that reads each tile's windows and halo as packed bytes from the store
+and reconstructs them (``{method}-<token>``), and a task per block that writes and commits it (``write-<run>``,
+:func:`write_task`). ``lazy.reconstruct`` wraps every block in a dask array; the job submits the same tasks, under
+the same keys, a bounded window at a time (``pipeline.compute.executor``). On GPU workers the tiles of one shape
+join one network pass (a ``pass`` task, its tiles taken from it).
+
+Also here, what the workers build once per process: the method (a network loaded once per weights file), the
+stores opened once per run; and the automatic exposure.
 """
 
+import dataclasses
 import functools
+import operator
 import threading
+from collections.abc import Iterator
+
+import numpy as np
 
 from pipeline.compute.hold import hold_point
-from pipeline.jobs.reconstruct_plan import (
-    Plan,
-)
-from pipeline.stores.spike_store import open_spike_store, read_frames
+from pipeline.stores.spike_store import open_spike_store, read_frames, store_identity
 from pipeline.stores.video_store import TileWriter
 from stages.capture.bits import pack_rows, unpack_rows
 from stages.errors import InputError
@@ -18,6 +30,8 @@ from stages.reconstruction.colour import auto_gain
 from stages.reconstruction.methods import NETWORKS, Reconstructor, Window, classic
 from stages.reconstruction.tfp import tfp_rate
 from stages.reconstruction.tiles import Tile
+
+WINDOW_BLOCKS = 1024  # the most blocks along time for a method of one window a pass: then several windows a block
 
 
 def reconstructor(method: str, weights: str | None, precision: str | None = "fp32", backend: str | None = "torch",
@@ -57,32 +71,227 @@ def _built(method: str, weights: str | None, precision: str | None, backend: str
     return classic(method)
 
 
-@functools.lru_cache(maxsize=4)
-def _opened(spikes: str, out: str, run: str):
-    """The input array and output writer, opened once per worker process and run (opening
-    costs several metadata reads; a task's own work can be under a millisecond)."""
-    return open_spike_store(spikes).spikes, TileWriter(out)
+@dataclasses.dataclass(frozen=True)
+class MethodSpec:
+    """What a task needs to build its reconstructor (once per worker process): a name and weights, or the user's
+    own (``lazy.apply``)."""
+
+    method: str
+    weights: str | None = None
+    precision: str | None = None
+    backend: str | None = None
+    weights_sha256: str | None = None
+    fast_gpu: bool = False
+    own: Reconstructor | None = None
+
+    def built(self) -> Reconstructor:
+        if self.own is not None:
+            return self.own
+        return reconstructor(self.method, self.weights, self.precision, self.backend, self.weights_sha256,
+                             fast_gpu=self.fast_gpu)
 
 
-def _reconstruct_tiles(plan: Plan, frames: tuple[tuple[int, int], ...],
-                       tiles: tuple[tuple[int, int, Tile], ...]) -> int:
-    """Task: for each tile (ty, tx, tile) and each (output frame, centre), read the window + halo;
-    reconstruct each tile's windows as one batch (on a GPU, the windows of all tiles of one shape
-    together); crop, write and commit each frame's tile."""
+def block_frames(n: int, batch: int, first: int) -> tuple[int, ...]:
+    """Output frames per block along time. For a method of ``batch`` windows a pass: batches of the whole
+    recording's output frames, from index ``first`` on (a part's first and last may be part of one), so a part's
+    batches are a whole run's and a resumed block holds what an uninterrupted one held (a batch's numbers can depend
+    on its size). For one window a pass: a window a block up to :data:`WINDOW_BLOCKS` blocks, then several (the graph
+    stays bounded)."""
+    if n == 0:
+        return (0,)
+    if batch == 1:
+        size = -(-n // WINDOW_BLOCKS)
+        return (size,) * (n // size) + ((n % size,) if n % size else ())
+    cut = [max(start, 0) for start in range(-(first % batch), n, batch)] + [n]
+    return tuple(b - a for a, b in zip(cut, cut[1:]))
+
+
+@dataclasses.dataclass(frozen=True)
+class TileBlocks:
+    """A reconstruction read straight from the spike store at ``url`` (the recording ``identity``): output frames
+    centred on spike frames ``first_centre + j * every`` (j < ``sum(frames)``), ``frames`` of them a block along
+    time, each block cut into ``grid``'s tiles, the tiles of each of ``passes`` reconstructed in one network pass
+    (one tile each but on GPU workers). ``gain``: a number, or the key of a task that gives it. Frozen data; the
+    graph of any block is built on demand (:meth:`graph`), its keys the same for the job and the lazy graph."""
+
+    spec: MethodSpec
+    url: str
+    identity: str
+    first_centre: int
+    every: int
+    half: int
+    frames: tuple[int, ...]
+    grid: tuple[tuple[Tile, ...], ...]
+    passes: tuple[tuple[tuple[int, int], ...], ...]
+    cfa: str
+    reset: str
+    scale: int
+    most: int  # the most windows a network pass (GPU workers)
+    gain: float | tuple
+    gpu: bool = False  # its reconstructions ask for a share of a GPU worker (pipeline.compute.cluster.GPU_SHARE)
+
+    def __post_init__(self) -> None:
+        from dask.base import tokenize
+
+        # the key prefix of its blocks' tasks: the method's name and a token of everything that makes them (made
+        # once, here: it travels with the blocks, to segments and to a dry run's tasks)
+        object.__setattr__(self, "name", f"{self.spec.method}-{tokenize(self)}")
+
+    @functools.cached_property
+    def starts(self) -> tuple[int, ...]:
+        """The first output frame of each block along time, and the end."""
+        return tuple(int(s) for s in np.cumsum((0, *self.frames)))
+
+    @property
+    def hr_tiles(self) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        """HR rows of each tile row, HR columns of each tile column."""
+        return (tuple((row[0].y1 - row[0].y0) * self.scale for row in self.grid),
+                tuple((t.x1 - t.x0) * self.scale for t in self.grid[0]))
+
+    def units(self, done: np.ndarray | None = None) -> Iterator[tuple[int, int]]:
+        """(block along time, pass) of every unit still to run: any of its frames' tiles not committed (``done``,
+        (frames, tile rows, tile columns)); generated as consumed."""
+        for b in range(len(self.frames)):
+            if not self.frames[b]:
+                continue
+            for k, tiles in enumerate(self.passes):
+                if done is None or not all(done[self.starts[b] : self.starts[b + 1], ty, tx].all() for ty, tx in tiles):
+                    yield b, k
+
+    def graph(self, b: int, k: int) -> dict:
+        """The tasks of pass ``k`` of block ``b`` along time: {key: task}, each tile's HR block (n, h, w, 3) uint8
+        under the key ``(name, b, ty, tx, 0)``."""
+        from dask._task_spec import Task, TaskRef
+
+        j0, j1 = self.starts[b], self.starts[b + 1]
+        centres = tuple(self.first_centre + j * self.every for j in range(j0, j1))
+        tiles = self.passes[k]
+        gain = TaskRef(self.gain) if isinstance(self.gain, tuple) else self.gain
+        arguments = (gain, self.spec, self.url, self.identity, centres, self.half,
+                     tuple(self.grid[ty][tx] for ty, tx in tiles), self.cfa, self.reset, self.scale, self.most)
+        if len(tiles) == 1:
+            key = (self.name, b, *tiles[0], 0)
+            return {key: Task(key, read_tile, *arguments)}
+        joined = (f"pass-{self.name}", b, k)
+        tasks = {joined: Task(joined, read_tiles, *arguments)}
+        for i, (ty, tx) in enumerate(tiles):
+            key = (self.name, b, ty, tx, 0)
+            tasks[key] = Task(key, operator.getitem, TaskRef(joined), i)
+        return tasks
+
+    def corner(self, ty: int, tx: int) -> tuple[int, int]:
+        """Tile (ty, tx)'s first HR row and column in the output."""
+        rows, columns = self.hr_tiles
+        return sum(rows[:ty]), sum(columns[:tx])
+
+    @property
+    def annotations(self) -> dict | None:
+        """What the reconstruction tasks' layer asks of the scheduler: a share of a GPU worker, on GPU workers."""
+        from pipeline.compute.cluster import GPU, GPU_SHARE
+
+        return {"resources": {GPU: GPU_SHARE}} if self.gpu else None
+
+    def layered(self, tasks: dict, write: dict):
+        """Reconstruction ``tasks`` and the ``write`` that depends on them as a high-level graph: two layers, the
+        reconstruction's annotated (:attr:`annotations`)."""
+        from dask.highlevelgraph import HighLevelGraph, MaterializedLayer
+
+        name = next(iter(write))[0]
+        return HighLevelGraph({self.name: MaterializedLayer(tasks, annotations=self.annotations),
+                               name: MaterializedLayer(write)}, {self.name: set(), name: {self.name}})
+
+    def written(self, b: int, k: int, ty: int, tx: int, url: str, run: str) -> tuple[dict, dict, tuple]:
+        """The graph that reconstructs tile (ty, tx) of block ``b`` (its pass ``k``) and writes it into the video
+        store at ``url``: ({key: task} of the reconstruction, {key: task} of the write, the write's key). The
+        write's key is the lazy graph's (``pipeline.lazy.written``): ``(write-<run>, b, ty, tx, 0)``."""
+        rows, columns = self.hr_tiles
+        key = (f"write-{run}", b, ty, tx, 0)
+        shape = (self.frames[b], rows[ty], columns[tx], 3)
+        write = write_task(key, (self.name, b, ty, tx, 0), url, run, self.starts[b], (ty, tx), self.corner(ty, tx),
+                           shape)
+        tile = (self.name, b, ty, tx, 0)  # and the pass it is taken from, if it shares one
+        tasks = {name: task for name, task in self.graph(b, k).items() if name == tile or name[0].startswith("pass-")}
+        return tasks, {key: write}, key
+
+
+def cut(spec: MethodSpec, url: str, identity: str, centres: list[int], first: int, every: int, window: int,
+        grid: list[list[Tile]], batch: int, cfa: str, reset: str, scale: int, most: int, gain: float | tuple,
+        gpu: bool) -> TileBlocks:
+    """The blocks of a reconstruction of the output frames centred on ``centres`` (index ``first`` of the whole
+    recording's output frames) of the store at ``url``: :func:`block_frames` along time (``batch``: the method's
+    windows a pass), ``grid``'s tiles, and on GPU workers (``gpu``) the tiles of one shape joined into passes of
+    ``most`` windows (``reconstruct_plan.tile_blocks``). The job and ``lazy.reconstruct`` cut them here."""
+    from pipeline.jobs.reconstruct_plan import tile_blocks
+
+    passes = tile_blocks(grid, max(1, most // batch) if gpu else 1)
+    return TileBlocks(spec, url, identity, centres[0], every, window // 2, block_frames(len(centres), batch, first),
+                      tuple(map(tuple, grid)), tuple(passes), cfa, reset, scale, most, gain, gpu)
+
+
+def read_tiles(gain, spec: MethodSpec, url: str, identity: str, centres: tuple[int, ...], half: int,
+               tiles: tuple[Tile, ...], cfa: str, reset: str, scale: int, most: int) -> tuple[np.ndarray, ...]:
+    """Task: the windows centred on spike frames ``centres`` of each tile and its halo, read packed from the store,
+    reconstructed (on a GPU, the windows of all ``tiles``, of one shape, in passes of ``most``) -> per tile
+    (n, h, w, 3) uint8, the halo cropped."""
     hold_point()  # inert unless a fault test asks (pipeline.compute.hold)
-    half = plan.window // 2
-    spikes, writer = _opened(plan.spikes, plan.out, plan.run)
-    method = reconstructor(plan.method, plan.weights, plan.precision, plan.backend, plan.weights_sha256,
-                           fast_gpu=bool(plan.fast_gpu))
-    windows = [tile_windows(spikes, plan.spikes, [c for _, c in frames], half, tile, plan.cfa, plan.reset, plan.gain,
-                            plan.scale) for _, _, tile in tiles]
-    first = frames[0][0]  # a task's output frames are consecutive
-    top, _, left, _ = plan.region or (0, None, 0, None)  # the output's corner in the recording (LR)
-    for (ty, tx, tile), images in zip(tiles, method.many_tiles(windows, plan.gpu_batch)):
-        ys, xs = tile.crop(plan.scale)
-        writer.write_frames(first, (ty, tx), ((tile.y0 - top) * plan.scale, (tile.x0 - left) * plan.scale),
-                            [image[ys, xs] for image in images])  # compressed and stored together
-    return len(frames) * len(tiles)
+    spikes = spike_array(url, identity)
+    windows = [tile_windows(spikes, url, centres, half, tile, cfa, reset, float(gain), scale) for tile in tiles]
+    images = spec.built().many_tiles(windows, most) if centres else [[] for _ in tiles]
+    return tuple(cropped(tile_images, tile.crop(scale)) for tile, tile_images in zip(tiles, images))
+
+
+def read_tile(*arguments) -> np.ndarray:
+    """Task: :func:`read_tiles` of one tile -> (n, h, w, 3) uint8."""
+    return read_tiles(*arguments)[0]
+
+
+def cropped(images: list[np.ndarray], crop: tuple[slice, slice]) -> np.ndarray:
+    """A tile's HR images, each (H, W, 3), cropped to ``crop`` (its halo off) -> (n, h, w, 3) uint8."""
+    ys, xs = crop
+    out = np.empty((len(images), ys.stop - ys.start, xs.stop - xs.start, 3), np.uint8)
+    for n, image in enumerate(images):
+        out[n] = image[ys, xs]
+    return out
+
+
+def write_task(key: tuple, block: tuple, url: str, run: str, first: int, tile: tuple[int, int],
+               corner: tuple[int, int], shape: tuple[int, ...]):
+    """The task that writes the HR block under key ``block`` (output frames from ``first``, tile ``tile`` at HR
+    ``corner``, of ``shape``) into the video store at ``url`` and commits it, as ``key``."""
+    from dask._task_spec import Task, TaskRef
+
+    return Task(key, write_block, TaskRef(block), url, run, first, tile, corner, shape)
+
+
+def write_block(block: np.ndarray, url: str, run: str, first: int, tile: tuple[int, int], corner: tuple[int, int],
+                shape: tuple[int, ...]) -> np.ndarray:
+    """Task: check one HR block against its chunk (``shape``, uint8), write its frames (a chunk each, compressed
+    and stored together), then commit them. -> (1, 1, 1, 1): how many frames."""
+    if not isinstance(block, np.ndarray) or block.shape != shape or block.dtype != np.uint8:
+        got = f"{block.dtype} {block.shape}" if isinstance(block, np.ndarray) else type(block).__name__
+        raise InputError(f"hr's block of output frames {first}..{first + shape[0] - 1}, tile {tile[0]},{tile[1]} "
+                         f"computed {got} where its chunk is uint8 {shape}: a function between stages "
+                         f"(map_blocks) must give each block its chunk's shape and dtype")
+    writer(url, run).write_frames(first, tile, corner, list(block))
+    return np.full((1, 1, 1, 1), len(block), np.int64)
+
+
+@functools.lru_cache(maxsize=4)
+def writer(url: str, run: str) -> TileWriter:
+    """The output store opened once per worker process and run (opening costs several metadata reads; a task's own
+    work can be under a millisecond)."""
+    return TileWriter(url)
+
+
+@functools.lru_cache(maxsize=8)
+def spike_array(url: str, identity: str):
+    """The store's ``spikes`` array, opened once per process and recording (``identity``: another recording at the
+    same path is opened afresh, and refused if it is not the one the graph was built on)."""
+    store = open_spike_store(url)
+    if store_identity(store) != identity:
+        raise InputError(f"spike store {url} is not the recording this graph was built on (it was replaced): "
+                         f"open it again")
+    return store.spikes
 
 
 def tile_windows(spikes, url: str, centres, half: int, tile: Tile, cfa: str, reset: str, gain: float,
@@ -103,8 +312,17 @@ def tile_windows(spikes, url: str, centres, half: int, tile: Tile, cfa: str, res
     return windows
 
 
-def _auto_gain(spikes: str, centre: int, window: int, reset: str) -> float:
-    """Task: the automatic exposure of the window around ``centre``, whole frame."""
-    store = open_spike_store(spikes)
+def gain_key(url: str, identity: str, width: int, centre: int, window: int, reset: str) -> tuple[str]:
+    """The key of the task that gives a recording's automatic exposure (:func:`store_gain`, the same arguments)."""
+    from dask.base import tokenize
+
+    return (f"auto-gain-{tokenize(url, identity, width, centre, window, reset)}",)
+
+
+def store_gain(url: str, identity: str, width: int, centre: int, window: int, reset: str) -> np.ndarray:
+    """Task: the automatic exposure of the window around spike frame ``centre``, whole frame (``width`` pixels),
+    read from the store -> 0-d float64 (the job's rule: the whole recording's middle window, so every part of it is
+    exposed alike)."""
     half = window // 2
-    return auto_gain(tfp_rate(store.read(centre - half, centre + half + 1), store.meta.width, reset))
+    packed = read_frames(spike_array(url, identity), url, centre - half, centre + half + 1)
+    return np.asarray(auto_gain(tfp_rate(packed, width, reset)), np.float64)

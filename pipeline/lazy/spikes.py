@@ -15,7 +15,6 @@ Python words (``start=``, not ``--start``: :func:`python_words`).
 """
 
 import contextlib
-import functools
 import os
 import re
 from typing import NamedTuple
@@ -27,6 +26,7 @@ import numpy as np
 import xarray as xr
 
 from pipeline.compute.cluster import check_in_memory
+from pipeline.jobs.reconstruct_tasks import spike_array
 from pipeline.stores.storage import recorded
 from pipeline.stores.spike_store import SPIKES, open_spike_store, read_frames, store_identity
 from stages.capture.bits import packed_width, unpack_rows
@@ -202,17 +202,6 @@ class _PackedFrames:
         spikes = spike_array(self.url, self.identity)
         return read_frames(spikes, self.url, frames.start or 0, self.shape[0] if frames.stop is None else frames.stop,
                            tuple(rest))
-
-
-@functools.lru_cache(maxsize=8)
-def spike_array(url: str, identity: str):
-    """The store's ``spikes`` array, opened once per process and recording (``identity``: another recording at the
-    same path is opened afresh, and refused if it is not the one the graph was built on)."""
-    store = open_spike_store(url)
-    if store_identity(store) != identity:
-        raise InputError(f"spike store {url} is not the recording this graph was built on (it was replaced): "
-                         f"open it again")
-    return store.spikes
 
 
 def unpacked_bits(packed: np.ndarray, width: int) -> np.ndarray:

@@ -8,7 +8,7 @@
 The arithmetic is the job's own (one home for each piece): the output frames, ranges and regions of
 ``pipeline.jobs.reconstruct_plan.job_part``, the tiles and halos of ``stages.reconstruction.tiles.tile_grid``, the reconstructors of
 ``pipeline.jobs.reconstruct_tasks.reconstructor`` (built once per worker process), the frames grouped into the network's
-batches as the job's tasks group them (``task_groups``), the gain by the job's rule, the store written by
+batches as the job's blocks group them (``reconstruct_tasks.block_frames``), the gain by the job's rule, the store written by
 ``pipeline.stores.video_store`` with the attributes a job records (``reconstruct_plan.Plan``). So ``to_video`` of a lazy
 reconstruction writes the bytes ``cscsr reconstruct`` writes with the same options, and ``cscsr reconstruct
 --resume``, ``info``, ``export`` and ``evaluate`` read it as the job's.
@@ -20,7 +20,6 @@ are loaded once here to check them (as the job checks them before any output exi
 
 import contextlib
 import dataclasses
-import functools
 from collections.abc import Callable
 
 import dask
@@ -31,7 +30,8 @@ from dask.base import tokenize
 
 from pipeline.compute.cluster import GPU, GPU_SHARE
 from pipeline.jobs.reconstruct_plan import Plan, ReconstructOptions
-from pipeline.lazy.spikes import distributed_client, python_words, spike_array
+from pipeline.jobs.reconstruct_tasks import MethodSpec, TileBlocks, block_frames, cropped, cut
+from pipeline.lazy.spikes import distributed_client, python_words
 from pipeline.lazy.windows import PackedReads, check_windows
 from stages.capture.bits import pack_rows, unpack_rows
 from stages.errors import InputError, InputTypeError
@@ -76,27 +76,6 @@ class FunctionReconstructor:
         return None
 
 
-@dataclasses.dataclass(frozen=True)
-class _Method:
-    """What a task needs to build its reconstructor (once per worker process): a name and weights, or the user's."""
-
-    method: str
-    weights: str | None = None
-    precision: str | None = None
-    backend: str | None = None
-    weights_sha256: str | None = None
-    fast_gpu: bool = False
-    own: FunctionReconstructor | None = None
-
-    def built(self) -> Reconstructor:
-        if self.own is not None:
-            return self.own
-        from pipeline.jobs.reconstruct_tasks import reconstructor
-
-        return reconstructor(self.method, self.weights, self.precision, self.backend, self.weights_sha256,
-                             fast_gpu=self.fast_gpu)
-
-
 def tfp(win: xr.DataArray, *, gain: float | None = None, scale: int | None = None, tile: int | None = None) -> xr.DataArray:
     """TFP of every window (``reconstruct(win, method="tfp")``)."""
     return reconstruct(win, method="tfp", gain=gain, scale=scale, tile=tile)
@@ -131,7 +110,7 @@ def reconstruct(win: xr.DataArray, *, method: str = "cscsr", weights: str | None
     built.check(options.window, scale, win.attrs["cfa"])
     y0, y1, x0, x1 = win.attrs["region"]
     options = sized(options, where, built, (y1 - y0, x1 - x0), {})
-    spec = _Method(options.method, built.weights, precision_, backend_, built.weights_sha256,
+    spec = MethodSpec(options.method, built.weights, precision_, backend_, built.weights_sha256,
                    bool(options.fast_gpu and where.gpus) if options.method in NETWORKS else False)
     gpu = where.gpus and options.method in NETWORKS
     return _reconstructed(win, spec, built, scale, options.tile, gain, options.gpu_batch, gpu,
@@ -154,11 +133,11 @@ def apply(win: xr.DataArray, func: Callable, *, scale: int, halo: int = 0, tile:
     name = getattr(func, "__name__", type(func).__name__)
     own = FunctionReconstructor(func, scale, halo, name)
     y0, y1, x0, x1 = win.attrs["region"]
-    return _reconstructed(win, _Method(name, own=own), own, scale, tile or max(y1 - y0, x1 - x0, 8) // 8 * 8 + 8,
+    return _reconstructed(win, MethodSpec(name, own=own), own, scale, tile or max(y1 - y0, x1 - x0, 8) // 8 * 8 + 8,
                           gain, 1, False, fast_gpu=None)
 
 
-def _reconstructed(win: xr.DataArray, spec: _Method, built: Reconstructor, scale: int, tile: int, gain, most: int,
+def _reconstructed(win: xr.DataArray, spec: MethodSpec, built: Reconstructor, scale: int, tile: int, gain, most: int,
                    gpu: bool, *, fast_gpu: bool | None) -> xr.DataArray:
     """The graph of :func:`reconstruct` and :func:`apply`: the windows' frames grouped as the job's tasks group them
     (the network's ``batch``), a blockwise map per tile of the job's grid reading its halo, tiles put together."""
@@ -173,31 +152,28 @@ def _reconstructed(win: xr.DataArray, spec: _Method, built: Reconstructor, scale
                                  (region[0] - by0, region[1] - by0, region[2] - bx0, region[3] - bx0))]
     if any(t.ry0 < oy or t.rx0 < ox or t.ry1 > oy + win.shape[2] or t.rx1 > ox + win.shape[3] for row in grid for t in row):
         kept = attrs.get("kept")
-        cut = (kept is not None and [oy, oy + win.shape[2], ox, ox + win.shape[3]] != list(kept))
+        sliced = (kept is not None and [oy, oy + win.shape[2], ox, ox + win.shape[3]] != list(kept))
         raise InputError(f"{spec.method} reads {built.halo} LR pixels around each tile, more than the windows keep "
                          f"around their region" + (f": they were sliced (y {oy}:{oy + win.shape[2]}, x {ox}:"
                                                    f"{ox + win.shape[3]} of the y {kept[0]}:{kept[1]}, x {kept[2]}:"
                                                    f"{kept[3]} lazy.windows kept): select pixels on the spikes "
-                                                   f"instead" if cut else
+                                                   f"instead" if sliced else
                                                    f": make them with lazy.windows(..., margin={built.halo})"))
     gain = _gain(win, gain)
-    frames = _task_frames(win.data.chunks[0], built.batch, attrs["first"])
     reads = attrs.get("reads")
-    if isinstance(reads, PackedReads) and reads.holds(win.data, int(win.coords["frame"][0])):
-        read_tile = functools.partial(_read_tile, reads, frames, int(win.coords["frame"][0]), attrs["every"],
-                                      attrs["window"] // 2)  # each block reads its tile from the store
+    if isinstance(reads, PackedReads) and reads.holds(win.data, int(win.coords["frame"][0])):  # read from the store
+        blocks = cut(spec, reads.url, reads.identity, [int(c) for c in win.coords["frame"].values], attrs["first"],
+                     attrs["every"], attrs["window"], grid, built.batch, cfa, attrs["reset"], scale, most,
+                     gain.__dask_keys__()[0] if isinstance(gain, da.Array) else gain, gpu)
+        hr = _blocks_array(blocks, gain)
     else:  # the windows as they are (a function between stages): each block's tile of them
+        frames = _task_frames(win.data.chunks[0], built.batch, attrs["first"])
         data = win.data.rechunk({1: -1, 2: -1, 3: -1}).rechunk({0: frames})
-        read_tile = functools.partial(_windows_tile, data, oy, ox)
-    annotation = dask.annotate(resources={GPU: GPU_SHARE}) if gpu else contextlib.nullcontext()
-    rows = []
-    with annotation:
-        for row in grid:
-            rows.append([])
-            for t in row:
-                rows[-1].append(read_tile(t, (spec, gain, cfa, attrs["reset"], scale, t.crop(scale), most),
-                                          ((t.y1 - t.y0) * scale, (t.x1 - t.x0) * scale)))
-    hr = da.concatenate([da.concatenate(row, axis=2) for row in rows], axis=1)  # tiles side by side, rows down
+        arguments = (spec, gain, cfa, attrs["reset"], scale)
+        with dask.annotate(resources={GPU: GPU_SHARE}) if gpu else contextlib.nullcontext():
+            rows = [[_windows_tile(data, oy, ox, t, (*arguments, t.crop(scale), most),
+                                   ((t.y1 - t.y0) * scale, (t.x1 - t.x0) * scale)) for t in row] for row in grid]
+        hr = da.concatenate([da.concatenate(row, axis=2) for row in rows], axis=1)  # tiles side by side, rows down
     plan = Plan(attrs.get("store") or "", "", spec.method, built.weights, attrs["window"], attrs["every"], np.nan, scale,
                 cfa, attrs["reset"], tile, "", spec.precision, most, spec.backend, fast_gpu,
                 source_identity=attrs.get("identity"), source_shape=(attrs["frames"], height, width),
@@ -225,15 +201,12 @@ def _gain(win: xr.DataArray, gain: float | None):
 
 
 def _task_frames(chunks: tuple[int, ...], batch: int, first: int) -> tuple[int, ...]:
-    """Chunks of output frames for a method that reconstructs ``batch`` windows together: the job's task groups
-    (``reconstruct_plan.task_groups``: batches of the whole recording's output frames, from index ``first`` on), so
-    that each batch holds the windows it holds in the job (a network's numbers can depend on the batch); any
-    chunking (empty chunks dropped) where windows are reconstructed one at a time."""
-    total = sum(chunks)
+    """Chunks of output frames for a method that reconstructs ``batch`` windows together: the job's blocks
+    (``reconstruct_tasks.block_frames``), so that each batch holds the windows it holds in the job (a network's numbers
+    can depend on the batch); any chunking (empty chunks dropped) where windows are reconstructed one at a time."""
     if batch == 1:
         return tuple(n for n in chunks if n) or (0,)
-    cut = [max(start, 0) for start in range(-(first % batch), total, batch)] + [total]
-    return tuple(b - a for a, b in zip(cut, cut[1:]))
+    return block_frames(sum(chunks), batch, first)
 
 
 def _windows_tile(data: da.Array, oy: int, ox: int, t: Tile, arguments: tuple, hr_tile: tuple[int, int]) -> da.Array:
@@ -245,44 +218,27 @@ def _windows_tile(data: da.Array, oy: int, ox: int, t: Tile, arguments: tuple, h
                            meta=np.empty((0, 0, 0, 0), np.uint8))
 
 
-def _read_tile(reads: PackedReads, frames: tuple[int, ...], first_centre: int, every: int, half: int, t: Tile,
-               arguments: tuple, hr_tile: tuple[int, int]) -> da.Array:
-    """Tile ``t`` of the windows centred on ``first_centre``, ``first_centre + every``, ... reconstructed, a block
-    per ``frames`` of them, each block's task reading its windows' tile and halo packed from the store (``reads``)
-    as the jobs' tasks do: no other task's output is an input, but the gain's."""
-    spec, gain, *rest = arguments
-    where = (reads.url, reads.identity, first_centre, every, half, t)
-    return da.map_blocks(_reconstruct_read, gain, spec, where, *rest, chunks=(frames, *((n,) for n in hr_tile), (3,)),
-                         name=f"{spec.method}-{tokenize(reads.name, frames, *where, *arguments)}", dtype=np.uint8,
-                         meta=np.empty((0, 0, 0, 0), np.uint8))
+def _blocks_array(blocks: TileBlocks, gain) -> da.Array:
+    """``blocks`` as a dask array (t, y, x, rgb) uint8: every block's tasks (``TileBlocks.graph``: the job's) in one
+    layer, annotated as the job's, on the automatic exposure's graph where ``gain`` is lazy."""
+    from dask.highlevelgraph import HighLevelGraph, MaterializedLayer
+
+    tasks = {}
+    for b, k in blocks.units():
+        tasks.update(blocks.graph(b, k))
+    layers, dependencies = {blocks.name: MaterializedLayer(tasks, annotations=blocks.annotations)}, {blocks.name: set()}
+    if isinstance(gain, da.Array):
+        below = gain.__dask_graph__()
+        layers.update(below.layers)
+        dependencies.update(below.dependencies)
+        dependencies[blocks.name] = {gain.name}
+    return da.Array(HighLevelGraph(layers, dependencies), blocks.name, (blocks.frames, *blocks.hr_tiles, (3,)),
+                    meta=np.empty((0, 0, 0, 0), np.uint8))
 
 
-def _reconstruct_read(gain, spec: _Method, where: tuple, cfa: str, reset: str, scale: int, crop: tuple[slice, slice],
-                      most: int, block_info=None) -> np.ndarray:
-    """Task: the windows of one block (output frames ``block_info``'s location along t) of one tile, read packed
-    from the store, reconstructed -> (n, tile_h*s, tile_w*s, 3) uint8, the halo cropped."""
-    from pipeline.jobs.reconstruct_tasks import tile_windows
-
-    url, identity, first_centre, every, half, tile = where
-    j0, j1 = block_info[None]["array-location"][0]
-    centres = [first_centre + j * every for j in range(j0, j1)]
-    windows = tile_windows(spike_array(url, identity), url, centres, half, tile, cfa, reset, float(gain), scale)
-    return _reconstructed_windows(spec, windows, crop, most)
-
-
-def _reconstruct_block(block: np.ndarray, spec: _Method, gain, cfa: str, reset: str, scale: int,
+def _reconstruct_block(block: np.ndarray, spec: MethodSpec, gain, cfa: str, reset: str, scale: int,
                        crop: tuple[slice, slice], most: int) -> np.ndarray:
     """Task: (n, N, h, w) bool windows of one tile with its halo -> (n, tile_h*s, tile_w*s, 3) uint8, the halo cropped."""
     width = block.shape[3]
     windows = [Window(pack_rows(window), width, cfa, reset, float(gain), scale) for window in block]
-    return _reconstructed_windows(spec, windows, crop, most)
-
-
-def _reconstructed_windows(spec: _Method, windows: list[Window], crop: tuple[slice, slice], most: int) -> np.ndarray:
-    """One tile's ``windows`` reconstructed together (the network's batch) -> (n, h, w, 3) uint8, cropped to ``crop``."""
-    images = spec.built().many_tiles([windows], most)[0] if windows else []
-    ys, xs = crop
-    out = np.empty((len(images), ys.stop - ys.start, xs.stop - xs.start, 3), np.uint8)
-    for n, image in enumerate(images):
-        out[n] = image[ys, xs]
-    return out
+    return cropped(spec.built().many_tiles([windows], most)[0] if windows else [], crop)

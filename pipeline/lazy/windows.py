@@ -14,6 +14,7 @@ import xarray as xr
 from dask.base import tokenize
 
 from pipeline.jobs.reconstruct_plan import ReconstructOptions, job_part
+from pipeline.jobs.reconstruct_tasks import WINDOW_BLOCKS, gain_key, store_gain
 from pipeline.lazy.spikes import check_spikes, open_spikes, python_words, run_of, selection
 from stages.capture.bits import pack_rows
 from stages.errors import InputError, InputTypeError
@@ -24,7 +25,6 @@ from stages.reconstruction.tfp import tfp_rate
 
 MARGIN = 32  # LR pixels kept around a region: the largest halo of a built-in method (the network's, HALO)
 WINDOW_DIMS = ("t", "dt", "y", "x")
-WINDOW_BLOCKS = 1024  # the most blocks along t: a block per window up to this many windows, then several a block
 
 
 def windows(spikes: xr.DataArray, length: int = WINDOW, every: int = WINDOW, start=None, stop=None, region=None,
@@ -112,9 +112,10 @@ def windows(spikes: xr.DataArray, length: int = WINDOW, every: int = WINDOW, sta
                "region": list(part.region), "first": part.first, "frames": frames, "height": height, "width": width,
                "bounds": list(chosen.box), "kept": list(around)})
     if attrs.get("gain") is None:  # the job's automatic exposure: the whole frame's middle window, made when needed
-        whole = spikes.data if chosen.whole else None if store is None else store.data  # the whole recording's
-        if whole is not None:
-            out.coords["auto_gain"] = ((), _whole_recording_gain(whole, length, every, attrs["reset"]))
+        if store is not None:  # the job's own task, reading it from the store
+            out.coords["auto_gain"] = ((), _store_gain(store, length, every))
+        elif chosen.whole:
+            out.coords["auto_gain"] = ((), _whole_recording_gain(spikes.data, length, every, attrs["reset"]))
     return out
 
 
@@ -183,6 +184,19 @@ def _windows_of(block: np.ndarray, *, starts: tuple[int, ...], centre0: int, cen
     for n, centre in enumerate(centres):
         out[n] = block[centre - half - origin : centre + half + 1 - origin]
     return out
+
+
+def _store_gain(store: xr.DataArray, length: int, every: int) -> da.Array:
+    """0-d lazy: the automatic exposure of the whole recording ``store`` (as :func:`open_spikes` reads it), by the
+    job's own task (``reconstruct_tasks.store_gain``, under its key): its middle window read from the store."""
+    from dask._task_spec import Task
+
+    frames, _, width = store.shape
+    whole = output_centres(frames, length, every)
+    args = (store.attrs["store"], store.attrs["identity"], width, whole[len(whole) // 2], length, store.attrs["reset"])
+    key = gain_key(*args)
+    return da.Array({key: Task(key, store_gain, *args)}, key[0], chunks=(), dtype=np.float64,
+                    meta=np.empty((), np.float64))
 
 
 def _whole_recording_gain(bits: da.Array, length: int, every: int, reset: str) -> da.Array:

@@ -7,7 +7,6 @@ A selection of ``hr`` is written exactly (its output frames as ``start``/``stop`
 or refused in one line before anything exists.
 """
 
-import functools
 import sys
 import uuid
 
@@ -18,13 +17,14 @@ import xarray as xr
 from dask.base import tokenize
 
 from pipeline.compute.progress import progress_bar
+from pipeline.jobs.reconstruct_tasks import write_task
 from pipeline.lazy.spikes import check_here, distributed_client, run_of, url_text
 from pipeline.lazy.video import VIDEO_DIMS
 from pipeline.lazy.windows import _output_part
 from pipeline.stores.lease import claimed, held
 from pipeline.stores.outputs import VIDEO_STORE, new_output
 from pipeline.stores.storage import check_place, consolidate, exists, remove_partial_writes
-from pipeline.stores.video_store import (COMMITTED, TileWriter, committed_mask, create_video_store, lost_frames,
+from pipeline.stores.video_store import (COMMITTED, committed_mask, create_video_store, lost_frames,
                                          open_video_store)
 from stages.errors import InputError, InputTypeError
 from stages.numbers import check_flag
@@ -74,7 +74,11 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
     client = distributed_client(hr.data)
     if client is not None and isinstance(gain, da.Array):  # the automatic exposure: computed once for every round,
         gain = client.persist(gain)  # held by the cluster (the same key) until this call returns
-    attrs["gain"] = None if gain is None else float(dask.compute(gain)[0])
+        from distributed import futures_of
+
+        attrs["gain"] = float(futures_of(gain)[0].result())
+    else:
+        attrs["gain"] = None if gain is None else float(dask.compute(gain)[0])
     fps = attrs.get("fps")
     graph = graph_token(hr.data)
     with claimed(url), new_output(url, overwrite=overwrite, kind=VIDEO_STORE, flag="resume=True or overwrite=True",
@@ -90,10 +94,7 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
         starts = np.cumsum((0, *data.chunks[0]))
         blocks = [(b, ty, tx) for b in range(len(data.chunks[0])) for ty in range(tiles[0]) for tx in range(tiles[1])
                   if data.chunks[0][b] and not done[starts[b]:starts[b + 1], ty, tx].all()]
-        # one task per block of ``hr``: check it against its chunk, write its frames' chunks of its tile, commit them
-        written = data.map_blocks(_write_block, url, uuid.uuid4().hex, tuple(int(s) for s in starts), tile_hr,
-                                  chunks=tuple((1,) * len(c) for c in data.chunks), dtype=np.int64,
-                                  meta=np.empty((0, 0, 0, 0), np.int64), name=f"write-{uuid.uuid4().hex}")
+        written = _written(data, url, uuid.uuid4().hex)
         # the job's units: a task per frame and tile for a method that reconstructs one window at a time, a task
         # per block (the network's batch of frames, one tile) for the network
         per_block = attrs.get("method") in NETWORKS
@@ -223,25 +224,23 @@ def _resumable(url: str, attrs: dict, n: int, tiles: tuple[int, int], graph: str
     return committed_mask(group)
 
 
-@functools.lru_cache(maxsize=4)
-def _writer(url: str, run: str) -> TileWriter:
-    """The output store opened once per worker process and call (``run``)."""
-    return TileWriter(url)
+def _written(data: da.Array, url: str, run: str) -> da.Array:
+    """A task per block of ``data`` (t, y, x, rgb) uint8 (the job's: ``reconstruct_tasks.write_task``): check it
+    against its chunk, write its frames' chunks of its tile into the video store at ``url``, commit them
+    -> (blocks along t, tile rows, tile columns, 1) int64, the frames each wrote."""
+    from dask.highlevelgraph import HighLevelGraph
 
-
-def _write_block(block: np.ndarray, url: str, run: str, starts: tuple[int, ...], tile_hr: tuple[int, int],
-                 block_info=None) -> np.ndarray:
-    """Task: check one block against its chunk (shape, uint8), write its frames (its tile of output frames
-    ``starts[b]``, ...; a chunk each), then commit them. -> (1, 1, 1, 1): how many frames."""
-    b, ty, tx, _ = block_info[0]["chunk-location"]
-    expected = tuple(stop - start for start, stop in block_info[0]["array-location"])
-    if not isinstance(block, np.ndarray) or block.shape != expected or block.dtype != np.uint8:
-        got = f"{block.dtype} {block.shape}" if isinstance(block, np.ndarray) else type(block).__name__
-        raise InputError(f"hr's block of output frames {starts[b]}..{starts[b] + expected[0] - 1}, tile {ty},{tx} "
-                         f"computed {got} where its chunk is uint8 {expected}: a function between stages "
-                         f"(map_blocks) must give each block its chunk's shape and dtype")
-    _writer(url, run).write_frames(starts[b], (ty, tx), (ty * tile_hr[0], tx * tile_hr[1]), list(block))
-    return np.full((1, 1, 1, 1), len(block), np.int64)
+    name, starts = f"write-{run}", np.cumsum((0, *data.chunks[0]))
+    tile_hr = (data.chunks[1][0], data.chunks[2][0])
+    layer = {}
+    for b, frames in enumerate(data.chunks[0]):
+        for ty, rows in enumerate(data.chunks[1]):
+            for tx, columns in enumerate(data.chunks[2]):
+                key = (name, b, ty, tx, 0)
+                layer[key] = write_task(key, (data.name, b, ty, tx, 0), url, run, int(starts[b]), (ty, tx),
+                                        (ty * tile_hr[0], tx * tile_hr[1]), (frames, rows, columns, 3))
+    return da.Array(HighLevelGraph.from_collections(name, layer, dependencies=[data]), name,
+                    tuple((1,) * len(c) for c in data.chunks), meta=np.empty((0, 0, 0, 0), np.int64))
 
 
 STORE_ONLY = ("gain", "format_version", "cscsr_version", "state")  # attributes of a store, not of the hr it holds
