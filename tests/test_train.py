@@ -346,8 +346,13 @@ def test_channels_last_trains_the_same_network_within_rounding(tmp_path):
     default = load_model(train(TrainOptions(steps=2, **TINY), tmp_path / "default", log=lambda line: None))[0]
     nhwc = load_model(train(TrainOptions(steps=2, channels_last=True, **TINY), tmp_path / "nhwc",
                             log=lambda line: None))[0]
+    # Adam moves a weight by up to the learning rate a step whatever its gradient's size: where a gradient is near
+    # zero, rounding (NHWC kernels sum in another order; which, depends on the CPU and its threads) can flip its
+    # sign, so such a weight may differ by up to 2 steps x the rate; every other weight agrees within rounding
+    bound = 2 * TrainOptions().learning_rate
     for (name, a), (_, b) in zip(default.state_dict().items(), nhwc.state_dict().items()):
-        assert torch.allclose(a, b, atol=1e-5), name
+        gap = (a.float() - b.float()).abs()
+        assert gap.max() <= bound and (gap > 1e-5).float().mean() <= 1e-3, (name, gap.max().item())
 
 
 def test_an_interrupted_checkpoint_save_leaves_no_partial_file(tmp_path, monkeypatch):

@@ -233,7 +233,6 @@ def read_tiles(gain, spec: MethodSpec, url: str, identity: str, centres: tuple[i
     """Task: the windows centred on spike frames ``centres`` of each tile and its halo, read packed from the store,
     reconstructed (on a GPU, the windows of all ``tiles``, of one shape, in passes of ``most``) -> per tile
     (n, h, w, 3) uint8, the halo cropped."""
-    hold_point()  # inert unless a fault test asks (pipeline.compute.hold)
     spikes = spike_array(url, identity)
     windows = [tile_windows(spikes, url, centres, half, tile, cfa, reset, float(gain), scale) for tile in tiles]
     images = spec.built().many_tiles(windows, most) if centres else [[] for _ in tiles]
@@ -267,6 +266,7 @@ def write_block(block: np.ndarray, url: str, run: str, first: int, tile: tuple[i
                 shape: tuple[int, ...]) -> np.ndarray:
     """Task: check one HR block against its chunk (``shape``, uint8), write its frames (a chunk each, compressed
     and stored together), then commit them. -> (1, 1, 1, 1): how many frames."""
+    hold_point()  # inert unless a fault test asks (pipeline.compute.hold): it holds a block's commit
     if not isinstance(block, np.ndarray) or block.shape != shape or block.dtype != np.uint8:
         got = f"{block.dtype} {block.shape}" if isinstance(block, np.ndarray) else type(block).__name__
         raise InputError(f"hr's block of output frames {first}..{first + shape[0] - 1}, tile {tile[0]},{tile[1]} "
