@@ -172,9 +172,13 @@ def consolidate(url: str) -> None:
     readers expect. Called once a store's arrays are all declared: array metadata never changes after, and
     the group's own attributes (``state``, written last) live beside the consolidated copy, so later
     attribute updates keep it valid. Zarr warns that v3 has no standard for it yet; xarray reads it."""
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Consolidated metadata is currently not part", category=UserWarning)
-        zarr.consolidate_metadata(zarr_store(url, read_only=False))
+    zarr.consolidate_metadata(zarr_store(url, read_only=False))
+
+
+# Zarr's warning that v3 has no standard for consolidated metadata (we write it for xarray, on purpose): ignored for the
+# whole process, not inside a ``catch_warnings`` block around the call, because Zarr may issue it on its own I/O thread
+# after a Ctrl-C has already left such a block (the job's one-line "interrupted" then came after the warning's lines)
+warnings.filterwarnings("ignore", message="Consolidated metadata is currently not part", category=UserWarning)
 
 
 def open_group(url: str, what: str = "store") -> zarr.Group:
