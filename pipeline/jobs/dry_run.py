@@ -87,9 +87,12 @@ def _sampled(blocks: TileBlocks, b: int, k: int, url: str, run: str) -> dict:
     it wrote, which it then drops (a sample holds one task's output at a time)."""
     from dask.local import get_sync
 
-    for ty, tx in blocks.passes[k]:
+    graph, writes = {}, []
+    for ty, tx in blocks.passes[k]:  # the pass's tiles share its reconstruction (one key): run once
         tasks, write, key = blocks.written(b, k, ty, tx, url, run)
-        get_sync({**tasks, **write}, key)
+        graph.update({**tasks, **write})
+        writes.append(key)
+    get_sync(graph, writes)
     video = writer(url, run).video
     fs, root = resolve(f"{url}/{VIDEO}")
     written = pixels = 0
