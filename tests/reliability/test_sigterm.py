@@ -228,6 +228,37 @@ def test_an_interrupt_that_lands_in_a_finalizer_still_stops_the_job(name, raised
     assert "Exception ignored" not in result.stderr
 
 
+BEFORE_A_CALL_BEGAN = """
+import os, signal, threading, time
+from distributed.utils import LoopRunner, sync
+from pipeline.compute.stopping import Terminated, interrupt_on
+interrupt_on(signal.SIGTERM)
+runner = LoopRunner(asynchronous=False)
+runner.start()
+runner.loop.add_callback(time.sleep, 1.0)  # the event loop busy: the call below has not begun when SIGTERM comes
+threading.Timer(0.2, os.kill, (os.getpid(), signal.SIGTERM)).start()
+
+async def never_begun():
+    return 1
+
+try:
+    sync(runner.loop, never_begun)
+except Terminated:
+    time.sleep(1.5)  # the loop runs the call's clean-up (its cancel) meanwhile
+    print("terminated", flush=True)
+runner.stop()
+"""
+
+
+def test_an_interrupt_before_a_dask_call_began_prints_no_traceback_of_dask_s():
+    """Dask's clean-up of a call into the client that an interrupt cut short before it began reads a future never
+    assigned: Tornado logged that NameError with its traceback before the command's one line (a SIGTERM'd
+    simulate, CI 2026-11-29). The process that handles interrupts drops that one error."""
+    result = subprocess.run([sys.executable, "-c", BEFORE_A_CALL_BEGAN], capture_output=True, text=True, timeout=60)
+    assert result.stdout.splitlines() == ["terminated"], result.stderr
+    assert "NameError" not in result.stderr and "Traceback" not in result.stderr, result.stderr
+
+
 @pytest.mark.parametrize("ctrl_c", [False, True], ids=["sigterm", "ctrl-c"])
 def test_sigterm_during_reconstruct_stops_its_segment_and_cluster_and_resume_finishes(spikes, tmp_path,
                                                                                       tmpdir_of_its_own, ctrl_c):
