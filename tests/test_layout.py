@@ -145,7 +145,7 @@ def _definitions(pattern: str) -> list[str]:
 
 @pytest.mark.parametrize("fact, pattern, home", [
     ("the 41-frame window", r"^WINDOW\s*=", ["stages/reconstruction/methods.py"]),
-    ("the reset modes", r"^RESETS\s*=", ["stages/simulation/sensor.py"]),
+    ("the reset modes", r"^RESETS\s*=", ["stages/capture/resets.py"]),
     ("the network's precisions", r"^PRECISIONS\s*=", ["cscsr/network/config.py"]),
     ("a float image to 8 bits", r"^def to_uint8\(", ["stages/simulation/intensities.py"]),
     ("an error as one line", r"^def describe\(", ["stages/errors.py"]),

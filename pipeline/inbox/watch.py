@@ -57,7 +57,7 @@ from stages.reconstruction.cfa import check_cfa
 from stages.errors import InputError, describe
 from stages.reconstruction.methods import NETWORKS, WINDOW
 from stages.numbers import check_number
-from stages.simulation.sensor import check_reset
+from stages.capture.resets import check_reset
 
 RAW = ("dat", "npz", "npy")
 KINDS = ("zarr",) + RAW

@@ -55,7 +55,7 @@ from stages.reconstruction.cfa import check_cfa, flip_vertically
 from stages.errors import InputError
 from stages.numbers import as_float, check_flag, check_number, check_text
 from stages.prefetch import prefetched
-from stages.simulation.sensor import check_reset
+from stages.capture.resets import check_reset
 from stages.capture.sps100 import CaptureDamaged, check_layout
 
 BLOCK_BYTES = 64 * 2**20  # packed bytes per task (and per block read): bounds memory, amortises I/O

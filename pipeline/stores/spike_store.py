@@ -42,7 +42,7 @@ from stages.errors import InputError, describe
 from stages.numbers import as_float, check_number
 from stages.reconstruction.cfa import check_cfa
 from stages.reconstruction.colour import MAX_GAIN
-from stages.simulation.sensor import check_reset
+from stages.capture.resets import check_reset
 
 FORMAT_VERSION = 1
 SPIKES = "spikes"

@@ -22,7 +22,8 @@ import numpy as np
 from stages.reconstruction.colour import demosaic, upsample
 from stages.errors import InputError
 from stages.simulation.intensities import to_uint8
-from stages.simulation.sensor import area_downsample, cfa_sample, check_reset
+from stages.capture.resets import check_reset
+from stages.simulation.sensor import area_downsample, cfa_sample
 from stages.reconstruction.tfp import undo_zero_reset
 
 NEVER = 1 << 40  # the period of a pixel that never fires

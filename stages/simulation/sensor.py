@@ -35,18 +35,12 @@ import numba
 import numpy as np
 
 from stages.capture.bits import count_spikes, packed_width
+from stages.capture.resets import RESETS, check_reset  # noqa: F401 - the sensor's resets, named here too
 from stages.reconstruction.cfa import check_cfa, colour_index
 from stages.errors import InputError
 from stages.simulation.intensities import LUMA
 
 UNITS: int = 1 << 24
-RESETS = ("subtract", "zero")  # integrator resets: keep the charge above the threshold (cameras), or drop it
-
-
-def check_reset(reset: str) -> str:
-    if reset not in RESETS:
-        raise InputError(f"unknown reset mode {reset!r}: expected one of {', '.join(RESETS)}")
-    return reset
 NOISES = ("none", "realistic")
 _MAX_UNITS = 1 << 30  # state and thresholds below this keep acc + q inside int32
 DARK_SPREAD = 0.5  # log-std of the per-pixel dark current (lognormal, mean dark_rate)
