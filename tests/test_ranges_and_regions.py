@@ -56,12 +56,13 @@ def recording(tmp_path_factory) -> str:
 
 @pytest.fixture(scope="module")
 def whole(recording, client, tmp_path_factory) -> dict:
-    """Whole-recording runs (every 7: 23 output frames; tile 8) by method: the reference every part is cut from."""
+    """Whole-recording runs (every 7: 23 output frames; tile 16) by method: the reference every part is cut from
+    (cut with the same tile: a tile's edge can round one level otherwise)."""
     folder = tmp_path_factory.mktemp("whole")
     runs = {}
     for method in ("tfp", "tfi"):
         out = str(folder / f"{method}.zarr")
-        reconstruct(recording, out, ReconstructOptions(method=method, every=7, tile=8), client=client, progress=False)
+        reconstruct(recording, out, ReconstructOptions(method=method, every=7, tile=16), client=client, progress=False)
         runs[method] = out
     return runs
 
@@ -90,7 +91,7 @@ def test_a_time_range_is_the_matching_frames_of_a_whole_run(recording, whole, cl
     """[50, 130): centres 55, 62, ... 125 of the whole run's 20, 27, ...; the first window reads frames 35..75 and
     the last 105..145, outside the range. Seconds round up to a frame: 0.0495 s at 1000 fps is frame 50."""
     out = str(tmp_path / "part.zarr")
-    counts = reconstruct(recording, out, ReconstructOptions(every=7, tile=8, start=start, stop=stop), client=client,
+    counts = reconstruct(recording, out, ReconstructOptions(every=7, tile=16, start=start, stop=stop), client=client,
                          progress=False)
     frames, centres, attrs = video(out)
     assert list(centres) == list(range(55, 130, 7)) and counts["frames"] == 11
@@ -104,12 +105,12 @@ def test_a_range_near_the_recordings_ends_has_only_the_centres_a_window_fits_aro
                                                                                      tmp_path):
     """A range edge closer than W//2 = 20 frames to an end simply has no centre there."""
     out = str(tmp_path / "ends.zarr")
-    reconstruct(recording, out, ReconstructOptions(every=7, tile=8, start=0, stop=30), client=client, progress=False)
+    reconstruct(recording, out, ReconstructOptions(every=7, tile=16, start=0, stop=30), client=client, progress=False)
     frames, centres, _ = video(out)
     assert list(centres) == [20, 27]
     np.testing.assert_array_equal(frames, matching_frames(whole["tfp"], centres))
     out = str(tmp_path / "end.zarr")
-    reconstruct(recording, out, ReconstructOptions(every=7, tile=8, start="0.17s"), client=client, progress=False)
+    reconstruct(recording, out, ReconstructOptions(every=7, tile=16, start="0.17s"), client=client, progress=False)
     assert list(video(out)[1]) == [174]  # the last centre whose window fits (174 + 20 = 194 < 200)
 
 
@@ -137,21 +138,21 @@ def test_a_region_is_the_matching_part_of_a_whole_run(recording, whole, client, 
     """Tiles cut inside the region on the whole run's tile boundaries, their halo read from outside it: the same
     bytes as the whole run's, for TFP and TFI."""
     out = str(tmp_path / "region.zarr")
-    reconstruct(recording, out, ReconstructOptions(method=method, every=7, tile=8, region="8:32,16:48"), client=client,
+    reconstruct(recording, out, ReconstructOptions(method=method, every=7, tile=16, region="16:32,16:48"), client=client,
                 progress=False)
     frames, centres, attrs = video(out)
-    assert frames.shape == (23, 24 * 4, 32 * 4, 3) and attrs["region"] == [8, 32, 16, 48]
-    np.testing.assert_array_equal(frames, matching_frames(whole[method], centres)[:, 32:128, 64:192])
+    assert frames.shape == (23, 16 * 4, 32 * 4, 3) and attrs["region"] == [16, 32, 16, 48]
+    np.testing.assert_array_equal(frames, matching_frames(whole[method], centres)[:, 64:128, 64:192])
 
 
 def test_a_region_and_a_range_together_with_open_ends(recording, whole, client, tmp_path):
     out = str(tmp_path / "corner.zarr")
-    reconstruct(recording, out, ReconstructOptions(every=7, tile=8, region=":16,40:", start=100), client=client,
+    reconstruct(recording, out, ReconstructOptions(every=7, tile=16, region=":16,48:", start=100), client=client,
                 progress=False)
     frames, centres, attrs = video(out)
-    assert (attrs["start"], attrs["stop"], attrs["region"]) == (100, FRAMES, [0, 16, 40, WIDTH])
+    assert (attrs["start"], attrs["stop"], attrs["region"]) == (100, FRAMES, [0, 16, 48, WIDTH])
     assert list(centres) == list(range(104, 180, 7))
-    np.testing.assert_array_equal(frames, matching_frames(whole["tfp"], centres)[:, :64, 160:])
+    np.testing.assert_array_equal(frames, matching_frames(whole["tfp"], centres)[:, :64, 192:])
 
 
 # --- what the output records -----------------------------------------------------------------
@@ -296,16 +297,16 @@ def test_a_dry_run_creates_nothing_and_prints_the_plan(recording, cli, tmp_path,
 def test_a_dry_run_refuses_what_a_real_run_refuses_and_counts_what_a_resume_has_left(recording, whole, cli,
                                                                                       tmp_path, quick):
     out = whole["tfp"]
-    assert_refused(cli("reconstruct", recording, out, "--every", 7, "--tile", 8, "--workers", 1, "--dry-run"),
+    assert_refused(cli("reconstruct", recording, out, "--every", 7, "--tile", 16, "--workers", 1, "--dry-run"),
                    "already exists", "--resume or --overwrite")
-    assert_refused(cli("reconstruct", recording, out, "--every", 41, "--tile", 8, "--resume", "--workers", 1,
+    assert_refused(cli("reconstruct", recording, out, "--every", 41, "--tile", 16, "--resume", "--workers", 1,
                        "--dry-run"), "other parameters", "every 7 -> 41")
     before = sorted(os.listdir(out))
-    result = cli("reconstruct", recording, out, "--every", 7, "--tile", 8, "--resume", "--workers", 1, "--dry-run",
+    result = cli("reconstruct", recording, out, "--every", 7, "--tile", 16, "--resume", "--workers", 1, "--dry-run",
                  "--json")
     assert result.exit_code == 0, result.stderr
     plan = json.loads(result.stdout)
-    assert plan["tasks"] == 23 * 6 * 8 and plan["tasks_to_run"] == 0 and plan["hours"]["1"] == 0
+    assert plan["tasks"] == 23 * 3 * 4 and plan["tasks_to_run"] == 0 and plan["hours"]["1"] == 0
     assert sorted(os.listdir(out)) == before
     assert_refused(cli("reconstruct", recording, tmp_path / "none.zarr", "--resume", "--workers", 1, "--dry-run"),
                    "does not exist")
