@@ -70,7 +70,7 @@ def in_background(function, *args, **kwargs):
 
 
 def test_a_worker_killed_mid_reconstruct(recording, client, tmp_path):
-    options = ReconstructOptions(method="tfi", every=5, tile=8)
+    options = ReconstructOptions(method="tfi", every=5, tile=16)
     clean = str(tmp_path / "clean.zarr")
     reconstruct(recording, clean, options, client=client, progress=False)
     out = str(tmp_path / "killed.zarr")
@@ -86,7 +86,7 @@ def test_a_complete_store_holds_no_partial_writes(recording, client, tmp_path):
     """A worker killed between Zarr's write of ``KEY.<uuid>.partial`` and its rename leaves that file
     (seen once in a loop of suite runs: the killed-worker test found it beside the chunks); the job
     removes such files before it marks the store complete."""
-    options = ReconstructOptions(method="tfi", every=5, tile=8)
+    options = ReconstructOptions(method="tfi", every=5, tile=16)
     out = str(tmp_path / "out.zarr")
     reconstruct(recording, out, options, client=client, progress=False)
     finished = chunk_files(out)
