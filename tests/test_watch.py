@@ -174,7 +174,7 @@ def test_killing_the_watcher_mid_job_loses_nothing_and_duplicates_nothing(tmp_pa
     simulate(str(tmp_path / "scene.png"), str(inbox / "scene.zarr"),
              SimulateOptions(scale=4, frames=250, motion="random", speed=0.3), workers=1, progress=False)
     settled(inbox)
-    args = ["watch", str(inbox), None, "--once", "--workers", "1", "--every", "5", "--tile", "8", "--settle", "0"]
+    args = ["watch", str(inbox), None, "--once", "--workers", "1", "--every", "5", "--tile", "16", "--settle", "0"]
 
     def command(outbox):
         return [CSCSR] + [str(outbox) if a is None else a for a in args]
@@ -186,7 +186,7 @@ def test_killing_the_watcher_mid_job_loses_nothing_and_duplicates_nothing(tmp_pa
     kill_mid_job(command(killed), lambda: (_ledger_state(killed, "scene") == "running"
                                            and committed_tasks(killed / "scene.zarr") >= 20),
                  env={**os.environ, **hold_environment(30, tmp_path / "never")})
-    total = len(range(20, 250 - 20, 5)) * 16
+    total = len(range(20, 250 - 20, 5)) * 4  # tiles of 16 of LR 32x32
     assert _ledger_state(killed, "scene") == "running" and 20 <= committed_tasks(killed / "scene.zarr") < total
 
     subprocess.run(command(killed), check=True, capture_output=True)

@@ -386,7 +386,7 @@ def test_sigterm_during_watch_leaves_the_recording_resumable_and_the_next_pass_f
     inbox.mkdir()
     shutil.copytree(simulated, inbox / "scene.zarr")
     settled(inbox)
-    args = ["watch", inbox, outbox, "--interval", "1s", "--workers", 2, "--every", 5, "--tile", 8, "--settle", 0]
+    args = ["watch", inbox, outbox, "--interval", "1s", "--workers", 2, "--every", 5, "--tile", 16, "--settle", 0]
     result, seconds = terminated_mid_work(args, lambda: (_ledger_state(outbox, "scene") == "running"
                                                          and committed_tasks(outbox / "scene.zarr") >= 3),
                                           cwd=tmp_path, tmpdir=tmpdir_of_its_own, env=held(tmp_path),
