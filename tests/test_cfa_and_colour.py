@@ -5,7 +5,7 @@ import pytest
 
 from stages.capture.bits import pack_rows
 from stages.reconstruction.cfa import BAYER_PATTERNS, check_cfa, colour_index, flip_vertically
-from stages.reconstruction.colour import auto_gain, rate_to_rgb
+from stages.reconstruction.colour import auto_gain, demosaic, rate_to_rgb
 from stages.errors import InputError
 from stages.reconstruction.tfp import tfp_rate
 
@@ -17,6 +17,22 @@ def test_demosaic_recovers_a_flat_colour(cfa, colour):
     mosaic = np.choose(index, colour).astype(np.float32)
     rgb = rate_to_rgb(mosaic, cfa, gain=1.0)
     np.testing.assert_allclose(rgb[4:-4, 4:-4].reshape(-1, 3).mean(0), np.array(colour) * 255, atol=2)
+
+
+@pytest.mark.parametrize("cfa", BAYER_PATTERNS)
+def test_a_crop_demosaics_to_the_whole_pictures_pixels_wherever_it_ends(cfa):
+    """A pixel's colour depends on its neighbourhood, not on where its row ends: OpenCV's VNG computes a row's last
+    few pixels with scalar code that rounds a level apart from its vector code, and a TFP tile's right columns
+    differed from the whole frame's by a level (tile 8 against 16, 2026-11-29). Crops of every even offset and
+    width (the Bayer phase kept) give the whole picture's values 3 pixels in from their edges."""
+    rate = np.random.default_rng(1).random((48, 96)).astype(np.float32)
+    whole = demosaic(rate, cfa)
+    for width in (8, 10, 14, 16, 18, 24, 32, 40):
+        for x0 in range(0, 96 - width + 1, 2):
+            for y0 in sorted({0, 2, 10, 48 - width} & set(range(0, 48 - width + 1, 2))):
+                crop = demosaic(rate[y0 : y0 + width, x0 : x0 + width], cfa)
+                np.testing.assert_array_equal(crop[3:-3, 3:-3], whole[y0 + 3 : y0 + width - 3, x0 + 3 : x0 + width - 3],
+                                              err_msg=f"crop y {y0}, x {x0}, {width} wide")
 
 
 @pytest.mark.parametrize("cfa", BAYER_PATTERNS)

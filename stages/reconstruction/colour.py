@@ -38,14 +38,25 @@ def auto_gain(rate: np.ndarray) -> float:
     return min(_MID_GREY / mean, 1.0 / high) if high > 0 else _MID_GREY / mean
 
 
+# Columns of mirrored mosaic VNG is given beyond an image's right edge (even: the Bayer phase is kept). OpenCV's
+# VNG computes most of a row with vector instructions and the last few pixels (fewer than a vector: 16 here) with
+# scalar code that can round a level apart, so a pixel's value depended on where its row ended: a tile's right
+# columns differed from the whole frame's by a level (2026-11-29, TFP at tile 8 against 16). Given these columns,
+# every pixel of the image is computed by the vector code, wherever its tile ends.
+VNG_TAIL = 64
+
+
 def demosaic(intensity: np.ndarray, cfa: str) -> np.ndarray:
-    """(H, W) float in [0, 1] sampled through ``cfa`` -> (H, W, 3) float32 RGB in [0, 1]."""
+    """(H, W) float in [0, 1] sampled through ``cfa`` -> (H, W, 3) float32 RGB in [0, 1]; a pixel's value depends
+    only on its 5x5 neighbourhood (and the image's edges within it), not on the image's width."""
     if cfa == "mono":
         return np.repeat(intensity[:, :, None], 3, axis=2).astype(np.float32)
     import cv2
 
     mosaic = np.round(np.clip(intensity, 0, 1) * 255).astype(np.uint8)  # VNG takes 8-bit only
-    return cv2.cvtColor(mosaic, opencv_bayer_code(cfa)).astype(np.float32) / np.float32(255)
+    width = mosaic.shape[1]
+    mosaic = np.pad(mosaic, ((0, 0), (0, VNG_TAIL)), mode="reflect")  # mirrored about the last column: same phase
+    return cv2.cvtColor(mosaic, opencv_bayer_code(cfa))[:, :width].astype(np.float32) / np.float32(255)
 
 
 def upsample(rgb: np.ndarray, scale: int) -> np.ndarray:
