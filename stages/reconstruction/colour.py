@@ -39,7 +39,7 @@ def auto_gain(rate: np.ndarray) -> float:
 
 
 # Columns of mirrored mosaic VNG is given beyond an image's right edge (even: the Bayer phase is kept). OpenCV's
-# VNG computes most of a row with vector instructions and the last few pixels (fewer than a vector: 16 here) with
+# VNG computes most of a row with vector instructions and its last few pixels (fewer than one vector) with
 # scalar code that can round a level apart, so a pixel's value depended on where its row ended: a tile's right
 # columns differed from the whole frame's by a level (2026-11-29, TFP at tile 8 against 16). Given these columns,
 # every pixel of the image is computed by the vector code, wherever its tile ends.
