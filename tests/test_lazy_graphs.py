@@ -15,13 +15,15 @@ import os
 import shutil
 import subprocess
 import sys
+import threading
+import time
 
 import dask
 import numpy as np
 import pytest
 import xarray as xr
 import zarr
-from distributed import Client, LocalCluster, get_task_stream
+from distributed import Client, Future, LocalCluster, get_task_stream
 
 from cscsr import lazy
 from pipeline.compute.cluster import GPU, GPU_SHARE
@@ -288,6 +290,43 @@ def test_on_a_cluster_every_block_is_tried_and_the_failed_ones_are_named_by_thei
         counts = lazy.to_video(hr(), out, resume=True)
     assert counts == {"frames": 23, "tasks_run": 23 * 4, "tasks_skipped": 23 * 8}  # the second row's 4 tiles
     assert np.array_equal(stored(out)[0], stored(str(tmp_path / "whole.zarr"))[0])
+
+
+def test_on_a_cluster_tasks_a_scheduler_restart_drops_are_submitted_again(recording, tmp_path, monkeypatch):
+    """``to_video`` of a reconstruction read from a store runs its blocks on a cluster as the job does
+    (``reconstruct_tasks.run_blocks``: the executor's bounded window): the scheduler restarted mid-call (every
+    future cancelled, the worker process restarted by its nanny) drops the tasks in flight, which are submitted
+    again, and the store is the bytes of one run (rounds of ``client.compute`` reported those frames lost). The
+    writes are held after the third (``pipeline.compute.hold``), so the restart lands while work remains."""
+    from pipeline.compute.hold import hold_environment
+
+    hr = lazy.tfp(lazy.windows(lazy.open_spikes(recording), every=7), tile=16)
+    with threaded():
+        lazy.to_video(hr, str(tmp_path / "whole.zarr"))
+    release, out = tmp_path / "release", str(tmp_path / "restarted.zarr")
+    for name, value in hold_environment(3, release).items():  # in the worker process's environment
+        monkeypatch.setenv(name, value)
+
+    def restart_when_held(client):
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not (os.path.exists(out) and committed_tiles(out) >= 3):
+            time.sleep(0.05)
+        client.restart()
+        release.touch()
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as local, \
+            Client(local) as client:
+        restarter = threading.Thread(target=restart_when_held, args=(client,))
+        restarter.start()
+        counts = lazy.to_video(hr, out)
+        restarter.join()
+    assert release.exists() and counts["tasks_skipped"] == 0
+    video, frames, attrs = stored(out)
+    assert np.array_equal(video, stored(str(tmp_path / "whole.zarr"))[0]) and attrs["state"] == "complete"
+
+
+def committed_tiles(url: str) -> int:
+    return int(np.asarray(zarr.open_group(url, mode="r")["committed"][:]).sum())
 
 
 def test_a_users_function_between_stages_and_as_a_method_with_a_halo(recording, tmp_path):

@@ -41,8 +41,7 @@ import logging
 import sys
 import uuid
 import weakref
-from collections.abc import Iterable, Iterator
-from typing import NamedTuple
+from collections.abc import Iterable
 
 import numpy as np
 
@@ -56,7 +55,7 @@ from pipeline.compute.cluster import (
     scheduler_address,
     visible_gpus,
 )
-from pipeline.compute.executor import failure, in_segments, submitted
+from pipeline.compute.executor import in_segments
 from pipeline.compute.progress import is_quiet, progress_bar
 from pipeline.jobs.dry_run import plan_job
 from pipeline.jobs.reconstruct_plan import (
@@ -72,10 +71,12 @@ from pipeline.jobs.reconstruct_plan import (
 )
 from pipeline.jobs.reconstruct_tasks import (
     MethodSpec,
+    Outcome,
     TileBlocks,
     cut,
     gain_key,
     reconstructor,
+    run_blocks,
     store_gain,
 )
 from pipeline.stores.lease import check_free, claimed, held
@@ -306,16 +307,6 @@ class JobIncomplete(RuntimeError):
         self.failed = failed
 
 
-class Outcome(NamedTuple):
-    """One finished task: output frames ``start:stop`` of tile (ty, tx), and its error if it raised."""
-
-    start: int
-    stop: int
-    ty: int
-    tx: int
-    error: str | None
-
-
 def planned_blocks(plan: Plan, method: Reconstructor, centres: list[int], first: int, grid: list[list[Tile]],
                    gpus: bool) -> TileBlocks:
     """The job's blocks (:func:`pipeline.jobs.reconstruct_tasks.cut`): the lazy graph's (``lazy.reconstruct``) for the
@@ -324,25 +315,6 @@ def planned_blocks(plan: Plan, method: Reconstructor, centres: list[int], first:
                       bool(plan.fast_gpu))
     return cut(spec, plan.spikes, plan.source_identity, centres, first, plan.every, plan.window, grid, method.batch,
                plan.cfa, plan.reset, plan.scale, plan.gpu_batch, plan.gain, gpus and plan.method in NETWORKS)
-
-
-def run_blocks(client, units: Iterable[tuple[int, int]], *, blocks: TileBlocks, out: str,
-               run: str) -> Iterator[Outcome]:
-    """Run ``units`` (block along time, pass) of ``blocks`` on ``client`` (``pipeline.compute.executor``: a bounded
-    window), written into the video store at ``out``, each tile's two tasks (reconstructed, written) the lazy
-    graph's; yield the outcome of each tile as it finishes."""
-    def tiles():
-        for b, k in units:
-            for ty, tx in blocks.passes[k]:
-                yield b, k, ty, tx
-
-    def submit(tile):  # everything a task needs travels in it (scattered data dies with the workers holding it)
-        tasks, write, key = blocks.written(*tile, out, run)
-        return client.get(blocks.layered(tasks, write), [key], sync=False)[0]
-
-    for (b, _, ty, tx), future in submitted(client, tiles(), submit, idempotent=True):
-        # the task raised, or the cluster failed it: report it, go on with the others
-        yield Outcome(blocks.starts[b], blocks.starts[b + 1], ty, tx, failure(future))
 
 
 def _tally(outcomes: Iterable[Outcome], done: np.ndarray, advance) -> dict[int, str]:

@@ -17,7 +17,8 @@ import dataclasses
 import functools
 import operator
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
+from typing import NamedTuple
 
 import numpy as np
 
@@ -226,6 +227,39 @@ def cut(spec: MethodSpec, url: str, identity: str, centres: list[int], first: in
     passes = tile_blocks(grid, max(1, most // batch) if gpu else 1)
     return TileBlocks(spec, url, identity, centres[0], every, window // 2, block_frames(len(centres), batch, first),
                       tuple(map(tuple, grid)), tuple(passes), cfa, reset, scale, most, gain, gpu)
+
+
+class Outcome(NamedTuple):
+    """One finished tile of a block: output frames ``start:stop`` of tile (ty, tx), and why it failed, if it did."""
+
+    start: int
+    stop: int
+    ty: int
+    tx: int
+    error: str | None
+
+
+def run_blocks(client, units: Iterable[tuple[int, int]], *, blocks: TileBlocks, out: str,
+               run: str) -> Iterator[Outcome]:
+    """Run ``units`` (block along time, pass) of ``blocks`` on ``client`` (``pipeline.compute.executor``: a bounded
+    window, lost workers survived, tasks the cluster drops submitted again), written into the video store at
+    ``out``, each tile's two tasks (reconstructed, written) made as the window moves; yield the outcome of each
+    tile as it finishes. The ``reconstruct`` job and ``lazy.to_video`` of a reconstruction read from a store run
+    their blocks here."""
+    from pipeline.compute.executor import failure, submitted
+
+    def tiles():
+        for b, k in units:
+            for ty, tx in blocks.passes[k]:
+                yield b, k, ty, tx
+
+    def submit(tile):  # everything a task needs travels in it (scattered data dies with the workers holding it)
+        tasks, write, key = blocks.written(*tile, out, run)
+        return client.get(blocks.layered(tasks, write), [key], sync=False)[0]
+
+    for (b, _, ty, tx), future in submitted(client, tiles(), submit, idempotent=True):
+        # the task raised, or the cluster failed it: report it, go on with the others
+        yield Outcome(blocks.starts[b], blocks.starts[b + 1], ty, tx, failure(future))
 
 
 def read_tiles(gain, spec: MethodSpec, url: str, identity: str, centres: tuple[int, ...], half: int,

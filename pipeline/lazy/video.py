@@ -27,6 +27,7 @@ import dask.array as da
 import numpy as np
 import xarray as xr
 from dask.base import tokenize
+from dask.highlevelgraph import HighLevelGraph, MaterializedLayer
 
 from pipeline.compute.cluster import GPU, GPU_SHARE
 from pipeline.jobs.reconstruct_plan import Plan, ReconstructOptions
@@ -218,15 +219,33 @@ def _windows_tile(data: da.Array, oy: int, ox: int, t: Tile, arguments: tuple, h
                            meta=np.empty((0, 0, 0, 0), np.uint8))
 
 
+def tile_blocks(data: da.Array) -> TileBlocks | None:
+    """The blocks ``data`` holds, where it is :func:`reconstruct`'s array of blocks read from a store as it was made
+    (no selection, function or rechunk since: those make a new array): then ``to_video`` on a cluster runs its blocks
+    as the job does (``reconstruct_tasks.run_blocks``). Else None."""
+    layer = data.__dask_graph__().layers.get(data.name)
+    if not isinstance(layer, BlocksLayer):
+        return None
+    blocks = layer.blocks
+    return blocks if data.chunks == (blocks.frames, *blocks.hr_tiles, (3,)) else None
+
+
+class BlocksLayer(MaterializedLayer):
+    """The tasks of every block of ``blocks`` in one graph layer, annotated as the job's, knowing the blocks they were
+    made from (:func:`tile_blocks`)."""
+
+    def __init__(self, blocks: TileBlocks, tasks: dict):
+        super().__init__(tasks, annotations=blocks.annotations)
+        self.blocks = blocks
+
+
 def _blocks_array(blocks: TileBlocks, gain) -> da.Array:
     """``blocks`` as a dask array (t, y, x, rgb) uint8: every block's tasks (``TileBlocks.graph``: the job's) in one
     layer, annotated as the job's, on the automatic exposure's graph where ``gain`` is lazy."""
-    from dask.highlevelgraph import HighLevelGraph, MaterializedLayer
-
     tasks = {}
     for b, k in blocks.units():
         tasks.update(blocks.graph(b, k))
-    layers, dependencies = {blocks.name: MaterializedLayer(tasks, annotations=blocks.annotations)}, {blocks.name: set()}
+    layers, dependencies = {blocks.name: BlocksLayer(blocks, tasks)}, {blocks.name: set()}
     if isinstance(gain, da.Array):
         below = gain.__dask_graph__()
         layers.update(below.layers)

@@ -7,6 +7,7 @@ A selection of ``hr`` is written exactly (its output frames as ``start``/``stop`
 or refused in one line before anything exists.
 """
 
+import dataclasses
 import sys
 import uuid
 
@@ -17,9 +18,9 @@ import xarray as xr
 from dask.base import tokenize
 
 from pipeline.compute.progress import progress_bar
-from pipeline.jobs.reconstruct_tasks import write_task
+from pipeline.jobs.reconstruct_tasks import TileBlocks, run_blocks, write_task
 from pipeline.lazy.spikes import check_here, distributed_client, run_of, url_text
-from pipeline.lazy.video import VIDEO_DIMS
+from pipeline.lazy.video import VIDEO_DIMS, tile_blocks
 from pipeline.lazy.windows import _output_part
 from pipeline.stores.lease import claimed, held
 from pipeline.stores.outputs import VIDEO_STORE, new_output
@@ -30,22 +31,27 @@ from stages.errors import InputError, InputTypeError
 from stages.numbers import check_flag
 from stages.reconstruction.methods import NETWORKS
 
-BLOCKS_AT_ONCE = 256  # blocks of video to_video computes and writes per round: the graph in memory stays bounded
+BLOCKS_AT_ONCE = 256  # blocks of video to_video computes and writes a round (but a store's reconstruction on a
+# cluster, which runs through the executor's window): the graph in memory stays bounded
 
 
 def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = False,
              progress: bool = False) -> dict:
     """Write ``hr`` (t, y, x, rgb) uint8 as a video store at ``url`` (the job's format: ``video`` one chunk per
     (frame, tile) of ``hr``'s chunks, ``frames``, ``committed``, the attributes, ``state``), computed on the active
-    ``distributed`` client if there is one, else on dask's default scheduler, ``BLOCKS_AT_ONCE`` blocks a round. Each
-    block is checked against its chunk (shape, uint8), written, then committed. On a client, as in the jobs, a block
-    that fails does not stop the others, and the call then fails naming the output frames lost (``JobIncomplete``);
-    on dask's own scheduler the first error stops it. ``resume=True`` continues a store a
+    ``distributed`` client if there is one, else on dask's default scheduler. A reconstruction read from a store as
+    ``lazy.reconstruct`` made it runs on a client as the ``reconstruct`` job runs (``reconstruct_tasks.run_blocks``:
+    the executor's bounded window, each block's tasks made as it moves, tasks the cluster drops submitted again);
+    any other ``hr`` ``BLOCKS_AT_ONCE`` blocks a round (their graph culled at once, so that they share what they
+    read). Each block is checked against its chunk (shape, uint8), written, then committed. On a client, as in the
+    jobs, a block that fails does not stop the others, and the call then fails naming the output frames lost
+    (``JobIncomplete``); on dask's own scheduler the first error stops it. ``resume=True`` continues a store a
     failed or killed call left, computing only the blocks not committed (the same bytes as one uninterrupted call),
     and refuses one written by another graph (``committed``'s ``graph``: the token of ``hr``'s graph, which covers
     every function in it where Dask can hash it). -> {frames, tasks_run, tasks_skipped}, counted in the job's tasks
     (a frame's tile; the network's batch of frames), so that a fresh call's ``tasks_run`` is a finished store's
-    ``tasks_skipped``. ``progress=True``: a bar on a terminal, a line a round where standard error is piped.
+    ``tasks_skipped``. ``progress=True``: a bar on a terminal, a line every ``BLOCKS_AT_ONCE``
+    blocks where standard error is piped.
 
     ``hr`` may be a selection (``isel``/``sel``) of a reconstruction: a contiguous increasing run of output frames
     (recorded as its ``start``/``stop``) and of whole LR pixels (HR rows and columns in multiples of the scale,
@@ -94,38 +100,58 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
         starts = np.cumsum((0, *data.chunks[0]))
         blocks = [(b, ty, tx) for b in range(len(data.chunks[0])) for ty in range(tiles[0]) for tx in range(tiles[1])
                   if data.chunks[0][b] and not done[starts[b]:starts[b + 1], ty, tx].all()]
-        written = _written(data, url, uuid.uuid4().hex)
+        run = uuid.uuid4().hex
         # the job's units: a task per frame and tile for a method that reconstructs one window at a time, a task
         # per block (the network's batch of frames, one tile) for the network
         per_block = attrs.get("method") in NETWORKS
-        units = [1 if per_block else data.chunks[0][b] for b, _, _ in blocks]
+        unit_of = {block: 1 if per_block else data.chunks[0][block[0]] for block in blocks}
+        to_run = sum(unit_of.values())
         total = (sum(1 for c in data.chunks[0] if c) if per_block else n) * tiles[0] * tiles[1]
-        piped = progress and not sys.stderr.isatty()  # no bar to draw: a line a round
-        failed = {}
-        with held(url), progress_bar(f"to_video {url}", sum(units), unit="tasks", enabled=progress) as advance:
-            for at in range(0, len(blocks), BLOCKS_AT_ONCE):
-                chosen = blocks[at : at + BLOCKS_AT_ONCE]
-                unit_of = dict(zip(chosen, units[at : at + BLOCKS_AT_ONCE]))
-                if client is None:  # dask's own scheduler: the first error stops the call
-                    # unoptimised: each stage's tasks keep their names (windows, tfp, write ...) and annotations
-                    dask.compute(*(written.blocks[b, ty, tx, 0] for b, ty, tx in chosen), optimize_graph=False)
-                    advance(sum(unit_of.values()))
-                else:  # a cluster: every block is tried, each failed one named by its output frames
-                    for (b, ty, tx), error in _outcomes(client, written, chosen):
-                        if error is None:
-                            advance(unit_of[b, ty, tx])
-                        else:
-                            failed.update({i: f"tile ({ty}, {tx}): {error}" for i in range(starts[b], starts[b + 1])})
-                if piped:
-                    print(f"to_video {url}: {sum(units[: at + len(chosen)])} of {sum(units)} tasks", file=sys.stderr,
-                          flush=True)
+        piped = progress and not sys.stderr.isatty()  # no bar to draw: a line every BLOCKS_AT_ONCE blocks
+        failed, finished, finished_units = {}, 0, 0
+        from_store = tile_blocks(data) if client is not None else None
+        with held(url), progress_bar(f"to_video {url}", to_run, unit="tasks", enabled=progress) as advance:
+            for (b, ty, tx), error in (_run_blocks(client, from_store, attrs["gain"], done, url, run)
+                                       if from_store is not None
+                                       else _in_rounds(client, _written(data, url, run), blocks)):
+                if error is not None:
+                    failed.update({i: f"tile ({ty}, {tx}): {error}" for i in range(starts[b], starts[b + 1])})
+                elif (b, ty, tx) in unit_of:  # a GPU pass also rewrites the tiles it shares with one not committed
+                    advance(unit_of[b, ty, tx])
+                finished, finished_units = finished + 1, finished_units + unit_of.get((b, ty, tx), 0)
+                if piped and (finished % BLOCKS_AT_ONCE == 0 or finished == len(blocks)):
+                    print(f"to_video {url}: {finished_units} of {to_run} tasks", file=sys.stderr, flush=True)
         if failed:
             from pipeline.jobs.reconstruct import JobIncomplete
 
             raise JobIncomplete(url, failed, n, again="to_video(..., resume=True)")
         remove_partial_writes(url)
         open_video_store(url, writable=True).attrs["state"] = "complete"
-    return {"frames": n, "tasks_run": sum(units), "tasks_skipped": total - sum(units)}
+    return {"frames": n, "tasks_run": to_run, "tasks_skipped": total - to_run}
+
+
+def _run_blocks(client, blocks: TileBlocks, gain: float, done: np.ndarray, url: str, run: str):
+    """The blocks of a reconstruction read from a store, not all committed in ``done``, on ``client`` as the
+    ``reconstruct`` job runs them (``reconstruct_tasks.run_blocks``: the executor's bounded window, each tile's tasks
+    made as it moves, tasks the cluster drops submitted again), with ``gain`` computed (as the job's: its tasks need
+    no exposure held by the cluster, which a scheduler restart forgets); yield (block, None or why it failed)."""
+    blocks = dataclasses.replace(blocks, gain=gain)
+    for outcome in run_blocks(client, blocks.units(done), blocks=blocks, out=url, run=run):
+        yield (blocks.starts.index(outcome.start), outcome.ty, outcome.tx), outcome.error
+
+
+def _in_rounds(client, written: da.Array, blocks: list[tuple[int, int, int]]):
+    """The ``blocks`` of ``written`` computed ``BLOCKS_AT_ONCE`` a round (a round's graph culled at once, so the blocks
+    of a round share what they read); yield (block, None or why it failed). On dask's own scheduler the first error
+    stops it; on ``client`` every block is tried."""
+    for at in range(0, len(blocks), BLOCKS_AT_ONCE):
+        chosen = blocks[at : at + BLOCKS_AT_ONCE]
+        if client is None:
+            # unoptimised: each stage's tasks keep their names (windows, tfp, write ...) and annotations
+            dask.compute(*(written.blocks[b, ty, tx, 0] for b, ty, tx in chosen), optimize_graph=False)
+            yield from ((block, None) for block in chosen)
+        else:
+            yield from _outcomes(client, written, chosen)
 
 
 def _outcomes(client, written: da.Array, chosen: list[tuple[int, int, int]]):
