@@ -108,6 +108,35 @@ def test_a_npy_is_what_ingest_stores(tmp_path, small_chunks):
                          cfa="bggr", fps=1000, reset="zero")
 
 
+def test_on_one_client_ingest_runs_the_tasks_of_to_spikes_of_open_capture_reading_packed_bytes(
+        client, tmp_path, small_chunks):
+    """``cscsr ingest`` is a front door to ``to_spikes(open_capture(...))``: on one client both run the same tasks
+    (``to-spikes``, one per task of frames: each reads its frames by one byte range and writes them packed, so no
+    unpacked bits are made or moved between workers, where ``open_capture``'s blocks of bits were), into the same
+    store; a selection of the frames is written through the bits, as any lazy spikes are."""
+    from dask.utils import key_split
+    from distributed import get_task_stream
+
+    bits = (np.random.default_rng(7).random((50, 16, 24)) < 0.2).astype(np.uint8)
+    write_dat(tmp_path / "c.dat", bits)
+    with dask.config.set(scheduler=client), get_task_stream(client) as job:
+        ingest(str(tmp_path / "c.dat"), str(tmp_path / "ingested.zarr"), IngestOptions(16, 24, task_frames=10),
+               progress=False, client=client)
+    spikes = lazy.open_capture(tmp_path / "c.dat", height=16, width=24)
+    with dask.config.set(scheduler=client), get_task_stream(client) as graph:
+        done = lazy.to_spikes(spikes, tmp_path / "written.zarr", task_frames=10)
+    ran = {name: sorted((key_split(r["key"]), r["key"][1]) for r in stream.data)
+           for name, stream in (("job", job), ("graph", graph))}
+    assert ran["job"] == ran["graph"] == [("to-spikes", index) for index in range(5)], ran  # chunks of 5, tasks of 10
+    assert done["tasks_run"] == 5 and done["spikes"] == int(bits.sum())
+    assert_same_store(tmp_path / "written.zarr", tmp_path / "ingested.zarr")
+    with dask.config.set(scheduler=client), get_task_stream(client) as selected:
+        lazy.to_spikes(spikes.isel(t=slice(0, 40)), tmp_path / "part.zarr", task_frames=10)
+    names = {key_split(r["key"]) for r in selected.data}
+    assert "to-spikes" in names and names - {"to-spikes", "finalize-hlgfinalizecompute"}, names  # the bits read
+    assert np.array_equal(lazy.open_spikes(tmp_path / "part.zarr").values, bits[:40].astype(bool))
+
+
 def test_an_sps100_capture_cut_short_is_what_ingest_stores(tmp_path, monkeypatch, caplog):
     monkeypatch.setattr(spike_store, "TARGET_CHUNK_BYTES", 2 * 1000 * 125)  # 2 frames a chunk
     tail = 64 * 700 + 32
@@ -136,6 +165,9 @@ def test_damage_in_the_frames_is_refused_naming_its_offset_when_read(tmp_path):
     assert spikes[:2].values.shape == (2, 1000, 1000)  # the frames before it read
     with pytest.raises(CaptureDamaged, match=f"at byte {half_line + 48}: half-line 300 of frame 2"):
         spikes[2].values
+    with pytest.raises(lazy.SpikesIncomplete, match=f"3 of 4 tasks committed.*at byte {half_line + 48}: half-line 300 "
+                                                    f"of frame 2.*resume=True"):  # ingest's tasks: they find it
+        lazy.to_spikes(spikes, tmp_path / "c.zarr", chunk_frames=1)
     (tmp_path / "e.dat").write_bytes(data[:half_line + 16] + data[half_line + 32:])
     with pytest.raises(CaptureDamaged, match=f"at byte {half_line + 48}: half-line 300 of frame 2"):
         lazy.open_capture(tmp_path / "e.dat", layout="sps100")

@@ -423,9 +423,11 @@ def _run_on_cluster(plan: IngestPlan, todo: list[int], counts: np.ndarray, advan
 
 def run_tasks(client, tasks: Iterable[int], *, plan: IngestPlan) -> Iterator[Outcome]:
     """Run ingest tasks on ``client`` (``pipeline.compute.executor``: a bounded window, lost workers survived, tasks the
-    cluster drops submitted again); yield each outcome as it finishes."""
+    cluster drops submitted again); yield each outcome as it finishes. ``lazy.to_spikes`` of ``lazy.open_capture``
+    runs its tasks here too."""
     def submit(index: int):  # the plan travels in each task
-        return client.submit(_ingest_task, plan, index, pure=False)
+        key, task = ingest_task(plan, index)
+        return client.get({key: task}, [key], sync=False)[0]
 
     for index, future in submitted(client, tasks, submit, idempotent=True):
         error = failure(future)
@@ -443,6 +445,15 @@ def _opened(plan: IngestPlan):
     if capture.n_frames != plan.n_frames:
         raise InputError(f"{plan.src} changed since the ingest started: {capture.n_frames} frames, not {plan.n_frames}")
     return (capture, *ingest_task_arrays(plan.dest))
+
+
+def ingest_task(plan: IngestPlan, index: int):
+    """(key, task) of ingest task ``index``: :func:`_ingest_task`, under the key of ``lazy.to_spikes``'s writes
+    (``to-spikes-<run>``), so a job's tasks and the lazy graph's have one name on a cluster's dashboard."""
+    from dask._task_spec import Task
+
+    key = (f"to-spikes-{plan.run}", index)
+    return key, Task(key, _ingest_task, plan, index)
 
 
 def _ingest_task(plan: IngestPlan, index: int) -> int | str:

@@ -19,6 +19,7 @@ when the block is computed, naming the byte offset (``stages.capture.sps100.Capt
 
 import functools
 import logging
+import weakref
 from dataclasses import dataclass
 
 import dask.array as da
@@ -74,7 +75,19 @@ def open_capture(path, *, height: int | None = None, width: int | None = None, l
     bits = packed.map_blocks(unpacked_bits, capture.width, chunks=(packed.chunks[0], (capture.height,),
                                                                    (capture.width,)),
                              dtype=bool, name=f"spikes-{token}")
+    _READS[bits.name] = frames
     return as_spikes(bits, {**meta.attrs(), "frames": n_frames})
+
+
+def capture_frames(data: da.Array) -> "_CaptureFrames | None":
+    """The capture ``data`` are all the frames of, as :func:`open_capture` made them (a selection, a function or a
+    rechunk since makes a new array): then ``to_spikes`` runs ``cscsr ingest``'s own tasks, each reading its frames
+    packed by one byte range and writing them as they are. Else None."""
+    return _READS.get(data.name)
+
+
+_READS: "weakref.WeakValueDictionary[str, _CaptureFrames]" = weakref.WeakValueDictionary()  # kept while a graph
+# holds the capture's reader
 
 
 @dataclass(frozen=True)

@@ -18,25 +18,30 @@ active, else Dask's default).
 """
 
 import operator
+import uuid
 
+import dask
 import dask.array as da
 import numpy as np
 import xarray as xr
 import zarr
 from dask.base import tokenize
+from dask.delayed import Delayed
 from dask.highlevelgraph import HighLevelGraph
 
 from pipeline.stores.frame_sources import FrameSource
 from pipeline.compute.hold import hold_point
-from pipeline.jobs.ingest import COMMITTED_UNITS, task_frames_for
-from pipeline.lazy.spikes import as_spikes, check_here, check_spikes, python_words, selection, unpacked_bits, url_text
+from pipeline.jobs.ingest import COMMITTED_UNITS, IngestPlan, ingest_task, run_tasks, task_frames_for
+from pipeline.lazy.capture import capture_frames
+from pipeline.lazy.spikes import (as_spikes, check_here, check_spikes, distributed_client, python_words, selection,
+                                  unpacked_bits, url_text)
 from pipeline.stores.lease import check_free, claimed, held
 from pipeline.stores.outputs import SPIKE_STORE, check_existing, new_output
 from pipeline.jobs.simulate import SimulateOptions, check_options, fire_chunk, simulated_meta, state_after
 from pipeline.stores.spike_store import (COMMITTED, SPIKES, SpikeMeta, SpikeStore, SpikeStoreWriter,
                                   chunk_frames_for, open_spike_store, write_region)
 from pipeline.stores.ground_truth import declare_truth, has_truth, write_truth
-from pipeline.stores.storage import check_apart, exists
+from pipeline.stores.storage import check_apart, exists, recorded
 from stages.simulation import sensor
 from stages.capture.bits import count_spikes, pack_rows, packed_width
 from stages.errors import InputError, InputTypeError, describe
@@ -162,7 +167,9 @@ def to_spikes(spikes: xr.DataArray, url: str, *, chunk_frames: int | None = None
 
     The store records ``spikes.attrs`` (the recording's settings: ``pipeline.stores.spike_store.SpikeMeta``) and is chunked
     by ``chunk_frames`` frames (default: about 4 MiB packed). Each task packs and writes ``task_frames`` frames (whole
-    chunks; default: one chunk) and records them in ``committed``. A failed run raises :class:`SpikesIncomplete` and
+    chunks; default: one chunk) and records them in ``committed``. Spikes of ``lazy.open_capture``, as it made them,
+    are written by ``cscsr ingest``'s own tasks (each reads its frames packed by one byte range: no unpacked bits
+    made or moved), on a client through the job's executor. A failed run raises :class:`SpikesIncomplete` and
     keeps what it committed; ``resume=True`` runs only the tasks not committed, cut as the store was (it refuses a
     store of other attributes, frame count or chunking; that the spikes are the same data is the caller's word).
     Everything is checked, in one line, before anything is written.
@@ -194,7 +201,9 @@ def to_spikes(spikes: xr.DataArray, url: str, *, chunk_frames: int | None = None
             todo = [index for index in range(plan.n_tasks) if counts[index] < 0]
             if todo:
                 with held(url):
-                    counts[todo] = plan.run(spikes.data, todo)
+                    frames = capture_frames(spikes.data)
+                    counts[todo] = (plan.run(spikes.data, todo) if frames is None
+                                    else plan.run_ingest(frames, todo, distributed_client(spikes.data)))
             if truth is not None and writer.group.attrs.get("state") != "complete":
                 with held(url):
                     _write_truths(truth, centres, url, spikes.attrs["cfa"])
@@ -353,6 +362,29 @@ class _ToSpikes:
             raise SpikesIncomplete(f"to_spikes {self.url}: {done} of {self.n_tasks} tasks committed, the others not "
                                    f"({describe(error)}): fix the cause and call to_spikes again with "
                                    f"resume=True") from error
+
+
+    def run_ingest(self, frames, todo: list[int], client) -> np.ndarray:
+        """Tasks ``todo`` of the capture ``frames`` (``lazy.open_capture``'s reader) as ``cscsr ingest`` runs them
+        (``pipeline.jobs.ingest``: each reads its frames by one byte range and writes them packed, so no unpacked
+        bits are made or moved), on ``client`` through its executor, else on dask's own scheduler; -> their spike
+        counts. Raises :class:`SpikesIncomplete` if any fails or finds the capture damaged."""
+        plan = IngestPlan(frames.url, recorded(self.url), frames.height, frames.width, frames.flip,
+                          frames.head_columns, None, frames.n_frames, self.task_frames, uuid.uuid4().hex, frames.layout)
+        if client is not None:
+            outcomes = {o.index: o.spikes if o.error is None else o.error for o in run_tasks(client, todo, plan=plan)}
+        else:
+            tasks = dict(ingest_task(plan, index) for index in todo)
+            try:
+                done = dask.compute(*(Delayed(key, tasks) for key in tasks))
+            except Exception as error:  # noqa: BLE001 - every failure is said, as plan.run says it
+                done = [describe(error)] * len(todo)
+            outcomes = dict(zip(todo, done))
+        if failed := [why for why in outcomes.values() if isinstance(why, str)]:
+            committed = int((open_spike_store(self.url, allow_incomplete=True).group[COMMITTED][:] >= 0).sum())
+            raise SpikesIncomplete(f"to_spikes {self.url}: {committed} of {self.n_tasks} tasks committed, the others "
+                                   f"not ({failed[0]}): fix the cause and call to_spikes again with resume=True")
+        return np.array([outcomes[index] for index in todo], np.int64)
 
 
 def _write_task(bits: np.ndarray, url: str, start: int, index: int) -> np.ndarray:
