@@ -172,6 +172,23 @@ def test_a_million_frames_build_a_small_graph_without_reading_a_chunk(tmp_path):
         hr[0].compute()
 
 
+def test_a_reconstruction_makes_its_tasks_only_as_something_computes_them(recording, monkeypatch):
+    """The blocks' tasks are made on demand (``lazy.video.BlocksLayer``): building a reconstruction, counting and
+    listing its keys make none; computing one output frame makes that frame's blocks only (a frame's 12 tiles), and
+    gives what computing all of it gives there."""
+    from pipeline.jobs.reconstruct_tasks import TileBlocks
+
+    made, graph = [], TileBlocks.graph
+    monkeypatch.setattr(TileBlocks, "graph", lambda self, b, k: made.append((b, k)) or graph(self, b, k))
+    hr = lazy.tfp(lazy.windows(lazy.open_spikes(recording), every=7), tile=16)  # 23 frames of 3x4 tiles
+    layer = hr.data.__dask_graph__().layers[hr.data.name]
+    assert len(layer) == len(list(layer)) == 23 * 12 and made == []
+    with threaded():
+        frame = hr.isel(t=3).values
+        assert sorted(made) == [(3, k) for k in range(12)]  # a block a frame (TFP), a pass a tile
+        assert np.array_equal(frame, hr.values[3])
+
+
 LONG_RUN = """
 import resource, sys
 import dask, numpy as np

@@ -27,7 +27,7 @@ import dask.array as da
 import numpy as np
 import xarray as xr
 from dask.base import tokenize
-from dask.highlevelgraph import HighLevelGraph, MaterializedLayer
+from dask.highlevelgraph import HighLevelGraph, Layer, MaterializedLayer
 
 from pipeline.compute.cluster import GPU, GPU_SHARE
 from pipeline.jobs.reconstruct_plan import Plan, ReconstructOptions
@@ -230,22 +230,85 @@ def tile_blocks(data: da.Array) -> TileBlocks | None:
     return blocks if data.chunks == (blocks.frames, *blocks.hr_tiles, (3,)) else None
 
 
-class BlocksLayer(MaterializedLayer):
-    """The tasks of every block of ``blocks`` in one graph layer, annotated as the job's, knowing the blocks they were
-    made from (:func:`tile_blocks`)."""
+class BlocksLayer(Layer):
+    """The tasks of every block of ``blocks`` (``TileBlocks.graph``: the job's) as one graph layer, annotated as the
+    job's, each task made when something asks for it: a long recording's graph costs nothing to build or hold until
+    it is computed, and then only what a computation needs (:meth:`cull`) is made. Knows the blocks it was made from
+    (:func:`tile_blocks`). The tasks made are kept, so a graph materialised more than once is made once."""
 
-    def __init__(self, blocks: TileBlocks, tasks: dict):
-        super().__init__(tasks, annotations=blocks.annotations)
+    has_legacy_tasks = False  # every task a ``dask._task_spec.Task`` (the base class would make them all to find out)
+
+    def __init__(self, blocks: TileBlocks):
+        super().__init__(annotations=blocks.annotations)
         self.blocks = blocks
+        self._pass_of = {tile: k for k, tiles in enumerate(blocks.passes) for tile in tiles}  # (ty, tx) -> pass
+        self._made: dict = {}
+
+    def _unit(self, key) -> tuple[int, int] | None:
+        """(block along time, pass) whose tasks hold ``key``, or None for a key not of this layer."""
+        blocks = self.blocks
+        if not isinstance(key, tuple) or not key or not isinstance(key[0], str):
+            return None
+        if key[0] == blocks.name and len(key) == 5 and (key[2], key[3]) in self._pass_of:
+            b, k = key[1], self._pass_of[key[2], key[3]]
+        elif key[0] == f"pass-{blocks.name}" and len(key) == 3 and 0 <= key[2] < len(blocks.passes):
+            b, k = key[1], key[2]
+            if len(blocks.passes[k]) == 1:
+                return None
+        else:
+            return None
+        return (b, k) if isinstance(b, int) and 0 <= b < len(blocks.frames) and blocks.frames[b] else None
+
+    def _tasks(self, b: int, k: int) -> dict:
+        tasks = self.blocks.graph(b, k)
+        self._made.update(tasks)
+        return tasks
+
+    def __getitem__(self, key):
+        if key in self._made:
+            return self._made[key]
+        unit = self._unit(key)
+        if unit is None:
+            raise KeyError(key)
+        return self._tasks(*unit)[key]
+
+    def __contains__(self, key) -> bool:
+        return self._unit(key) is not None
+
+    def __iter__(self):
+        blocks = self.blocks
+        for b, k in blocks.units():
+            tiles = blocks.passes[k]
+            if len(tiles) > 1:
+                yield f"pass-{blocks.name}", b, k
+            for ty, tx in tiles:
+                yield blocks.name, b, ty, tx, 0
+
+    def __len__(self) -> int:
+        per_block = sum(len(tiles) + (len(tiles) > 1) for tiles in self.blocks.passes)
+        return per_block * sum(1 for n in self.blocks.frames if n)
+
+    def is_materialized(self) -> bool:
+        return False
+
+    def get_output_keys(self):
+        return set(self)
+
+    def cull(self, keys, all_hlg_keys):
+        """Only the tasks ``keys`` need, made now: -> (their layer, {key: its dependencies})."""
+        out = {}
+        for unit in {self._unit(key) for key in keys} - {None}:
+            tasks = self._tasks(*unit)
+            wanted = {key for key in tasks if key in keys}
+            wanted |= {dep for key in wanted for dep in tasks[key].dependencies if dep in tasks}  # the pass they share
+            out.update({key: tasks[key] for key in wanted})
+        return MaterializedLayer(out, annotations=self.annotations), {k: set(v.dependencies) for k, v in out.items()}
 
 
 def _blocks_array(blocks: TileBlocks, gain) -> da.Array:
-    """``blocks`` as a dask array (t, y, x, rgb) uint8: every block's tasks (``TileBlocks.graph``: the job's) in one
-    layer, annotated as the job's, on the automatic exposure's graph where ``gain`` is lazy."""
-    tasks = {}
-    for b, k in blocks.units():
-        tasks.update(blocks.graph(b, k))
-    layers, dependencies = {blocks.name: BlocksLayer(blocks, tasks)}, {blocks.name: set()}
+    """``blocks`` as a dask array (t, y, x, rgb) uint8: every block's tasks in one layer made on demand
+    (:class:`BlocksLayer`), on the automatic exposure's graph where ``gain`` is lazy."""
+    layers, dependencies = {blocks.name: BlocksLayer(blocks)}, {blocks.name: set()}
     if isinstance(gain, da.Array):
         below = gain.__dask_graph__()
         layers.update(below.layers)

@@ -16,6 +16,7 @@ import dask.array as da
 import numpy as np
 import xarray as xr
 from dask.base import tokenize
+from dask.delayed import Delayed
 
 from pipeline.compute.progress import progress_bar
 from pipeline.jobs.reconstruct_tasks import TileBlocks, run_blocks, write_task
@@ -109,7 +110,7 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
         total = (sum(1 for c in data.chunks[0] if c) if per_block else n) * tiles[0] * tiles[1]
         piped = progress and not sys.stderr.isatty()  # no bar to draw: a line every BLOCKS_AT_ONCE blocks
         failed, finished, finished_units = {}, 0, 0
-        from_store = tile_blocks(data) if client is not None else None
+        from_store = tile_blocks(data)
         with held(url), progress_bar(f"to_video {url}", to_run, unit="tasks", enabled=progress) as advance:
             for (b, ty, tx), error in (_run_blocks(client, from_store, attrs["gain"], done, url, run)
                                        if from_store is not None
@@ -131,13 +132,26 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
 
 
 def _run_blocks(client, blocks: TileBlocks, gain: float, done: np.ndarray, url: str, run: str):
-    """The blocks of a reconstruction read from a store, not all committed in ``done``, on ``client`` as the
-    ``reconstruct`` job runs them (``reconstruct_tasks.run_blocks``: the executor's bounded window, each tile's tasks
-    made as it moves, tasks the cluster drops submitted again), with ``gain`` computed (as the job's: its tasks need
-    no exposure held by the cluster, which a scheduler restart forgets); yield (block, None or why it failed)."""
+    """The blocks of a reconstruction read from a store, not all committed in ``done``, with ``gain`` computed (as the
+    job's: their tasks need no exposure held by a cluster, which a scheduler restart forgets), each tile's tasks made
+    from ``blocks`` as they are run (never the whole graph); yield (block, None or why it failed). On ``client`` as
+    the ``reconstruct`` job runs them (``reconstruct_tasks.run_blocks``: the executor's bounded window, tasks the
+    cluster drops submitted again), else ``BLOCKS_AT_ONCE`` tiles a round on dask's own scheduler."""
     blocks = dataclasses.replace(blocks, gain=gain)
-    for outcome in run_blocks(client, blocks.units(done), blocks=blocks, out=url, run=run):
-        yield (blocks.starts.index(outcome.start), outcome.ty, outcome.tx), outcome.error
+    if client is not None:
+        for outcome in run_blocks(client, blocks.units(done), blocks=blocks, out=url, run=run):
+            yield (blocks.starts.index(outcome.start), outcome.ty, outcome.tx), outcome.error
+        return
+    tiles = [(b, k, ty, tx) for b, k in blocks.units(done) for ty, tx in blocks.passes[k]]
+    for at in range(0, len(tiles), BLOCKS_AT_ONCE):
+        chosen, graph, keys = tiles[at : at + BLOCKS_AT_ONCE], {}, []
+        for tile in chosen:
+            tasks, write, key = blocks.written(*tile, url, run)
+            graph.update(tasks)
+            graph.update(write)
+            keys.append(key)
+        dask.compute(*(Delayed(key, graph) for key in keys), optimize_graph=False)
+        yield from (((b, ty, tx), None) for b, _, ty, tx in chosen)
 
 
 def _in_rounds(client, written: da.Array, blocks: list[tuple[int, int, int]]):
@@ -157,8 +171,6 @@ def _in_rounds(client, written: da.Array, blocks: list[tuple[int, int, int]]):
 def _outcomes(client, written: da.Array, chosen: list[tuple[int, int, int]]):
     """Compute blocks ``chosen`` of ``written`` on ``client``, their keys the graph's own (unoptimised: each stage's
     tasks keep their names and annotations); yield (block, None or why it failed, in one line) as each finishes."""
-    from dask.delayed import Delayed
-
     from pipeline.compute.executor import failure, in_bounded_window, still_computing
 
     graph = written.__dask_graph__()
