@@ -363,7 +363,6 @@ class _ToSpikes:
                                    f"({describe(error)}): fix the cause and call to_spikes again with "
                                    f"resume=True") from error
 
-
     def run_ingest(self, frames, todo: list[int], client) -> np.ndarray:
         """Tasks ``todo`` of the capture ``frames`` (``lazy.open_capture``'s reader) as ``cscsr ingest`` runs them
         (``pipeline.jobs.ingest``: each reads its frames by one byte range and writes them packed, so no unpacked

@@ -7,6 +7,7 @@ A selection of ``hr`` is written exactly (its output frames as ``start``/``stop`
 or refused in one line before anything exists.
 """
 
+import bisect
 import dataclasses
 import sys
 import uuid
@@ -32,8 +33,8 @@ from stages.errors import InputError, InputTypeError
 from stages.numbers import check_flag
 from stages.reconstruction.methods import NETWORKS
 
-BLOCKS_AT_ONCE = 256  # blocks of video to_video computes and writes a round (but a store's reconstruction on a
-# cluster, which runs through the executor's window): the graph in memory stays bounded
+BLOCKS_AT_ONCE = 256  # blocks (tiles of a store's reconstruction) to_video computes and writes a round, but on a
+# cluster a store's reconstruction, which runs through the executor's window: the graph in memory stays bounded
 
 
 def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = False,
@@ -140,7 +141,7 @@ def _run_blocks(client, blocks: TileBlocks, gain: float, done: np.ndarray, url: 
     blocks = dataclasses.replace(blocks, gain=gain)
     if client is not None:
         for outcome in run_blocks(client, blocks.units(done), blocks=blocks, out=url, run=run):
-            yield (blocks.starts.index(outcome.start), outcome.ty, outcome.tx), outcome.error
+            yield (bisect.bisect_right(blocks.starts, outcome.start) - 1, outcome.ty, outcome.tx), outcome.error
         return
     tiles = [(b, k, ty, tx) for b, k in blocks.units(done) for ty, tx in blocks.passes[k]]
     for at in range(0, len(tiles), BLOCKS_AT_ONCE):
