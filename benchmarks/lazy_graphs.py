@@ -73,6 +73,41 @@ def graph_build(frames: int, folder: Path, stage: str) -> dict:
             "memory_bytes": int(grown), "output_frames": int(outputs), "tasks": int(tasks), "chunk_frames": int(chunk)}
 
 
+def side_by_side(client, store: str, folder: Path, options: dict, repeats: int) -> dict:
+    """Part 2 for one method: the job and the lazy graph alternately, ``repeats`` times each."""
+    import zarr
+
+    from cscsr import lazy
+    from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct
+
+    part = {k: options[k] for k in ("start", "stop", "region") if k in options}
+    stage = {k: options[k] for k in ("method", "weights", "tile") if k in options}
+
+    def job(out: str):
+        reconstruct(store, out, ReconstructOptions(**options), client=client, progress=False)
+
+    def lazily(out: str):
+        lazy.to_video(lazy.reconstruct(lazy.windows(lazy.open_spikes(store), every=options["every"], **part), **stage),
+                      out)
+
+    seconds = {"job": [], "lazy": []}
+    for repeat in range(repeats):
+        order = [("job", job), ("lazy", lazily)][:: 1 if repeat % 2 == 0 else -1]
+        for name, run in order:
+            out = folder / f"{name}.zarr"
+            shutil.rmtree(out, ignore_errors=True)
+            began = time.perf_counter()
+            run(str(out))
+            seconds[name].append(time.perf_counter() - began)
+        job_video, lazy_video = (zarr.open_group(str(folder / f"{n}.zarr"), mode="r")["video"][:] for n in ("job", "lazy"))
+        if not np.array_equal(job_video, lazy_video):
+            raise SystemExit(f"{options['method']}: the lazy graph's video differs from the job's")
+    ratios = [lz / jb for lz, jb in zip(seconds["lazy"], seconds["job"])]
+    return {"job_seconds": median(seconds["job"]), "lazy_seconds": median(seconds["lazy"]), "ratio": median(ratios),
+            "frames": int(zarr.open_group(str(folder / "job.zarr"), mode="r")["frames"].shape[0]),
+            "runs": seconds, "options": options}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--repeats", type=int, default=3)

@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 import xarray as xr
 import zarr
-from distributed import Client, Future, LocalCluster, get_task_stream
+from distributed import Client, LocalCluster, get_task_stream
 
 from cscsr import lazy
 from pipeline.compute.cluster import GPU, GPU_SHARE
