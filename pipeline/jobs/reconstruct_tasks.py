@@ -159,6 +159,12 @@ class TileBlocks:
                 if done is None or not all(done[self.starts[b] : self.starts[b + 1], ty, tx].all() for ty, tx in tiles):
                     yield b, k
 
+    def tiles(self, units) -> Iterator[tuple[int, int, int, int]]:
+        """(block along time, pass, tile row, tile column) of every tile of ``units`` ((block, pass) pairs)."""
+        for b, k in units:
+            for ty, tx in self.passes[k]:
+                yield b, k, ty, tx
+
     def graph(self, b: int, k: int) -> dict:
         """The tasks of pass ``k`` of block ``b`` along time: {key: task}, each tile's HR block (n, h, w, 3) uint8
         under the key ``(name, b, ty, tx, 0)``."""
@@ -248,16 +254,11 @@ def run_blocks(client, units: Iterable[tuple[int, int]], *, blocks: TileBlocks, 
     their blocks here."""
     from pipeline.compute.executor import failure, submitted
 
-    def tiles():
-        for b, k in units:
-            for ty, tx in blocks.passes[k]:
-                yield b, k, ty, tx
-
     def submit(tile):  # everything a task needs travels in it (scattered data dies with the workers holding it)
         tasks, write, key = blocks.written(*tile, out, run)
         return client.get(blocks.layered(tasks, write), [key], sync=False)[0]
 
-    for (b, _, ty, tx), future in submitted(client, tiles(), submit, idempotent=True):
+    for (b, _, ty, tx), future in submitted(client, blocks.tiles(units), submit, idempotent=True):
         # the task raised, or the cluster failed it: report it, go on with the others
         yield Outcome(blocks.starts[b], blocks.starts[b + 1], ty, tx, failure(future))
 

@@ -143,7 +143,7 @@ def _run_blocks(client, blocks: TileBlocks, gain: float, done: np.ndarray, url: 
         for outcome in run_blocks(client, blocks.units(done), blocks=blocks, out=url, run=run):
             yield (bisect.bisect_right(blocks.starts, outcome.start) - 1, outcome.ty, outcome.tx), outcome.error
         return
-    tiles = [(b, k, ty, tx) for b, k in blocks.units(done) for ty, tx in blocks.passes[k]]
+    tiles = list(blocks.tiles(blocks.units(done)))
     for at in range(0, len(tiles), BLOCKS_AT_ONCE):
         chosen, graph, keys = tiles[at : at + BLOCKS_AT_ONCE], {}, []
         for tile in chosen:
