@@ -7,6 +7,7 @@ import sys
 import time
 from dataclasses import dataclass
 
+import dask
 import fsspec
 import numpy as np
 import pytest
@@ -14,6 +15,9 @@ from typer.testing import CliRunner
 
 from cscsr import samples
 from pipeline.cli import app
+from pipeline.compute.cluster import forked_workers
+
+dask.config.set(forked_workers())  # the tests' own local clusters start their workers as the jobs' clusters do
 
 
 CSCSR = os.path.join(os.path.dirname(sys.executable), "cscsr")  # the installed command, as a user runs it

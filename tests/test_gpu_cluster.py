@@ -242,3 +242,20 @@ def test_cscsr_worker_without_a_scheduler_is_one_line(cli, monkeypatch):
     assert_refused(cli("worker"), "DASK_SCHEDULER_ADDRESS")
     assert_refused(cli("worker", "tcp://127.0.0.1:8786", "--memory-limit", "lots"), "--memory-limit", "lots")
     assert_refused(cli("worker", "tcp://127.0.0.1:8786", "--gpus", "-1"), "--gpus must be >= 0")
+
+
+def test_a_cpu_local_cluster_forks_its_workers_from_one_server_with_the_spawned_environment():
+    """A local CPU cluster's workers are forks of one server process that imported Dask and Zarr once (spawned,
+    each worker imported them again at every cluster start); the next cluster forks from the same server, and a
+    worker starts with what a spawned one had: the malloc settings and Dask's hash seed."""
+    import psutil
+
+    servers = set()
+    for _ in range(2):
+        with dask_client(workers=2, gpus=0) as client:
+            seen = client.run(lambda: (psutil.Process().ppid(), "zarr" in sys.modules, os.environ.get(
+                "MALLOC_MMAP_THRESHOLD_"), os.environ.get("PYTHONHASHSEED")))
+            assert {facts[1:] for facts in seen.values()} == {(True, str(64 * 2**20), "6640")}
+            servers |= {facts[0] for facts in seen.values()}
+    (server,) = servers
+    assert server != os.getpid() and "multiprocessing.forkserver" in " ".join(psutil.Process(server).cmdline())

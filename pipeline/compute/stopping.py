@@ -105,13 +105,15 @@ def mark_command_line() -> None:
 
 
 def ignore_ctrl_c_while_spawned() -> None:
-    """In a process that ``multiprocessing`` spawns for a command (a local cluster's worker, a segment), ignore SIGINT
+    """In a process that ``multiprocessing`` spawns for a command (a local cluster's worker, a segment, the server
+    that forks workers, whose forks keep this handler), ignore SIGINT
     from its first import of this module on: the terminal's Ctrl-C reaches every process of the job, and a worker
     still importing printed a ``KeyboardInterrupt`` traceback of its own (dozens of lines when a job is stopped as its
     cluster starts), while the command closes its cluster, and with it the worker, anyway. A segment process handles
     SIGINT again once it runs (:func:`interrupt_on`). Python's own handler, not ``SIG_IGN``, so that processes started
     after it begin with the default. Elsewhere (the Python API, its own processes, tests) nothing changes."""
-    spawned = "--multiprocessing-fork" in getattr(sys, "orig_argv", ())
+    command = getattr(sys, "orig_argv", ())
+    spawned = "--multiprocessing-fork" in command or any("multiprocessing.forkserver" in part for part in command)
     if spawned and os.environ.get(COMMAND_LINE) and threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, lambda signum, frame: None)
 
