@@ -36,7 +36,7 @@ def gpu_worker_client():
         with cluster.dask_client(workers=1, gpus=1) as client:
             yield client, "pipeline.compute.cluster.dask_client(workers=1, gpus=1)"
         return
-    with dask.config.set(getattr(cluster, "_PRE_SPAWN", {})), \
+    with dask.config.set(getattr(cluster, "PRE_SPAWN", getattr(cluster, "_PRE_SPAWN", {}))), \
             LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
                          dashboard_address="127.0.0.1:0", resources={cluster.GPU: 1},
                          env=cluster._thread_env(1), silence_logs=cluster._dask_log_level()) as local, \

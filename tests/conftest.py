@@ -15,9 +15,7 @@ from typer.testing import CliRunner
 
 from cscsr import samples
 from pipeline.cli import app
-from pipeline.compute.cluster import forked_workers
-
-dask.config.set(forked_workers())  # the tests' own local clusters start their workers as the jobs' clusters do
+from pipeline.compute.worker_start import forked_workers
 
 
 CSCSR = os.path.join(os.path.dirname(sys.executable), "cscsr")  # the installed command, as a user runs it
@@ -114,6 +112,13 @@ def write_dat(path, bits: np.ndarray, *, flip: bool = False) -> bytes:
     with open(path, "wb") as handle:
         handle.write(data)
     return data
+
+
+@pytest.fixture(scope="session", autouse=True)
+def workers_forked_as_the_jobs_fork_them():
+    """The tests' own local clusters start their workers as the jobs' clusters do (a fixture, not at import: a
+    process that multiprocessing spawns imports this module too, and may not start processes while it does)."""
+    dask.config.set(forked_workers())
 
 
 @pytest.fixture(scope="module")

@@ -35,6 +35,7 @@ import dask
 from distributed import Client, LocalCluster, Nanny, WorkerPlugin
 
 from pipeline.compute.stopping import purge_stale_worker_folders, start_resource_tracker
+from pipeline.compute.worker_start import PRE_SPAWN, forked_workers
 from stages.errors import InputError, describe
 from stages.numbers import check_number
 
@@ -55,51 +56,6 @@ DEVICES_VARIABLE = "CUDA_VISIBLE_DEVICES"  # the devices a process sees: what pi
 _log = logging.getLogger("cscsr.worker")
 LOOPBACK = "127.0.0.1"
 DASHBOARD_VARIABLE = "CSCSR_DASHBOARD"  # HOST:PORT of a local cluster's dashboard; default loopback, any free port
-
-
-# Dask's nanny starts workers with MALLOC_TRIM_THRESHOLD_=65536, which pins glibc's mmap
-# threshold at 128 KiB: every large temporary array (an HR frame is tens of MB) is then a
-# fresh mmap with page faults on every touch, 1.44x the time of a reconstruction task.
-# Fixed thresholds of 64 MiB keep such arrays on the reused heap. glibc reads them only at
-# process start, so they go in the nanny's pre-spawn environment, not in ``env``.
-_PRE_SPAWN = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": str(256 * 2**20),
-              "distributed.nanny.pre-spawn-environ.MALLOC_MMAP_THRESHOLD_": str(64 * 2**20)}
-
-
-# A local cluster's CPU workers are forks of one server process (Python's "forkserver", Dask's
-# distributed.worker.multiprocessing-method) that has imported Dask, NumPy and Zarr once. Spawned, every worker
-# imported them for itself at every cluster start: a job's segments, a nanny's restart of a lost worker and every
-# local cluster of a process after the first waited on it. torch is not preloaded: a TFP job never imports it,
-# and a worker imports it under its own thread settings (_thread_env). A forked worker's NumPy keeps the server's
-# BLAS threads (Dask's pre-spawn default, 1). GPU workers are still spawned (a fork must never carry CUDA state,
-# and they start once per job). Python skips a preload that fails to import.
-START_METHOD = "distributed.worker.multiprocessing-method"
-FORKSERVER_PRELOAD = ("distributed", "numpy", "dask.array", "numcodecs", "zarr",
-                      "pipeline.compute.stopping")  # stopping: a command's workers ignore Ctrl-C, as spawned ones do
-
-
-def forked_workers() -> dict:
-    """Dask's configuration for local workers forked from one server process: the server is started here (once per
-    process; later calls change nothing) with :data:`FORKSERVER_PRELOAD` imported and the environment a spawned
-    worker starts with (the nanny's pre-spawn variables: malloc settings, one BLAS thread, Dask's hash seed)."""
-    from multiprocessing import forkserver
-
-    from distributed.utils import get_mp_context
-
-    with dask.config.set({START_METHOD: "forkserver", **_PRE_SPAWN}):
-        context = get_mp_context()  # Dask sets its own preload list on its first call: ours replaces it
-        environment = {name: str(value) for name, value in
-                       dask.config.get("distributed.nanny.pre-spawn-environ").items() if value is not None}
-    environment.setdefault("PYTHONHASHSEED", "6640")  # what a nanny gives a spawned worker
-    context.set_forkserver_preload(list(FORKSERVER_PRELOAD))
-    before = dict(os.environ)
-    os.environ.update(environment)
-    try:
-        forkserver.ensure_running()
-    finally:
-        os.environ.clear()
-        os.environ.update(before)
-    return {START_METHOD: "forkserver"}
 
 
 def _thread_env(workers: int) -> dict:
@@ -350,7 +306,7 @@ def dask_client(*, workers: int | None = None, scheduler: str | None = None,
         options["worker_class"] = functools.partial(_pinned_nanny, specs)
     with contextlib.ExitStack() as stack:
         stack.callback(purge_stale_worker_folders)  # after the cluster closed, however it ended
-        with dask.config.set({**_PRE_SPAWN, **({} if gpus else forked_workers())}), \
+        with dask.config.set({**PRE_SPAWN, **({} if gpus else forked_workers())}), \
                 LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host=LOOPBACK,
                              dashboard_address=os.environ.get(DASHBOARD_VARIABLE) or f"{LOOPBACK}:0",
                              silence_logs=_dask_log_level(), env=_thread_env(workers), **options) as cluster, \
@@ -412,7 +368,7 @@ def serve_workers(scheduler: str, *, memory_limit: str | int | None = "4GiB", gp
         _log.info("%d GPU worker%s (CUDA devices %s) for %s", gpus, "s" if gpus > 1 else "", devices, scheduler)
     else:
         _log.info("one CPU worker for %s (no GPU)", scheduler)
-    with dask.config.set(_PRE_SPAWN):
+    with dask.config.set(PRE_SPAWN):
         asyncio.run(_serve(scheduler, [dict(name=name, memory_limit=memory, death_timeout=death_timeout,
                                             interface=interface, nthreads=nthreads or spec["nthreads"],
                                             resources=spec["resources"], env={**env, **spec["env"]})

@@ -11,8 +11,9 @@ folder holding only its marker, no claim); no process it started is left running
   traceback of its own (dozens of lines). Worker
   processes of a command now ignore Ctrl-C from their first import of ``pipeline.compute.stopping`` (before anything slow,
   checked with ``-X importtime``: a Ctrl-C sent as workers start cannot be timed reliably on a loaded machine), and
-  share one resource tracker that the command starts deaf to Ctrl-C; the command closes them. Not held: a worker
-  still in the interpreter's own start (tens of milliseconds on an idle machine, more on a loaded one), where
+  share one resource tracker that the command starts deaf to Ctrl-C; the command closes them. CPU workers are now
+  forked from a server that the command starts deaf to Ctrl-C, and begin with it ignored. Not held: a spawned (GPU)
+  worker still in the interpreter's own start (tens of milliseconds on an idle machine, more on a loaded one), where
   Python sets up Ctrl-C before any code of ours runs (docs/reliability.md, "Known gaps").
 - ``evaluate`` mid-work, its ``--out`` folder written: nothing of it is left (it held here before this change too).
 
@@ -101,6 +102,42 @@ def test_a_worker_of_the_command_ignores_ctrl_c_before_its_slow_imports():
     assert modules.index("pipeline.compute.stopping") < min(modules.index(name) for name in ("json", "typer", "rich"))
     assert imports({COMMAND_LINE: "1"}).stdout.strip() == "True"  # the command itself: Ctrl-C as before
     assert imports({}, "--multiprocessing-fork").stdout.strip() == "True"  # processes of the Python API's callers
+
+
+FIRST_HANDLER = """
+import multiprocessing, signal, sys
+from pipeline.compute.cluster import forked_workers
+
+def report(queue):
+    queue.put(signal.getsignal(signal.SIGINT) is signal.default_int_handler)
+
+if __name__ == "__main__":
+    forked_workers()
+    context = multiprocessing.get_context("forkserver")
+    queue = context.Queue()
+    process = context.Process(target=report, args=(queue,))
+    process.start()
+    print(queue.get(timeout=60))
+    process.join()
+"""
+
+
+def test_a_worker_forked_for_a_command_ignores_ctrl_c_from_its_first_instruction(tmp_path):
+    """A local cluster's CPU workers are forked from one server (pipeline.compute.cluster.forked_workers): a
+    command's server starts deaf to Ctrl-C and preloads pipeline.compute.stopping, so a worker forked from it
+    begins with Ctrl-C ignored, not only from its first import (the known gap of a spawned worker's interpreter
+    start). Outside a command (the Python API) a forked worker begins with Python's default, as a spawned one."""
+    script = tmp_path / "first_handler.py"  # a file: the forked process finds report() in it
+    script.write_text(FIRST_HANDLER)
+
+    def handler_is_default(env: dict) -> str:
+        done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                              env={**os.environ, **env}, timeout=60, preexec_fn=ctrl_c_as_at_a_terminal)
+        assert done.returncode == 0, done.stderr
+        return done.stdout.strip()
+
+    assert handler_is_default({COMMAND_LINE: "1"}) == "False"
+    assert handler_is_default({}) == "True"
 
 
 def test_simulate_over_its_own_interrupted_store_says_what_it_is_and_what_to_do(still, tmp_path, cli):

@@ -9,7 +9,6 @@ exit status 1, and nothing created.
 """
 
 import contextlib
-import errno
 import os
 import shutil
 import subprocess
@@ -216,26 +215,36 @@ def test_a_watcher_whose_outbox_cannot_be_written_is_refused(cli, tmp_path, read
 
 # --- a full disk: one cause, named once --------------------------------------------------------------
 
-def test_worker_logs_drop_per_task_tracebacks_of_a_full_disk_only(capfd):
-    """On the real workers of a local cluster (the filter is installed there): tasks that run out of space
-    log nothing (the job names the cause once); any other OSError still logs its traceback."""
-    from distributed import wait
+FULL_DISK_THEN_ANOTHER_ERROR = """
+import errno, os, sys, time
+from distributed import wait
+from pipeline.compute.cluster import dask_client
 
-    from pipeline.compute.cluster import dask_client
+def write(code):
+    raise OSError(code, os.strerror(code))
 
-    def write(code: int) -> None:
-        raise OSError(code, os.strerror(code))
-
+if __name__ == "__main__":
     with dask_client(workers=1) as client:
         full = [client.submit(write, errno.ENOSPC, pure=False) for _ in range(5)]
         wait(full)
         time.sleep(0.5)
-        quiet = capfd.readouterr().err
+        print("--- another error ---", file=sys.stderr, flush=True)
         other = client.submit(write, errno.EIO, pure=False)
         wait(other)
         time.sleep(0.5)
-        loud = capfd.readouterr().err
         assert [f.status for f in full + [other]] == ["error"] * 6
+"""
+
+
+def test_worker_logs_drop_per_task_tracebacks_of_a_full_disk_only(tmp_path):
+    """On the real workers of a local cluster (the filter is installed there), whose logs reach the standard error
+    of the process that started the cluster: tasks that run out of space log nothing (the job names the cause once);
+    any other OSError still logs its traceback."""
+    script = tmp_path / "full_disk.py"
+    script.write_text(FULL_DISK_THEN_ANOTHER_ERROR)
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    quiet, loud = done.stderr.split("--- another error ---")
     assert "Compute Failed" not in quiet and "No space left" not in quiet, quiet
     assert "Compute Failed" in loud and "Input/output error" in loud
 

@@ -1,0 +1,59 @@
+"""How a local cluster's worker processes start: the environment they start in, and for CPU workers, forked from one
+server process that imported Dask, NumPy and Zarr once (Python's ``forkserver``) rather than each spawned afresh."""
+
+import os
+import signal
+import threading
+
+import dask
+
+from pipeline.compute.stopping import COMMAND_LINE
+
+
+# Dask's nanny starts workers with MALLOC_TRIM_THRESHOLD_=65536, which pins glibc's mmap
+# threshold at 128 KiB: every large temporary array (an HR frame is tens of MB) is then a
+# fresh mmap with page faults on every touch, 1.44x the time of a reconstruction task.
+# Fixed thresholds of 64 MiB keep such arrays on the reused heap. glibc reads them only at
+# process start, so they go in the nanny's pre-spawn environment, not in ``env``.
+PRE_SPAWN = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": str(256 * 2**20),
+             "distributed.nanny.pre-spawn-environ.MALLOC_MMAP_THRESHOLD_": str(64 * 2**20)}
+
+
+# A local cluster's CPU workers are forks of one server process (Python's "forkserver", Dask's
+# distributed.worker.multiprocessing-method) that has imported Dask, NumPy and Zarr once. Spawned, every worker
+# imported them for itself at every cluster start: a job's segments, a nanny's restart of a lost worker and every
+# local cluster of a process after the first waited on it. torch is not preloaded: a TFP job never imports it,
+# and a worker imports it under its own thread settings (the cluster's ``env``). A forked worker's NumPy keeps the server's
+# BLAS threads (Dask's pre-spawn default, 1). GPU workers are still spawned (a fork must never carry CUDA state,
+# and they start once per job). Python skips a preload that fails to import.
+START_METHOD = "distributed.worker.multiprocessing-method"
+FORKSERVER_PRELOAD = ("distributed", "numpy", "dask.array", "numcodecs", "zarr",
+                      "pipeline.compute.stopping")  # stopping: a command's workers ignore Ctrl-C, as spawned ones do
+
+
+def forked_workers() -> dict:
+    """Dask's configuration for local workers forked from one server process: the server is started here (once per
+    process; later calls change nothing) with :data:`FORKSERVER_PRELOAD` imported and the environment a spawned
+    worker starts with (the nanny's pre-spawn variables: malloc settings, one BLAS thread, Dask's hash seed)."""
+    from multiprocessing import forkserver
+
+    from distributed.utils import get_mp_context
+
+    with dask.config.set({START_METHOD: "forkserver", **PRE_SPAWN}):
+        context = get_mp_context()  # Dask sets its own preload list on its first call: ours replaces it
+        environment = {name: str(value) for name, value in
+                       dask.config.get("distributed.nanny.pre-spawn-environ").items() if value is not None}
+    environment.setdefault("PYTHONHASHSEED", "6640")  # what a nanny gives a spawned worker
+    context.set_forkserver_preload(list(FORKSERVER_PRELOAD))
+    before = dict(os.environ)
+    os.environ.update(environment)
+    deaf = bool(os.environ.get(COMMAND_LINE)) and threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if deaf else None
+    try:  # a command's server is deaf to Ctrl-C from its first instruction, and so is every worker forked from it
+        forkserver.ensure_running()
+    finally:
+        if deaf:
+            signal.signal(signal.SIGINT, signal.SIG_DFL if previous is None else previous)
+        os.environ.clear()
+        os.environ.update(before)
+    return {START_METHOD: "forkserver"}
