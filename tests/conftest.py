@@ -7,6 +7,12 @@ import sys
 import time
 from dataclasses import dataclass
 
+# The suite runs three processes on two cores (make test): OpenMP and BLAS thread pools of two threads each then
+# spin for cores they do not get (a third of the torch-heavy tests' time). One thread each, before torch or numpy
+# is imported; the processes the tests start inherit it (a local cluster's workers get their own, _thread_env).
+for _pool in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_pool, "1")
+
 import dask
 import fsspec
 import numpy as np
