@@ -31,10 +31,20 @@ FORKSERVER_PRELOAD = ("distributed", "numpy", "dask.array", "numcodecs", "zarr",
                       "pipeline.compute.stopping")  # stopping: a command's workers ignore Ctrl-C, as spawned ones do
 
 
+_server_of: list[int] = []  # the process that started its fork server (a process forked from it has none yet)
+
+
 def forked_workers() -> dict:
-    """Dask's configuration for local workers forked from one server process: the server is started here (once per
-    process; later calls change nothing) with :data:`FORKSERVER_PRELOAD` imported and the environment a spawned
-    worker starts with (the nanny's pre-spawn variables: malloc settings, one BLAS thread, Dask's hash seed)."""
+    """Dask's configuration for local workers forked from one server process, which the first call of a process
+    starts with :data:`FORKSERVER_PRELOAD` imported and the environment a spawned worker starts with (the nanny's
+    pre-spawn variables: malloc settings, one BLAS thread, Dask's hash seed)."""
+    if _server_of != [os.getpid()]:
+        _start_server()
+        _server_of[:] = [os.getpid()]
+    return {START_METHOD: "forkserver"}
+
+
+def _start_server() -> None:
     from multiprocessing import forkserver
 
     from distributed.utils import get_mp_context
@@ -56,4 +66,3 @@ def forked_workers() -> dict:
             signal.signal(signal.SIGINT, signal.SIG_DFL if previous is None else previous)
         os.environ.clear()
         os.environ.update(before)
-    return {START_METHOD: "forkserver"}
