@@ -1,4 +1,4 @@
-"""Local cluster start-up: workers forked from one server (``pipeline.compute.cluster.forked_workers``) against
+"""Local cluster start-up: workers forked from one server (``pipeline.compute.worker_start.forked_workers``) against
 workers spawned as Dask does by default, in one run.
 
 Each measurement is a fresh process that opens ``--clusters`` local clusters of 2 CPU workers one after another (a
@@ -18,7 +18,6 @@ from _common import ROOT, markdown_table, median, save_results
 CHILD = """
 import sys, time
 sys.path.insert(0, {root!r})
-import numpy as np
 from pipeline.compute import cluster
 
 def first_task(path):
@@ -28,7 +27,7 @@ def first_task(path):
 if __name__ == "__main__":
     import tempfile, zarr
     if {mode!r} == "spawned":
-        cluster.forked_workers = lambda: {{}}  # the reference: Dask's default start method
+        cluster.forked_workers = lambda: {{}}  # as dask_client looks it up; the reference: Dask's default start method
     path = tempfile.mkdtemp() + "/a.zarr"
     zarr.create_array(path, shape=(64, 64), chunks=(32, 32), dtype="u1")[:] = 1
     start = time.perf_counter()

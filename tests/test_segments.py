@@ -14,7 +14,7 @@ def one_outcome_per_item(client, items, label):
     """A segment's work: an outcome per item, tagged with the segment process's pid (in ``error``)."""
     assert client.run(os.getpid)  # a live cluster of its own
     for start in items:
-        yield Outcome(start, start + 1, 0, 0, f"{label} {os.getpid()}")
+        yield Outcome(start, start, start + 1, 0, 0, f"{label} {os.getpid()}")
 
 
 def refuses(client, items):

@@ -236,8 +236,10 @@ def cut(spec: MethodSpec, url: str, identity: str, centres: list[int], first: in
 
 
 class Outcome(NamedTuple):
-    """One finished tile of a block: output frames ``start:stop`` of tile (ty, tx), and why it failed, if it did."""
+    """One finished tile of a block: block ``block`` along time (output frames ``start:stop``), tile (ty, tx), and
+    why it failed, if it did."""
 
+    block: int
     start: int
     stop: int
     ty: int
@@ -260,7 +262,7 @@ def run_blocks(client, units: Iterable[tuple[int, int]], *, blocks: TileBlocks, 
 
     for (b, _, ty, tx), future in submitted(client, blocks.tiles(units), submit, idempotent=True):
         # the task raised, or the cluster failed it: report it, go on with the others
-        yield Outcome(blocks.starts[b], blocks.starts[b + 1], ty, tx, failure(future))
+        yield Outcome(b, blocks.starts[b], blocks.starts[b + 1], ty, tx, failure(future))
 
 
 def read_tiles(gain, spec: MethodSpec, url: str, identity: str, centres: tuple[int, ...], half: int,

@@ -7,7 +7,6 @@ A selection of ``hr`` is written exactly (its output frames as ``start``/``stop`
 or refused in one line before anything exists.
 """
 
-import bisect
 import dataclasses
 import sys
 import uuid
@@ -141,7 +140,7 @@ def _run_blocks(client, blocks: TileBlocks, gain: float, done: np.ndarray, url: 
     blocks = dataclasses.replace(blocks, gain=gain)
     if client is not None:
         for outcome in run_blocks(client, blocks.units(done), blocks=blocks, out=url, run=run):
-            yield (bisect.bisect_right(blocks.starts, outcome.start) - 1, outcome.ty, outcome.tx), outcome.error
+            yield (outcome.block, outcome.ty, outcome.tx), outcome.error
         return
     tiles = list(blocks.tiles(blocks.units(done)))
     for at in range(0, len(tiles), BLOCKS_AT_ONCE):
