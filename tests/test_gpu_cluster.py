@@ -259,3 +259,19 @@ def test_a_cpu_local_cluster_forks_its_workers_from_one_server_with_the_spawned_
             servers |= {facts[0] for facts in seen.values()}
     (server,) = servers
     assert server != os.getpid() and "multiprocessing.forkserver" in " ".join(psutil.Process(server).cmdline())
+
+
+def test_a_local_cluster_starts_under_a_temporary_folder_too_long_for_a_socket(tmp_path):
+    """The fork server listens on a Unix socket in ``$TMPDIR/pymp-*/``; with a ``TMPDIR`` too long for a socket's
+    path (107 bytes) every job failed ("AF_UNIX path too long"). A fresh process, as a command is."""
+    import subprocess
+
+    folder = tmp_path / ("t" * max(1, 110 - len(str(tmp_path))))  # over 107 bytes wherever tmp_path is
+    folder.mkdir()
+    script = ("from pipeline.compute.cluster import dask_client\n"
+              "with dask_client(workers=1, gpus=0) as client:\n"
+              "    print(sum(client.run(lambda: 1).values()))\n")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "TMPDIR": str(folder)})
+    assert done.returncode == 0 and done.stdout.split() == ["1"], done.stderr[-2000:]
+    assert len(str(folder)) > 107 and not [p for p in folder.iterdir() if p.name.startswith("pymp-")]

@@ -3,6 +3,8 @@ server process that imported Dask, NumPy and Zarr once (Python's ``forkserver``)
 
 import os
 import signal
+import sys
+import tempfile
 import threading
 
 import dask
@@ -55,6 +57,7 @@ def _start_server() -> None:
                        dask.config.get("distributed.nanny.pre-spawn-environ").items() if value is not None}
     environment.setdefault("PYTHONHASHSEED", "6640")  # what a nanny gives a spawned worker
     context.set_forkserver_preload(list(FORKSERVER_PRELOAD))
+    _short_socket_folder()
     before = dict(os.environ)
     os.environ.update(environment)
     deaf = bool(os.environ.get(COMMAND_LINE)) and threading.current_thread() is threading.main_thread()
@@ -66,3 +69,27 @@ def _start_server() -> None:
             signal.signal(signal.SIGINT, signal.SIG_DFL if previous is None else previous)
         os.environ.clear()
         os.environ.update(before)
+
+
+SOCKET_PATH_MAX = 107  # bytes of a Unix socket's path (Linux's sun_path, less its terminating zero)
+
+
+def _short_socket_folder() -> None:
+    """The server listens on a Unix socket in multiprocessing's temporary folder, ``$TMPDIR/pymp-XXXXXXXX/
+    listener-XXXXXXXX``; under a ``TMPDIR`` too long for a socket's path every job failed ("AF_UNIX path too long").
+    There, that folder is made in the system's own temporary folder instead, as Python 3.13's multiprocessing does
+    itself. (A process whose multiprocessing made its folder already keeps it.)"""
+    if sys.version_info >= (3, 13):
+        return
+    from multiprocessing import util
+
+    if len(os.path.join(tempfile.gettempdir(), "pymp-xxxxxxxx", "listener-xxxxxxxx")) <= SOCKET_PATH_MAX:
+        return
+    system = next((folder for folder in ("/tmp", "/var/tmp", "/usr/tmp") if os.access(folder, os.W_OK | os.X_OK)), None)
+    if system is None:
+        return
+    previous, tempfile.tempdir = tempfile.tempdir, system
+    try:
+        util.get_temp_dir()  # made now, and kept for this process
+    finally:
+        tempfile.tempdir = previous
