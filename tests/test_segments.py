@@ -38,6 +38,16 @@ def test_each_segment_runs_in_its_own_process_and_streams_its_outcomes():
 
 def test_an_error_in_a_segment_is_the_job_s_error_and_a_crash_is_named():
     with pytest.raises(InputError, match="the store went away"):
-        list(in_segments(refuses, range(3), 10, workers=1, show_dashboard=False))
+        list(in_segments(refuses, range(3), 2, workers=1, show_dashboard=False))
     with pytest.raises(RuntimeError, match=r"segment process stopped \(exit code 3\).*--resume"):
-        list(in_segments(crashes, range(3), 10, workers=1, show_dashboard=False))
+        list(in_segments(crashes, range(3), 2, workers=1, show_dashboard=False))
+
+
+def test_a_job_of_one_segment_runs_it_in_this_process_on_a_cluster_of_its_own():
+    """Items that fit in one segment: no second interpreter, the same outcomes, a cluster closed with the job."""
+    work = functools.partial(one_outcome_per_item, label="here")
+    outcomes = list(in_segments(work, iter(range(3)), 3, workers=1, show_dashboard=False))
+    assert [o.start for o in outcomes] == [0, 1, 2] and {o.error for o in outcomes} == {f"here {os.getpid()}"}
+    assert list(in_segments(work, iter(()), 3, workers=1, show_dashboard=False)) == []
+    with pytest.raises(InputError, match="the store went away"):  # the job's own error, as it raised it
+        list(in_segments(refuses, range(3), 3, workers=1, show_dashboard=False))

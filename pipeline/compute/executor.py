@@ -10,9 +10,13 @@
   the task's own error or a cluster fault (``failure``).
 - **Outcomes as they happen.** ``submitted`` yields each task of the plan with its finished future,
   in the order they finish, for the job to count (progress bars) or to report.
-- **Segments.** A job that starts its own local cluster runs its tasks ``size`` at a time in a
-  child process that starts the cluster (scheduler and workers), runs them, and exits
-  (``in_segments``); the parent keeps only the plan, the progress bar and the lease. Dask keeps
+- **Segments.** A job that starts its own local cluster and has more than ``size`` tasks runs them
+  ``size`` at a time, each segment in a child process that starts the cluster (scheduler and
+  workers), runs them, and exits (``in_segments``); the parent keeps only the plan, the progress
+  bar and the lease. A job of one segment runs it in its own process, on a local cluster of its own
+  (what it leaves behind is bounded by ``size``): no second interpreter to start, and in a process
+  that has started a cluster before (the watcher, a notebook) its workers are forked from the
+  same server (``pipeline.compute.worker_start``). Dask keeps
   a little memory per task for good in every process that touches it (measured: ~0.5 KiB per
   task in the client and scheduler, ~0.2-1 KiB in a worker; part of it is
   ``dask.utils.key_split``'s cache of every task key, the rest we could not attribute; it is not
@@ -133,7 +137,8 @@ _END, _FAILED, _OUTCOME = "end", "failed", "outcome"
 def in_segments(run: Callable[..., Iterator[T]], items: Iterable, size: int, *, workers: int | None,
                 show_dashboard: bool) -> Iterator[T]:
     """``run(client, segment)`` for each ``size`` items in turn, each in its own process on its own local
-    cluster of ``workers`` (items are drawn one segment at a time; ``run`` must pickle). The first segment
+    cluster of ``workers`` (items are drawn one segment at a time; ``run`` must pickle); items that fit in one
+    segment run in this process, on a local cluster of its own (module docstring). The first segment
     prints the dashboard link if ``show_dashboard``, unless ``cscsr --quiet``; with ``cscsr --verbose`` each
     segment's cluster lets Dask's own warnings through, as a cluster in this process would."""
     from pipeline.compute.progress import is_quiet
@@ -142,6 +147,13 @@ def in_segments(run: Callable[..., Iterator[T]], items: Iterable, size: int, *, 
     show_dashboard = show_dashboard and not is_quiet()
     verbose = log.isEnabledFor(logging.DEBUG)  # a spawned child starts with logging unset: it is told
     items = iter(items)
+    first = list(itertools.islice(items, size))
+    beyond = list(itertools.islice(items, 1))
+    if not beyond:  # one segment (or none)
+        if first:
+            yield from _here(run, first, workers, show_dashboard)
+        return
+    items = itertools.chain(first, beyond, items)
     for number in itertools.count():
         segment = list(itertools.islice(items, size))
         if not segment:
@@ -194,6 +206,18 @@ def _relay(messages, child) -> Iterator:
             kind, text = message[1], message[2]
             raise (InputError if kind == "InputError" else RuntimeError)(text)
         yield message[1]
+
+
+def _here(run, items: list, workers: int | None, show_dashboard: bool) -> Iterator:
+    """The one segment of a job, in this process: ``run(client, items)`` on a local cluster of ``workers``."""
+    from pipeline.compute.cluster import dashboard_link, dask_client
+
+    log.debug("segment 0: %d tasks, the job's only one: in this process on a local cluster of its own (%s)",
+              len(items), f"{workers} workers" if workers is not None else "a worker per core")
+    with dask_client(workers=workers) as client:
+        if show_dashboard and (link := dashboard_link(client)):
+            print(f"dashboard: {link}", file=sys.stderr)
+        yield from run(client, items)
 
 
 def _segment(run, items, workers, show_dashboard, messages, verbose=False) -> None:

@@ -36,8 +36,8 @@ def plan_job(plan: Plan, part: Part, blocks: TileBlocks, done: np.ndarray, hr_si
              segment_tasks: int = SEGMENT_TASKS) -> dict:
     """The plan of a checked job, priced by some of its own tasks run for real on the workers that would run
     them, all busy at once, into a temporary store that is not ``out``'s (:func:`_measured`, :func:`_scratch`): on
-    the job's cluster, or, for a job that would start its own local cluster, in a segment alike (its own process
-    and local cluster), whose fixed cost each of the job's segments pays too.
+    the job's cluster, or, for a job that would start its own local cluster, on a local cluster as a segment of the
+    job starts one, whose fixed cost each of the job's segments pays too.
     Their time and compressed bytes give the hours on 1, 8 and 64 such workers, this job's time on its
     workers, and the output's size (``pipeline.compute.estimate``)."""
     centres = part.centres

@@ -13,8 +13,8 @@ run in this process, one stream read ahead of the writes: the reference, whose b
 reproduces. With them each task is
 a Dask task that reads its frames by byte range (ranged captures, ``.dat`` and ``.npy``: a ``.npz`` is one
 stream) wherever it runs; tasks are idempotent (the same chunks, the same bytes), so a lost worker's
-tasks run again (``pipeline.compute.executor``). A local cluster runs in a child process that dies with the job
-(``in_segments``), so a killed ingest leaves nothing writing.
+tasks run again (``pipeline.compute.executor``). A local cluster's workers die with the job, in segments of
+child processes beyond the first (``in_segments``), so a killed ingest leaves nothing writing.
 
 **Resume.** ``--resume`` checks that the capture is the one the store was ingested from (its size and a
 SHA-256 of its first and last MiB: two range reads, even at a terabyte), with the same options and task
