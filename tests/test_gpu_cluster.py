@@ -7,6 +7,7 @@ writes it, runs in tests/test_deploy.py.
 """
 
 import os
+import subprocess
 import sys
 import threading
 import time
@@ -264,8 +265,6 @@ def test_a_cpu_local_cluster_forks_its_workers_from_one_server_with_the_spawned_
 def test_a_local_cluster_starts_under_a_temporary_folder_too_long_for_a_socket(tmp_path):
     """The fork server listens on a Unix socket in ``$TMPDIR/pymp-*/``; with a ``TMPDIR`` too long for a socket's
     path (107 bytes) every job failed ("AF_UNIX path too long"). A fresh process, as a command is."""
-    import subprocess
-
     folder = tmp_path / ("t" * max(1, 110 - len(str(tmp_path))))  # over 107 bytes wherever tmp_path is
     folder.mkdir()
     script = ("from pipeline.compute.cluster import dask_client\n"

@@ -146,20 +146,22 @@ def in_segments(run: Callable[..., Iterator[T]], items: Iterable, size: int, *, 
     context = multiprocessing.get_context("spawn")  # a fresh interpreter: nothing carried over
     show_dashboard = show_dashboard and not is_quiet()
     verbose = log.isEnabledFor(logging.DEBUG)  # a spawned child starts with logging unset: it is told
+    cluster = f"local cluster ({workers} workers)" if workers is not None else "local cluster (a worker per core)"
     items = iter(items)
     first = list(itertools.islice(items, size))
     beyond = list(itertools.islice(items, 1))
     if not beyond:  # one segment (or none)
         if first:
-            yield from _here(run, first, workers, show_dashboard)
+            log.debug("segment 0: %d tasks, the job's only one: in this process on a %s of its own", len(first),
+                      cluster)
+            yield from _on_a_local_cluster(run, first, workers, show_dashboard)
         return
     items = itertools.chain(first, beyond, items)
     for number in itertools.count():
         segment = list(itertools.islice(items, size))
         if not segment:
             return
-        log.debug("segment %d: %d tasks, in a process of its own on a fresh local cluster (%s)", number, len(segment),
-                  f"{workers} workers" if workers is not None else "a worker per core")
+        log.debug("segment %d: %d tasks, in a process of its own on a fresh %s", number, len(segment), cluster)
         messages = context.Queue()
         child = context.Process(target=_segment, name=f"cscsr-segment-{number}",
                                 args=(run, segment, workers, show_dashboard and number == 0, messages, verbose))
@@ -208,12 +210,11 @@ def _relay(messages, child) -> Iterator:
         yield message[1]
 
 
-def _here(run, items: list, workers: int | None, show_dashboard: bool) -> Iterator:
-    """The one segment of a job, in this process: ``run(client, items)`` on a local cluster of ``workers``."""
+def _on_a_local_cluster(run, items: list, workers: int | None, show_dashboard: bool) -> Iterator:
+    """A segment in the process that calls: ``run(client, items)`` on a local cluster of ``workers`` started for it
+    (and the dashboard link, if ``show_dashboard``)."""
     from pipeline.compute.cluster import dashboard_link, dask_client
 
-    log.debug("segment 0: %d tasks, the job's only one: in this process on a local cluster of its own (%s)",
-              len(items), f"{workers} workers" if workers is not None else "a worker per core")
     with dask_client(workers=workers) as client:
         if show_dashboard and (link := dashboard_link(client)):
             print(f"dashboard: {link}", file=sys.stderr)
@@ -226,18 +227,13 @@ def _segment(run, items, workers, show_dashboard, messages, verbose=False) -> No
     reports."""
     _die_with_parent()
     interrupt_on(signal.SIGTERM, signal.SIGINT)
-    from pipeline.compute.cluster import dashboard_link, dask_client
-
     if verbose:  # what the cluster's log level is chosen by (cluster._dask_log_level)
         logging.getLogger("cscsr").setLevel(logging.DEBUG)
 
     try:
         try:
-            with dask_client(workers=workers) as client:
-                if show_dashboard and (link := dashboard_link(client)):
-                    print(f"dashboard: {link}", file=sys.stderr)
-                for outcome in run(client, items):
-                    messages.put((_OUTCOME, outcome))
+            for outcome in _on_a_local_cluster(run, items, workers, show_dashboard):
+                messages.put((_OUTCOME, outcome))
             messages.put((_END,))
         except Exception as error:  # reported by the parent, which owns the user's terminal and exit code
             messages.put((_FAILED, type(error).__name__, describe(error)))

@@ -25,9 +25,9 @@ PRE_SPAWN = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": str(2
 # distributed.worker.multiprocessing-method) that has imported Dask, NumPy and Zarr once. Spawned, every worker
 # imported them for itself at every cluster start: a job's segments, a nanny's restart of a lost worker and every
 # local cluster of a process after the first waited on it. torch is not preloaded: a TFP job never imports it,
-# and a worker imports it under its own thread settings (the cluster's ``env``). A forked worker's NumPy keeps the server's
-# BLAS threads (Dask's pre-spawn default, 1). GPU workers are still spawned (a fork must never carry CUDA state,
-# and they start once per job). Python skips a preload that fails to import.
+# and a worker imports it under its own thread settings (the cluster's ``env``). A forked worker's NumPy keeps the
+# server's BLAS threads (Dask's pre-spawn default, 1). GPU workers are still spawned (a fork must never carry CUDA
+# state, and they start once per job). Python skips a preload that fails to import.
 START_METHOD = "distributed.worker.multiprocessing-method"
 FORKSERVER_PRELOAD = ("distributed", "numpy", "dask.array", "numcodecs", "zarr",
                       "pipeline.compute.stopping")  # stopping: a command's workers ignore Ctrl-C, as spawned ones do

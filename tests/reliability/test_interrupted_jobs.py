@@ -106,7 +106,7 @@ def test_a_worker_of_the_command_ignores_ctrl_c_before_its_slow_imports():
 
 FIRST_HANDLER = """
 import multiprocessing, signal, sys
-from pipeline.compute.cluster import forked_workers
+from pipeline.compute.worker_start import forked_workers
 
 def report(queue):
     queue.put(signal.getsignal(signal.SIGINT) is signal.default_int_handler)
@@ -123,7 +123,7 @@ if __name__ == "__main__":
 
 
 def test_a_worker_forked_for_a_command_ignores_ctrl_c_from_its_first_instruction(tmp_path):
-    """A local cluster's CPU workers are forked from one server (pipeline.compute.cluster.forked_workers): a
+    """A local cluster's CPU workers are forked from one server (pipeline.compute.worker_start.forked_workers): a
     command's server starts deaf to Ctrl-C and preloads pipeline.compute.stopping, so a worker forked from it
     begins with Ctrl-C ignored, not only from its first import (the known gap of a spawned worker's interpreter
     start). Outside a command (the Python API) a forked worker begins with Python's default, as a spawned one."""
