@@ -55,6 +55,22 @@ def kill_a_worker_when(client, ready, timeout=120) -> int:
     return pid
 
 
+def scheduler_view(dask_scheduler) -> dict:
+    """What a job's unfinished tasks are waiting on, as the scheduler sees them (for a test's failure message)."""
+    stuck = [ts for ts in dask_scheduler.tasks.values() if ts.state not in ("memory", "forgotten")]
+    return {"workers": sorted(ws.address for ws in dask_scheduler.workers.values()),
+            "states": {state: sum(ts.state == state for ts in stuck) for state in {ts.state for ts in stuck}},
+            "oldest": sorted(f"{ts.key} {ts.state} on {ts.processing_on and ts.processing_on.address} waiting on "
+                             f"{sorted(str(d.key) + ' ' + d.state for d in ts.waiting_on or ())}" for ts in stuck)[:12]}
+
+
+def finished(thread, client, seconds: float) -> None:
+    """Wait for a job run ``in_background``; if it is still running after ``seconds``, fail with the scheduler's view
+    of its unfinished tasks (a hang after a worker's loss is a bug of its own, not a missing chunk)."""
+    thread.join(seconds)
+    assert not thread.is_alive(), f"the job did not finish within {seconds} s: {client.run_on_scheduler(scheduler_view)}"
+
+
 def in_background(function, *args, **kwargs):
     outcome = {}
 
@@ -76,7 +92,7 @@ def test_a_worker_killed_mid_reconstruct(recording, client, tmp_path):
     out = str(tmp_path / "killed.zarr")
     thread, outcome = in_background(reconstruct, recording, out, options, client=client, progress=False)
     kill_a_worker_when(client, lambda: committed(out) >= 40)
-    thread.join(300)
+    finished(thread, client, 300)
     assert "error" not in outcome, outcome.get("error")
     assert chunk_files(out) == chunk_files(clean)
     client.wait_for_workers(2, timeout=60)  # the nanny restarted it
@@ -105,7 +121,7 @@ def test_a_worker_killed_mid_simulate(source, client, tmp_path):
     thread, outcome = in_background(simulate, source, out, options, scheduler=client.scheduler.address,
                                     progress=False)
     kill_a_worker_when(client, lambda: len(glob.glob(f"{out}/spikes/c/*/*/*")) >= 8)
-    thread.join(300)
+    finished(thread, client, 300)
     assert "error" not in outcome, outcome.get("error")
     a, b = chunk_files(out), chunk_files(clean)
     assert a.keys() == b.keys()
