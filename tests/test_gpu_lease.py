@@ -1,6 +1,7 @@
 """The GPU lease script (benchmarks/gpu_lease.py), dry-run on the CPU with tiny settings."""
 
 import json
+import runpy
 import shutil
 import subprocess
 import sys
@@ -22,6 +23,16 @@ def lease(*args) -> str:
     return run.stdout
 
 
+def lease_here(monkeypatch, capsys, *args) -> str:
+    """``lease(*args)`` in this process, the script run as ``python gpu_lease.py ARGS`` runs it (a failure raises) but
+    without a new interpreter importing torch again: what it printed."""
+    monkeypatch.syspath_prepend(str(SCRIPT.parent))  # where the script's own imports come from, as for the command
+    monkeypatch.setattr(sys, "argv", [str(SCRIPT), *map(str, args)])
+    capsys.readouterr()
+    runpy.run_path(str(SCRIPT), run_name="__main__")
+    return capsys.readouterr().out
+
+
 def test_pack_reencodes_pictures_and_keeps_sequences_whole(tmp_path):
     from cscsr.training.frame_motion import group_sequences
     from cscsr.training.training_data import picture_files
@@ -41,15 +52,17 @@ def test_pack_reencodes_pictures_and_keeps_sequences_whole(tmp_path):
     assert still.endswith("big.jpg") and [n.rsplit("/", 1)[-1] for n in frames] == [f"{i:05d}.jpg" for i in range(7)]
 
 
-def test_check_and_two_training_slices_fit_what_a_lease_brings_back(tmp_path):
+def test_check_and_two_training_slices_fit_what_a_lease_brings_back(tmp_path, monkeypatch, capsys):
+    """The lease's commands on one machine (run in this process: a slice goes on from what the one before left in
+    --run), then a fresh machine's (a command of its own) from the portable checkpoint's parts alone."""
     out, run = tmp_path / "out", tmp_path / "run"
-    lease("check", "--tiny", "--out", out)
+    lease_here(monkeypatch, capsys, "check", "--tiny", "--out", out)
     check = json.loads((out / "check.json").read_text())
     assert check["smoke"]["steps"] == 4 and check["synthesis"]["device_clips_per_s"] > 0
 
-    first = lease("train", "--tiny", "--out", out, "--run", run)
+    first = lease_here(monkeypatch, capsys, "train", "--tiny", "--out", out, "--run", run)
     assert "starting" in first and (run / "checkpoint.safetensors").exists()
-    second = lease("train", "--tiny", "--out", out, "--run", run)  # the next command of the lease resumes
+    second = lease_here(monkeypatch, capsys, "train", "--tiny", "--out", out, "--run", run)  # the next resumes
     assert "resuming" in second
     metadata = read_metadata(out / "cscsr-lite.safetensors")
     assert metadata["storage"] == "float16" and metadata["steps"] == "8"
@@ -71,13 +84,15 @@ def test_check_and_two_training_slices_fit_what_a_lease_brings_back(tmp_path):
     assert steps == [10]
 
 
-def test_prove_runs_every_step_on_the_cpu_and_keeps_what_each_measured(tmp_path):
+def test_prove_runs_every_step_on_the_cpu_and_keeps_what_each_measured(tmp_path, monkeypatch, capsys):
     """The lease's one command (issue #46), tiny and on the CPU, `lite` in fp32 (bf16 on a CPU without native
     bfloat16 is emulated, slowly; its device path is tested in test_gpu_path.py): there the device path is the
     CPU path, so it gives the CPU path's bytes exactly; the pipeline step's figures land in prove.json and
-    gpu_pipeline.json; a step that would not fit the budget is skipped."""
+    gpu_pipeline.json; a step that would not fit the budget is skipped. (The orchestrator runs in this process; each
+    step, as on a lease, in a process of its own.)"""
     out = tmp_path / "out"
-    lease("prove", "--device", "cpu", "--tiny", "--out", out, "--configs", "lite", "--precisions", "fp32")
+    lease_here(monkeypatch, capsys, "prove", "--device", "cpu", "--tiny", "--out", out, "--configs", "lite",
+               "--precisions", "fp32")
     report = json.loads((out / "prove.json").read_text())
     assert {name: step["status"] for name, step in report["steps"].items()} == {
         "smoke": "ok", "smoke-fast-gpu": "ok", "pipeline-lite-fp32": "ok"}  # the steps with lite in fp32
@@ -98,19 +113,21 @@ def test_prove_runs_every_step_on_the_cpu_and_keeps_what_each_measured(tmp_path)
     assert len(files) <= LEASE_FILES and all(f.stat().st_size <= LEASE_FILE_BYTES for f in files)
 
     skipped = tmp_path / "skipped"
-    lease("prove", "--device", "cpu", "--tiny", "--out", skipped, "--configs", "lite", "--precisions", "fp32",
-          "--only", "smoke,pipeline-lite-fp32", "--budget", 60)
+    lease_here(monkeypatch, capsys, "prove", "--device", "cpu", "--tiny", "--out", skipped, "--configs", "lite",
+               "--precisions", "fp32", "--only", "smoke,pipeline-lite-fp32", "--budget", 60)
     report = json.loads((skipped / "prove.json").read_text())
     assert report["steps"]["smoke"]["status"] == "ok"
     assert report["steps"]["pipeline-lite-fp32"]["status"] == "skipped"  # needs 80 s or more of the 60
     assert not (skipped / "gpu_pipeline.json").exists()
 
 
-def test_prove_measures_the_network_s_compile_bf16_and_convolutions_first(tmp_path):
+def test_prove_measures_the_network_s_compile_bf16_and_convolutions_first(tmp_path, monkeypatch, capsys):
     """#53's measurements, dry-run on the CPU (tiny; the compile with torch.compile's eager backend): full's compile
-    first, with the profiler's top kernels eager and compiled; bf16 against fp32; the convolution micro-benchmarks."""
+    first, with the profiler's top kernels eager and compiled; bf16 against fp32; the convolution micro-benchmarks.
+    (The orchestrator runs in this process; each step in a process of its own.)"""
     out = tmp_path / "out"
-    lease("prove", "--device", "cpu", "--tiny", "--out", out, "--only", "compile-full,bf16-1000,micro")
+    lease_here(monkeypatch, capsys, "prove", "--device", "cpu", "--tiny", "--out", out, "--only",
+               "compile-full,bf16-1000,micro")
     report = json.loads((out / "prove.json").read_text())
     assert list(report["steps"]) == ["compile-full", "bf16-1000", "micro"]  # the compile first
     assert all(step["status"] == "ok" for step in report["steps"].values()), report["steps"]

@@ -120,13 +120,13 @@ def test_the_mono_weights_ship_with_the_package_and_describe_their_training():
     assert model.config.mono and 0.8e6 < model.parameter_counts()["network"] < 0.85e6
 
 
-def test_onnx_and_bf16_run_the_mono_network(mono, tmp_path):
+def test_onnx_and_bf16_run_the_mono_network(mono, client, tmp_path):
     """--backend onnx and --precision bf16 take a mono recording as the colour ones: close to fp32 torch."""
     import cscsr
 
     videos = {}
     for name, options in {"fp32": {}, "onnx": {"backend": "onnx"}, "bf16": {"precision": "bf16"}}.items():
-        written = cscsr.reconstruct(mono, str(tmp_path / f"{name}.zarr"), method="cscsr", workers=1, **options)
+        written = cscsr.reconstruct(mono, str(tmp_path / f"{name}.zarr"), method="cscsr", client=client, **options)
         assert written.attrs["weights"].endswith("cscsr-lite-mono.safetensors")
         videos[name] = zarr.open_group(str(tmp_path / f"{name}.zarr"), mode="r")["video"][:].astype(int)
     assert np.abs(videos["onnx"] - videos["fp32"]).max() <= 1  # float rounding

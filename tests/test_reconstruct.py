@@ -77,17 +77,17 @@ def test_reconstruction_agrees_with_the_truth(recording, client, tmp_path):
 
 def test_resume_after_a_killed_run(recording, client, tmp_path):
     clean, killed = str(tmp_path / "clean.zarr"), str(tmp_path / "killed.zarr")
-    options = ReconstructOptions(method="tfi", every=2, tile=16)  # 55 frames x 4 tiles
+    options = ReconstructOptions(method="tfi", every=10, tile=16)  # 11 frames x 4 tiles
     reconstruct(recording, clean, options, client=client, progress=False)
-    total = 55 * 4
+    total = 11 * 4
 
-    command = [CSCSR, "reconstruct", recording, killed, "--method", "tfi", "--every", "2", "--tile", "16",
+    command = [CSCSR, "reconstruct", recording, killed, "--method", "tfi", "--every", "10", "--tile", "16",
                "--workers", "1"]
-    # the job's tasks hold after the 30th (pipeline.compute.hold): the kill lands mid-job on any machine, under any load
-    kill_mid_job(command, lambda: committed_tasks(killed) >= 30,
-                 env={**os.environ, **hold_environment(30, tmp_path / "never")})
+    # the job's tasks hold after the 20th (pipeline.compute.hold): the kill lands mid-job on any machine, under any load
+    kill_mid_job(command, lambda: committed_tasks(killed) >= 20,
+                 env={**os.environ, **hold_environment(20, tmp_path / "never")})
     done_before = committed_tasks(killed)
-    assert 30 <= done_before < total, done_before
+    assert 20 <= done_before < total, done_before
     assert zarr.open_group(killed, mode="r").attrs["state"] == "writing"  # not passing for complete
 
     counts = reconstruct(recording, killed, ReconstructOptions(**{**options.__dict__, "resume": True}),

@@ -1,6 +1,7 @@
 """Training on clips simulated on the fly: reproducible clips, a falling loss, resumable checkpoints."""
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -16,6 +17,31 @@ from cscsr.weights.weights_io import load_model
 from stages.errors import InputError
 
 TINY = dict(batch=2, lr_side=16, checkpoint_every=2, validate_every=2, validation_clips=1, warmup=2)
+
+
+# Runs several tests start from, trained once for the module (each costs seconds of CPU): read them as they are, and
+# copy one (``copied``) before going on from it.
+
+@pytest.fixture(scope="module")
+def two_steps(tmp_path_factory):
+    """The folder of a finished run of ``TrainOptions(steps=2, **TINY)``."""
+    run = tmp_path_factory.mktemp("two_steps") / "run"
+    train(TrainOptions(steps=2, **TINY), run, log=lambda line: None)
+    return run
+
+
+@pytest.fixture(scope="module")
+def four_steps(tmp_path_factory):
+    """The folder of a finished, uninterrupted run of ``TrainOptions(steps=4, **TINY)``."""
+    run = tmp_path_factory.mktemp("four_steps") / "run"
+    train(TrainOptions(steps=4, **TINY), run, log=lambda line: None)
+    return run
+
+
+def copied(run, dest):
+    """A copy of a shared run's folder, to go on from."""
+    shutil.copytree(run, dest)
+    return dest
 
 
 def test_a_clip_is_reproducible_and_consistent():
@@ -41,7 +67,8 @@ def test_every_training_picture_is_installed_as_colour():
 
 def test_the_loss_falls_and_the_weights_reload(tmp_path):
     torch.manual_seed(0)
-    options = TrainOptions(steps=12, learning_rate=1e-3, distinct_batches=1, **TINY)  # tiny data: one batch
+    options = TrainOptions(steps=8, learning_rate=1e-3, distinct_batches=1,  # tiny data: one batch
+                           **{**TINY, "checkpoint_every": 4, "validate_every": 4})
     probe = to_tensors(make_batch(1, options, {}))  # the first step's batch, seen again after training
 
     from cscsr.network.config import named
@@ -52,7 +79,7 @@ def test_the_loss_falls_and_the_weights_reload(tmp_path):
     model, metadata = load_model(final)
     after, _ = losses(model, probe, options.flow_weight)
     assert after.item() < before.item()
-    assert metadata["steps"] == "12" and "dead leaves" in metadata["data"]
+    assert metadata["steps"] == "8" and "dead leaves" in metadata["data"]
 
     reloaded, _ = load_model(final)
     with torch.inference_mode():
@@ -60,28 +87,26 @@ def test_the_loss_falls_and_the_weights_reload(tmp_path):
         assert torch.equal(model(x, probe["cfa"], probe["zero_reset"], probe["scale"])["image"],
                            reloaded(x, probe["cfa"], probe["zero_reset"], probe["scale"])["image"])
     log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
-    assert [entry["step"] for entry in log] == [2, 4, 6, 8, 10, 12] and all(e["val_psnr"] > 0 for e in log)
+    assert [entry["step"] for entry in log] == [4, 8] and all(e["val_psnr"] > 0 for e in log)
 
 
-def test_a_resumed_run_ends_where_an_uninterrupted_one_does(tmp_path):
+def test_a_resumed_run_ends_where_an_uninterrupted_one_does(tmp_path, two_steps, four_steps):
     options = TrainOptions(steps=4, **TINY)
-    torch.manual_seed(0)
-    whole = train(options, tmp_path / "whole", log=lambda line: None)
-    train(TrainOptions(steps=2, **TINY), tmp_path / "split", log=lambda line: None)
-    resumed = train(options, tmp_path / "split", resume=True, log=lambda line: None)
+    whole = four_steps / "cscsr-lite.safetensors"  # 4 steps uninterrupted; 2 steps, then resumed to 4:
+    resumed = train(options, copied(two_steps, tmp_path / "split"), resume=True, log=lambda line: None)
     a, _ = load_model(whole)
     b, _ = load_model(resumed)
     for (name, x), (_, y) in zip(a.state_dict().items(), b.state_dict().items()):
         assert torch.allclose(x, y, atol=1e-6), name
     with pytest.raises(InputError, match="already exists"):
-        train(options, tmp_path / "whole", log=lambda line: None)
+        train(options, tmp_path / "split", log=lambda line: None)
     with pytest.raises(InputError, match="other options"):
-        train(TrainOptions(steps=6, **{**TINY, "batch": 3}), tmp_path / "whole", resume=True, log=lambda line: None)
+        train(TrainOptions(steps=6, **{**TINY, "batch": 3}), tmp_path / "split", resume=True, log=lambda line: None)
 
 
-def test_a_resumed_run_may_anneal_with_a_shorter_decay(tmp_path):
+def test_a_resumed_run_may_anneal_with_a_shorter_decay(tmp_path, four_steps):
     """--decay-every may change on --resume: the rate drops at once to its place on the new schedule."""
-    train(TrainOptions(steps=4, **TINY), tmp_path / "run", log=lambda line: None)
+    copied(four_steps, tmp_path / "run")  # 4 steps on the 7,500-step decay
     train(TrainOptions(steps=6, decay_every=2, **TINY), tmp_path / "run", resume=True, log=lambda line: None)
     rates = [json.loads(line)["lr"] for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     base = TrainOptions().learning_rate
@@ -90,10 +115,9 @@ def test_a_resumed_run_may_anneal_with_a_shorter_decay(tmp_path):
         TrainOptions(decay_every=0).check()
 
 
-def test_a_resumed_run_may_grow_its_pool_but_not_change_its_crops(tmp_path):
+def test_a_resumed_run_may_grow_its_pool_but_not_change_its_crops(two_steps):
     """--pool may grow on --resume (fresh clips for a run that has seen its pool many times); --lr-side may not."""
-    train(TrainOptions(steps=2, **TINY), tmp_path / "run", log=lambda line: None)
-    checkpoint = tmp_path / "run" / "checkpoint.safetensors"
+    checkpoint = two_steps / "checkpoint.safetensors"
 
     def resume(options):
         model = CSCSR(options.network())
@@ -104,9 +128,9 @@ def test_a_resumed_run_may_grow_its_pool_but_not_change_its_crops(tmp_path):
         resume(TrainOptions(steps=4, **{**TINY, "lr_side": 18}))
 
 
-def test_a_run_may_start_from_weights_of_the_same_network(tmp_path):
+def test_a_run_may_start_from_weights_of_the_same_network(tmp_path, two_steps):
     """--init fine-tunes (e.g. on larger crops): the run starts from the file's weights; another network is refused."""
-    first = train(TrainOptions(steps=2, **TINY), tmp_path / "first", log=lambda line: None)
+    first = two_steps / "cscsr-lite.safetensors"
     frozen = TrainOptions(steps=2, learning_rate=0.0, init=str(first), seed=5, **{**TINY, "lr_side": 18})
     model, metadata = load_model(train(frozen, tmp_path / "tuned", log=lambda line: None))
     start, _ = load_model(first)
@@ -124,8 +148,17 @@ def test_a_run_may_start_from_weights_of_the_same_network(tmp_path):
     assert not (tmp_path / "other").exists() and not (tmp_path / "none").exists()
 
 
-def test_an_ablation_run_trains_and_records_the_switched_network(tmp_path, cli):
+def test_an_ablation_run_trains_and_records_the_switched_network(tmp_path, cli, monkeypatch):
     """--motion assembled / --no-flow-guidance train that network; the weights rebuild it; resume keeps it."""
+    import dataclasses
+
+    import cscsr.training.train as training
+
+    # the command has no --validation-clips: its run is validated on the first of its 8 clips, as the tiny runs here
+    # are (what it validates on is not what this test is about; the options it records are its own)
+    clips = training.validation_batches
+    monkeypatch.setattr(training, "validation_batches",
+                        lambda options: clips(dataclasses.replace(options, validation_clips=1)))
     result = cli("train", tmp_path / "noflow", "--steps", "2", "--batch", "2", "--lr-side", "16",
                  "--validate-every", "2", "--warmup", "2", "--no-flow-guidance", "--threads", "1")
     assert result.exit_code == 0, result.stdout
@@ -142,16 +175,15 @@ def test_an_ablation_run_trains_and_records_the_switched_network(tmp_path, cli):
     assert cli("train", tmp_path / "bad", "--motion", "sideways").exit_code == 1 and not (tmp_path / "bad").exists()
 
 
-def test_export_weights_from_a_checkpoint(tmp_path, cli):
-    train(TrainOptions(steps=2, **TINY), tmp_path / "run", log=lambda line: None)
-    result = cli("export-weights", tmp_path / "run", tmp_path / "w.safetensors")
+def test_export_weights_from_a_checkpoint(tmp_path, cli, two_steps):
+    result = cli("export-weights", two_steps, tmp_path / "w.safetensors")
     assert result.exit_code == 0 and "after 2 steps" in result.stdout
     exported, metadata = load_model(tmp_path / "w.safetensors")
-    final, _ = load_model(tmp_path / "run" / "cscsr-lite.safetensors")
+    final, _ = load_model(two_steps / "cscsr-lite.safetensors")
     assert metadata["steps"] == "2"
     assert all(torch.equal(a, b) for a, b in zip(exported.state_dict().values(), final.state_dict().values()))
     assert cli("export-weights", tmp_path, tmp_path / "x.safetensors").exit_code == 1
-    result = cli("export-weights", tmp_path / "run", tmp_path / "carried", "--portable", "--half")
+    result = cli("export-weights", two_steps, tmp_path / "carried", "--portable", "--half")
     assert result.exit_code == 0 and "after 2 steps in 1 parts" in result.stdout
     assert [p.name for p in (tmp_path / "carried").iterdir()] == ["checkpoint.part-1-of-1.safetensors"]
 
@@ -202,10 +234,11 @@ def test_a_pool_is_reproducible_and_batches_come_from_it():
     from cscsr.training.training_batches import clip_pool
 
     options = TrainOptions(pool=3, scale4_share=1.0, **TINY)
-    pool = clip_pool(options)
-    again = clip_pool(options)
+    pool = clip_pool(options)  # simulated in worker processes
     assert len(pool[4]) == 3 and not pool[2]
-    assert all(np.array_equal(a.spikes, b.spikes) for a, b in zip(pool[4], again[4]))
+    # clip i is the clip of seed [seed, 997, i], simulated here again: a resumed run rebuilds the same pool
+    again = [random_clip([options.seed, 997, i], lr_side=options.lr_side, scale=4) for i in range(3)]
+    assert all(np.array_equal(a.spikes, b.spikes) and np.array_equal(a.truth, b.truth) for a, b in zip(pool[4], again))
     first, repeat = make_batch(5, options, {}, pool), make_batch(5, options, {}, pool)
     assert np.array_equal(first["spikes"], repeat["spikes"]) and first["cfa"] == repeat["cfa"]
     sums = {float(c.truth.sum()) for c in pool[4]}
@@ -298,14 +331,12 @@ def test_half_weights_are_half_the_size_and_load_as_float32(tmp_path):
 
 # --- a portable checkpoint: carried back from a GPU lease, continued on a fresh machine ----------
 
-def test_a_portable_checkpoint_in_small_parts_resumes_close_to_the_exact_one(tmp_path):
-    import shutil
-
+def test_a_portable_checkpoint_in_small_parts_resumes_close_to_the_exact_one(tmp_path, two_steps):
     from cscsr.weights.portable_checkpoint import portable_parts
     from cscsr.training.train import export_portable
     from cscsr.training.training_state import read_checkpoint
 
-    train(TrainOptions(steps=2, **TINY), tmp_path / "run", log=lambda line: None)
+    copied(two_steps, tmp_path / "run")  # 2 steps, to be carried and resumed
     at_two, _ = read_checkpoint(tmp_path / "run" / "checkpoint.safetensors")
     limit = 2**20  # 1 MiB parts, for the test: lite's 10.5 MB of checkpoint needs at least 11
     step, parts = export_portable(tmp_path / "run", tmp_path / "carried", part_bytes=limit)
@@ -342,8 +373,8 @@ def test_a_portable_checkpoint_in_small_parts_resumes_close_to_the_exact_one(tmp
     assert not (tmp_path / "lost" / "log.jsonl").exists()
 
 
-def test_channels_last_trains_the_same_network_within_rounding(tmp_path):
-    default = load_model(train(TrainOptions(steps=2, **TINY), tmp_path / "default", log=lambda line: None))[0]
+def test_channels_last_trains_the_same_network_within_rounding(tmp_path, two_steps):
+    default = load_model(two_steps / "cscsr-lite.safetensors")[0]
     nhwc = load_model(train(TrainOptions(steps=2, channels_last=True, **TINY), tmp_path / "nhwc",
                             log=lambda line: None))[0]
     # Adam moves a weight by up to the learning rate a step whatever its gradient's size: where a gradient is near

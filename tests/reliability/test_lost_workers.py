@@ -25,7 +25,7 @@ from tests.conftest import integrate_and_fire, smooth_rate
 from tests.test_simulate import chunk_files
 
 BIN = os.path.dirname(sys.executable)
-FRAMES, SIDE, EVERY = 600, 32, 2  # 280 output frames of one tile each, one task per output frame (TFP)
+FRAMES, SIDE, EVERY = 200, 32, 2  # 80 output frames of one tile each, one task per output frame (TFP)
 
 
 @pytest.fixture(scope="module")
@@ -111,7 +111,7 @@ def clean(recording, tmp_path_factory) -> dict:
     return chunk_files(str(out))
 
 
-HELD_AFTER = 30  # tasks each worker process runs before the job holds
+HELD_AFTER = 20  # tasks each worker process runs before the job holds (two workers: half the job)
 
 
 def run_killed_job(recording, tmp_path, *, workers: int, nanny: bool, late_workers: int = 0) -> dict:
@@ -169,11 +169,11 @@ def test_a_task_every_worker_died_running_is_reported_as_a_cluster_fault(recordi
     assert job.returncode == 1
     line = stderr.strip().splitlines()[-1]
     # the held task and the one the scheduler had already queued on that worker (Dask's worker-saturation)
-    found = re.match(r"error: JobIncomplete: ([12]) of 280 output frames failed \(frames (\d+)", line)
+    found = re.match(r"error: JobIncomplete: ([12]) of 80 output frames failed \(frames (\d+)", line)
     assert found, stderr
     assert int(found[2]) == HELD_AFTER
     assert f"frame {HELD_AFTER}: tile (0, 0): cluster fault: every worker that ran this task died" in line
-    assert committed(str(out)) == 280 - int(found[1])
+    assert committed(str(out)) == 80 - int(found[1])
 
 
 def test_a_task_the_cluster_drops_is_submitted_again(tmp_path):
@@ -213,7 +213,7 @@ def test_simulate_survives_its_only_worker(tmp_path):
     from tests.test_simulate import picture
 
     iio.imwrite(tmp_path / "scene.png", picture("rocket", 64))
-    options = ("--frames", 400, "--chunk-frames", 20, "--motion", "random", "--scale", 2, "--noise", "realistic")
+    options = ("--frames", 200, "--chunk-frames", 20, "--motion", "random", "--scale", 2, "--noise", "realistic")
     clean = tmp_path / "clean.zarr"
     run_cscsr("simulate", tmp_path / "scene.png", clean, *options, "--workers", 1, check=True)
     release = tmp_path / "release"

@@ -272,7 +272,7 @@ def test_a_full_disk_is_one_line(cli, cli_process, tmp_path):
     if not _mount_tmpfs(disk, "size=64k"):
         pytest.skip("no tmpfs may be mounted here (needs root and the right to mount)")
     try:
-        run = cli_process("-q", "reconstruct", spikes, disk / "out.zarr", "--every", 1, "--tile", 16, "--workers", 1)
+        run = cli_process("-q", "reconstruct", spikes, disk / "out.zarr", "--every", 10, "--tile", 16, "--workers", 1)
     finally:
         _unmount(disk)
     lines = [line for line in run.stderr.splitlines() if line.strip() and not line.startswith("dashboard: ")]
