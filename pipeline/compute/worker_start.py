@@ -28,7 +28,7 @@ PRE_SPAWN = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": str(2
 # local cluster of a process after the first waited on it. What a job's workers never import is not preloaded, since
 # every command that starts a cluster waits on its server: not torch (a TFP job never imports it, and a worker imports
 # it under its own thread settings, the cluster's ``env``), and not dask.array (the jobs' tasks are futures; it
-# imports xarray, pandas and SciPy: a 16x16 TFP command 7.25 -> 6.05 core-seconds, 6.2 -> 5.0 s, without it). A
+# imports xarray, pandas and SciPy: docs/performance.md, "Cluster start-up", for what leaving it out saves). A
 # forked worker's NumPy keeps the server's BLAS threads (Dask's pre-spawn default, 1). GPU workers are still spawned
 # (a fork must never carry CUDA state, and they start once per job). Python skips a preload that fails to import.
 START_METHOD = "distributed.worker.multiprocessing-method"

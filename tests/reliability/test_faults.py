@@ -1,5 +1,6 @@
 """Faults on a real multi-process cluster: killed workers, a failing tile, two jobs on one output."""
 
+import collections
 import dataclasses
 import glob
 import os
@@ -59,7 +60,7 @@ def scheduler_view(dask_scheduler) -> dict:
     """What a job's unfinished tasks are waiting on, as the scheduler sees them (for a test's failure message)."""
     stuck = [ts for ts in dask_scheduler.tasks.values() if ts.state not in ("memory", "forgotten")]
     return {"workers": sorted(ws.address for ws in dask_scheduler.workers.values()),
-            "states": {state: sum(ts.state == state for ts in stuck) for state in {ts.state for ts in stuck}},
+            "states": dict(collections.Counter(ts.state for ts in stuck)),
             "oldest": sorted(f"{ts.key} {ts.state} on {ts.processing_on and ts.processing_on.address} waiting on "
                              f"{sorted(str(d.key) + ' ' + d.state for d in ts.waiting_on or ())}" for ts in stuck)[:12]}
 
@@ -68,7 +69,8 @@ def finished(thread, client, seconds: float) -> None:
     """Wait for a job run ``in_background``; if it is still running after ``seconds``, fail with the scheduler's view
     of its unfinished tasks (a hang after a worker's loss is a bug of its own, not a missing chunk)."""
     thread.join(seconds)
-    assert not thread.is_alive(), f"the job did not finish within {seconds} s: {client.run_on_scheduler(scheduler_view)}"
+    if thread.is_alive():
+        pytest.fail(f"the job did not finish within {seconds} s: {client.run_on_scheduler(scheduler_view)}")
 
 
 def in_background(function, *args, **kwargs):
