@@ -3,11 +3,13 @@ its dry run ``pipeline.jobs.dry_run``) and the lazy graphs (``pipeline.lazy.vide
 
 :class:`TileBlocks` is a reconstruction read straight from a spike store, as frozen data: output frames cut into
 blocks along time (the network's batches) and into tiles. The graph of any of its blocks is built on demand
-(:meth:`TileBlocks.graph`): a task per block that reads each tile's windows and halo as packed bytes from the store
-and reconstructs them (``{method}-<token>``), and a task per block that writes and commits it (``write-<run>``,
-:func:`write_task`). ``lazy.reconstruct`` wraps every block in a dask array; the job submits the same tasks, under
-the same keys, a bounded window at a time (``pipeline.compute.executor``). On GPU workers the tiles of one shape
-join one network pass (a ``pass`` task, its tiles taken from it).
+(:meth:`TileBlocks.graph`): a task per block of a tile that reads its windows and halo as packed bytes from the
+store and reconstructs them (``{method}-<token>``), which ``lazy.reconstruct`` wraps in a dask array. Written
+(:meth:`TileBlocks.written`: the job, and ``lazy.to_video`` of such an array, a bounded window at a time through
+``pipeline.compute.executor``), that task also writes and commits its block (``{method}-<token>-<run>``), so an HR
+block never travels between workers. On GPU workers the tiles of one shape join one network pass (a ``pass`` task),
+each tile then written by a task of its own (``write-<run>``, :func:`write_task`, as ``to_video`` writes any
+``hr``).
 
 Also here, what the workers build once per process: the method (a network loaded once per weights file), the
 stores opened once per run; and the automatic exposure.
@@ -200,24 +202,34 @@ class TileBlocks:
 
     def layered(self, tasks: dict, write: dict):
         """Reconstruction ``tasks`` and the ``write`` that depends on them as a high-level graph: two layers, the
-        reconstruction's annotated (:attr:`annotations`)."""
+        reconstruction's annotated (:attr:`annotations`); one, annotated, where the write reconstructs (no ``tasks``)."""
         from dask.highlevelgraph import HighLevelGraph, MaterializedLayer
 
         name = next(iter(write))[0]
+        if not tasks:
+            return HighLevelGraph({name: MaterializedLayer(write, annotations=self.annotations)}, {name: set()})
         return HighLevelGraph({self.name: MaterializedLayer(tasks, annotations=self.annotations),
                                name: MaterializedLayer(write)}, {self.name: set(), name: {self.name}})
 
     def written(self, b: int, k: int, ty: int, tx: int, url: str, run: str) -> tuple[dict, dict, tuple]:
         """The graph that reconstructs tile (ty, tx) of block ``b`` (its pass ``k``) and writes it into the video
-        store at ``url``: ({key: task} of the reconstruction, {key: task} of the write, the write's key). The
-        write's key is the lazy graph's (``pipeline.lazy.written``): ``(write-<run>, b, ty, tx, 0)``."""
+        store at ``url``: ({key: task} of the reconstruction, {key: task} of the write, the write's key). A tile of a
+        pass of its own is read, reconstructed and written by one task, ``(<name>-<run>, b, ty, tx, 0)`` (its key
+        prefix the method's; no reconstruction tasks): its HR block never travels, where a write of its own could
+        be taken by an idle worker (Dask's work stealing) while the worker that holds the block starts its next
+        one. The tiles of a joined pass are each written by ``(write-<run>, b, ty, tx, 0)``, the lazy graph's write
+        (``pipeline.lazy.written``)."""
+        from dask._task_spec import TaskRef
+
         rows, columns = self.hr_tiles
-        key = (f"write-{run}", b, ty, tx, 0)
+        tile, tasks = (self.name, b, ty, tx, 0), self.graph(b, k)
+        if len(self.passes[k]) == 1:
+            key, block, tasks = (f"{self.name}-{run}", b, ty, tx, 0), tasks[tile], {}  # the read, inline
+        else:  # the tile taken from the pass
+            key, block = (f"write-{run}", b, ty, tx, 0), TaskRef(tile)
+            tasks = {name: task for name, task in tasks.items() if name == tile or name[0].startswith("pass-")}
         shape = (self.frames[b], rows[ty], columns[tx], 3)
-        write = write_task(key, (self.name, b, ty, tx, 0), url, run, self.starts[b], (ty, tx), self.corner(ty, tx),
-                           shape)
-        tile = (self.name, b, ty, tx, 0)  # and the pass it is taken from, if it shares one
-        tasks = {name: task for name, task in self.graph(b, k).items() if name == tile or name[0].startswith("pass-")}
+        write = write_task(key, block, url, run, self.starts[b], (ty, tx), self.corner(ty, tx), shape)
         return tasks, {key: write}, key
 
 
@@ -290,13 +302,14 @@ def cropped(images: list[np.ndarray], crop: tuple[slice, slice]) -> np.ndarray:
     return out
 
 
-def write_task(key: tuple, block: tuple, url: str, run: str, first: int, tile: tuple[int, int],
-               corner: tuple[int, int], shape: tuple[int, ...]):
-    """The task that writes the HR block under key ``block`` (output frames from ``first``, tile ``tile`` at HR
-    ``corner``, of ``shape``) into the video store at ``url`` and commits it, as ``key``."""
-    from dask._task_spec import Task, TaskRef
+def write_task(key: tuple, block, url: str, run: str, first: int, tile: tuple[int, int], corner: tuple[int, int],
+               shape: tuple[int, ...]):
+    """The task that writes the HR block ``block`` gives (a ``TaskRef`` to it, or the task that makes it, inline;
+    output frames from ``first``, tile ``tile`` at HR ``corner``, of ``shape``) into the video store at ``url`` and
+    commits it, as ``key``."""
+    from dask._task_spec import Task
 
-    return Task(key, write_block, TaskRef(block), url, run, first, tile, corner, shape)
+    return Task(key, write_block, block, url, run, first, tile, corner, shape)
 
 
 def write_block(block: np.ndarray, url: str, run: str, first: int, tile: tuple[int, int], corner: tuple[int, int],

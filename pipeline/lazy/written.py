@@ -266,6 +266,7 @@ def _written(data: da.Array, url: str, run: str) -> da.Array:
     """A task per block of ``data`` (t, y, x, rgb) uint8 (the job's: ``reconstruct_tasks.write_task``): check it
     against its chunk, write its frames' chunks of its tile into the video store at ``url``, commit them
     -> (blocks along t, tile rows, tile columns, 1) int64, the frames each wrote."""
+    from dask._task_spec import TaskRef
     from dask.highlevelgraph import HighLevelGraph
 
     name, starts = f"write-{run}", np.cumsum((0, *data.chunks[0]))
@@ -275,7 +276,7 @@ def _written(data: da.Array, url: str, run: str) -> da.Array:
         for ty, rows in enumerate(data.chunks[1]):
             for tx, columns in enumerate(data.chunks[2]):
                 key = (name, b, ty, tx, 0)
-                layer[key] = write_task(key, (data.name, b, ty, tx, 0), url, run, int(starts[b]), (ty, tx),
+                layer[key] = write_task(key, TaskRef((data.name, b, ty, tx, 0)), url, run, int(starts[b]), (ty, tx),
                                         (ty * tile_hr[0], tx * tile_hr[1]), (frames, rows, columns, 3))
     return da.Array(HighLevelGraph.from_collections(name, layer, dependencies=[data]), name,
                     tuple((1,) * len(c) for c in data.chunks), meta=np.empty((0, 0, 0, 0), np.int64))
