@@ -50,12 +50,17 @@ def forked_workers() -> dict:
 
 
 def _start_server() -> None:
+    import multiprocessing
     from multiprocessing import forkserver
 
-    from distributed.utils import get_mp_context
+    import distributed.utils
 
-    with dask.config.set({START_METHOD: "forkserver", **PRE_SPAWN}):
-        context = get_mp_context()  # Dask sets its own preload list on its first call: ours replaces it
+    # Dask's first get_mp_context() under "forkserver" (the nanny's, in this process) imports every package
+    # distributed knows of to choose the server's preload list, which ours replaces: pandas among them, 1.2 core-s of
+    # every command that starts a cluster. Marked chosen, it imports none of them
+    distributed.utils._forkserver_preload_set = True
+    context = multiprocessing.get_context("forkserver")
+    with dask.config.set(PRE_SPAWN):
         environment = {name: str(value) for name, value in
                        dask.config.get("distributed.nanny.pre-spawn-environ").items() if value is not None}
     environment.setdefault("PYTHONHASHSEED", "6640")  # what a nanny gives a spawned worker
