@@ -82,17 +82,13 @@ def plan_job(plan: Plan, part: Part, blocks: TileBlocks, done: np.ndarray, hr_si
 
 
 def _sampled(blocks: TileBlocks, b: int, k: int, url: str, run: str) -> dict:
-    """Task of a dry run: pass ``k`` of block ``b`` of the job, its tasks (the graph's own: reconstructed, written)
-    run here into the dry run's temporary store (:func:`_scratch`) -> the compressed bytes and HR pixels of video
+    """Task of a dry run: pass ``k`` of block ``b`` of the job, its task (the job's own: read, reconstructed,
+    written) run here into the dry run's temporary store (:func:`_scratch`) -> the compressed bytes and HR pixels of video
     it wrote, which it then drops (a sample holds one task's output at a time)."""
     from dask.local import get_sync
 
-    graph, writes = {}, []
-    for ty, tx in blocks.passes[k]:  # the pass's tiles share its reconstruction (one key): run once
-        tasks, write, key = blocks.written(b, k, ty, tx, url, run)
-        graph.update({**tasks, **write})
-        writes.append(key)
-    get_sync(graph, writes)
+    key, task = blocks.written(b, k, url, run)
+    get_sync({key: task}, [key])
     video = writer(url, run).video
     fs, root = resolve(f"{url}/{VIDEO}")
     written = pixels = 0

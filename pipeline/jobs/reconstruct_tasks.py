@@ -2,14 +2,13 @@
 its dry run ``pipeline.jobs.dry_run``) and the lazy graphs (``pipeline.lazy.video``, ``pipeline.lazy.written``).
 
 :class:`TileBlocks` is a reconstruction read straight from a spike store, as frozen data: output frames cut into
-blocks along time (the network's batches) and into tiles. The graph of any of its blocks is built on demand
-(:meth:`TileBlocks.graph`): a task per block of a tile that reads its windows and halo as packed bytes from the
-store and reconstructs them (``{method}-<token>``), which ``lazy.reconstruct`` wraps in a dask array. Written
+blocks along time (the network's batches) and into tiles, on GPU workers the tiles of one shape joined into one
+network pass. The tasks of any block are made on demand. ``lazy.reconstruct`` wraps every block in a dask array
+(:meth:`TileBlocks.graph`): a task per block of a tile that reads its windows and halo as packed bytes from the store
+and reconstructs them (``{method}-<token>``; a joined pass is a ``pass-`` task, its tiles taken from it). Written
 (:meth:`TileBlocks.written`: the job, and ``lazy.to_video`` of such an array, a bounded window at a time through
-``pipeline.compute.executor``), that task also writes and commits its block (``{method}-<token>-<run>``), so an HR
-block never travels between workers. On GPU workers the tiles of one shape join one network pass (a ``pass`` task),
-each tile then written by a task of its own (``write-<run>``, :func:`write_task`, as ``to_video`` writes any
-``hr``).
+``pipeline.compute.executor``), one task per pass reads, reconstructs, writes and commits its tiles, so an HR block
+never travels between workers.
 
 Also here, what the workers build once per process: the method (a network loaded once per weights file), the
 stores opened once per run; and the automatic exposure.
@@ -161,28 +160,28 @@ class TileBlocks:
                 if done is None or not all(done[self.starts[b] : self.starts[b + 1], ty, tx].all() for ty, tx in tiles):
                     yield b, k
 
-    def tiles(self, units) -> Iterator[tuple[int, int, int, int]]:
-        """(block along time, pass, tile row, tile column) of every tile of ``units`` ((block, pass) pairs)."""
-        for b, k in units:
-            for ty, tx in self.passes[k]:
-                yield b, k, ty, tx
-
-    def graph(self, b: int, k: int) -> dict:
-        """The tasks of pass ``k`` of block ``b`` along time: {key: task}, each tile's HR block (n, h, w, 3) uint8
-        under the key ``(name, b, ty, tx, 0)``."""
+    def read(self, b: int, k: int, key=None):
+        """The task that reads and reconstructs every tile of pass ``k`` of block ``b`` along time, as ``key``
+        (None: inline, in a task that takes its output) -> per tile (n, h, w, 3) uint8 (:func:`read_tiles`)."""
         from dask._task_spec import Task, TaskRef
 
-        j0, j1 = self.starts[b], self.starts[b + 1]
-        centres = tuple(self.first_centre + j * self.every for j in range(j0, j1))
-        tiles = self.passes[k]
+        centres = tuple(self.first_centre + j * self.every for j in range(self.starts[b], self.starts[b + 1]))
         gain = TaskRef(self.gain) if isinstance(self.gain, tuple) else self.gain
-        arguments = (gain, self.spec, self.url, self.identity, centres, self.half,
-                     tuple(self.grid[ty][tx] for ty, tx in tiles), self.cfa, self.reset, self.scale, self.most)
+        return Task(key, read_tiles, gain, self.spec, self.url, self.identity, centres, self.half,
+                    tuple(self.grid[ty][tx] for ty, tx in self.passes[k]), self.cfa, self.reset, self.scale, self.most)
+
+    def graph(self, b: int, k: int) -> dict:
+        """The tasks of pass ``k`` of block ``b`` along time, as the lazy array holds them: {key: task}, each tile's
+        HR block (n, h, w, 3) uint8 under the key ``(name, b, ty, tx, 0)``; tiles of a joined pass are taken from
+        its task, ``(pass-<name>, b, k)``."""
+        from dask._task_spec import Task, TaskRef
+
+        tiles = self.passes[k]
         if len(tiles) == 1:
             key = (self.name, b, *tiles[0], 0)
-            return {key: Task(key, read_tile, *arguments)}
+            return {key: Task(key, operator.getitem, self.read(b, k), 0)}
         joined = (f"pass-{self.name}", b, k)
-        tasks = {joined: Task(joined, read_tiles, *arguments)}
+        tasks = {joined: self.read(b, k, joined)}
         for i, (ty, tx) in enumerate(tiles):
             key = (self.name, b, ty, tx, 0)
             tasks[key] = Task(key, operator.getitem, TaskRef(joined), i)
@@ -200,37 +199,24 @@ class TileBlocks:
 
         return {"resources": {GPU: GPU_SHARE}} if self.gpu else None
 
-    def layered(self, tasks: dict, write: dict):
-        """Reconstruction ``tasks`` and the ``write`` that depends on them as a high-level graph: two layers, the
-        reconstruction's annotated (:attr:`annotations`); one, annotated, where the write reconstructs (no ``tasks``)."""
+    def written(self, b: int, k: int, url: str, run: str) -> tuple[tuple, object]:
+        """(key, task) of the task that reads and reconstructs every tile of pass ``k`` of block ``b`` and writes them
+        into the video store at ``url`` (:func:`write_blocks`): ``(<name>-<run>, b, ty, tx, 0)`` for a tile of its
+        own, ``(pass-<name>-<run>, b, k)`` for a joined pass (key prefixes the method's and ``pass-`` and the
+        method's). One task, so an HR block never travels between workers: a write of its own was taken by an idle
+        worker (Dask's work stealing) while the worker that held the block ran its next."""
+        from dask._task_spec import Task
+
+        tiles, (rows, columns) = self.passes[k], self.hr_tiles
+        key = (f"{self.name}-{run}", b, *tiles[0], 0) if len(tiles) == 1 else (f"pass-{self.name}-{run}", b, k)
+        places = tuple(((ty, tx), self.corner(ty, tx), (self.frames[b], rows[ty], columns[tx], 3)) for ty, tx in tiles)
+        return key, Task(key, write_blocks, self.read(b, k), url, run, self.starts[b], places)
+
+    def layered(self, key: tuple, task):
+        """The task :meth:`written` gives as a high-level graph: one layer, annotated (:attr:`annotations`)."""
         from dask.highlevelgraph import HighLevelGraph, MaterializedLayer
 
-        name = next(iter(write))[0]
-        if not tasks:
-            return HighLevelGraph({name: MaterializedLayer(write, annotations=self.annotations)}, {name: set()})
-        return HighLevelGraph({self.name: MaterializedLayer(tasks, annotations=self.annotations),
-                               name: MaterializedLayer(write)}, {self.name: set(), name: {self.name}})
-
-    def written(self, b: int, k: int, ty: int, tx: int, url: str, run: str) -> tuple[dict, dict, tuple]:
-        """The graph that reconstructs tile (ty, tx) of block ``b`` (its pass ``k``) and writes it into the video
-        store at ``url``: ({key: task} of the reconstruction, {key: task} of the write, the write's key). A tile of a
-        pass of its own is read, reconstructed and written by one task, ``(<name>-<run>, b, ty, tx, 0)`` (its key
-        prefix the method's; no reconstruction tasks): its HR block never travels, where a write of its own could
-        be taken by an idle worker (Dask's work stealing) while the worker that holds the block starts its next
-        one. The tiles of a joined pass are each written by ``(write-<run>, b, ty, tx, 0)``, the lazy graph's write
-        (``pipeline.lazy.written``)."""
-        from dask._task_spec import TaskRef
-
-        rows, columns = self.hr_tiles
-        tile, tasks = (self.name, b, ty, tx, 0), self.graph(b, k)
-        if len(self.passes[k]) == 1:
-            key, block, tasks = (f"{self.name}-{run}", b, ty, tx, 0), tasks[tile], {}  # the read, inline
-        else:  # the tile taken from the pass
-            key, block = (f"write-{run}", b, ty, tx, 0), TaskRef(tile)
-            tasks = {name: task for name, task in tasks.items() if name == tile or name[0].startswith("pass-")}
-        shape = (self.frames[b], rows[ty], columns[tx], 3)
-        write = write_task(key, block, url, run, self.starts[b], (ty, tx), self.corner(ty, tx), shape)
-        return tasks, {key: write}, key
+        return HighLevelGraph({key[0]: MaterializedLayer({key: task}, annotations=self.annotations)}, {key[0]: set()})
 
 
 def cut(spec: MethodSpec, url: str, identity: str, centres: list[int], first: int, every: int, window: int,
@@ -263,18 +249,19 @@ def run_blocks(client, units: Iterable[tuple[int, int]], *, blocks: TileBlocks, 
                run: str) -> Iterator[Outcome]:
     """Run ``units`` (block along time, pass) of ``blocks`` on ``client`` (``pipeline.compute.executor``: a bounded
     window, lost workers survived, tasks the cluster drops submitted again), written into the video store at
-    ``out``, each tile's two tasks (reconstructed, written) made as the window moves; yield the outcome of each
-    tile as it finishes. The ``reconstruct`` job and ``lazy.to_video`` of a reconstruction read from a store run
+    ``out``, each unit's task (:meth:`TileBlocks.written`) made as the window moves; yield the outcome of each of its
+    tiles as it finishes. The ``reconstruct`` job and ``lazy.to_video`` of a reconstruction read from a store run
     their blocks here."""
     from pipeline.compute.executor import failure, submitted
 
-    def submit(tile):  # everything a task needs travels in it (scattered data dies with the workers holding it)
-        tasks, write, key = blocks.written(*tile, out, run)
-        return client.get(blocks.layered(tasks, write), [key], sync=False)[0]
+    def submit(unit):  # everything a task needs travels in it (scattered data dies with the workers holding it)
+        key, task = blocks.written(*unit, out, run)
+        return client.get(blocks.layered(key, task), [key], sync=False)[0]
 
-    for (b, _, ty, tx), future in submitted(client, blocks.tiles(units), submit, idempotent=True):
-        # the task raised, or the cluster failed it: report it, go on with the others
-        yield Outcome(b, blocks.starts[b], blocks.starts[b + 1], ty, tx, failure(future))
+    for (b, k), future in submitted(client, units, submit, idempotent=True):
+        error = failure(future)  # the task raised, or the cluster failed it: report it, go on with the others
+        for ty, tx in blocks.passes[k]:
+            yield Outcome(b, blocks.starts[b], blocks.starts[b + 1], ty, tx, error)
 
 
 def read_tiles(gain, spec: MethodSpec, url: str, identity: str, centres: tuple[int, ...], half: int,
@@ -288,11 +275,6 @@ def read_tiles(gain, spec: MethodSpec, url: str, identity: str, centres: tuple[i
     return tuple(cropped(tile_images, tile.crop(scale)) for tile, tile_images in zip(tiles, images))
 
 
-def read_tile(*arguments) -> np.ndarray:
-    """Task: :func:`read_tiles` of one tile -> (n, h, w, 3) uint8."""
-    return read_tiles(*arguments)[0]
-
-
 def cropped(images: list[np.ndarray], crop: tuple[slice, slice]) -> np.ndarray:
     """A tile's HR images, each (H, W, 3), cropped to ``crop`` (its halo off) -> (n, h, w, 3) uint8."""
     ys, xs = crop
@@ -302,14 +284,22 @@ def cropped(images: list[np.ndarray], crop: tuple[slice, slice]) -> np.ndarray:
     return out
 
 
-def write_task(key: tuple, block, url: str, run: str, first: int, tile: tuple[int, int], corner: tuple[int, int],
-               shape: tuple[int, ...]):
-    """The task that writes the HR block ``block`` gives (a ``TaskRef`` to it, or the task that makes it, inline;
-    output frames from ``first``, tile ``tile`` at HR ``corner``, of ``shape``) into the video store at ``url`` and
-    commits it, as ``key``."""
-    from dask._task_spec import Task
+def write_task(key: tuple, block: tuple, url: str, run: str, first: int, tile: tuple[int, int],
+               corner: tuple[int, int], shape: tuple[int, ...]):
+    """The task that writes the HR block under key ``block`` (output frames from ``first``, tile ``tile`` at HR
+    ``corner``, of ``shape``) into the video store at ``url`` and commits it, as ``key``: ``to_video``'s write of
+    any ``hr``."""
+    from dask._task_spec import Task, TaskRef
 
-    return Task(key, write_block, block, url, run, first, tile, corner, shape)
+    return Task(key, write_block, TaskRef(block), url, run, first, tile, corner, shape)
+
+
+def write_blocks(blocks: tuple[np.ndarray, ...], url: str, run: str, first: int, places: tuple) -> int:
+    """Task: :func:`write_block` each of a pass's tile ``blocks`` at its place ((tile, corner, shape)) -> tiles
+    written."""
+    for block, place in zip(blocks, places):
+        write_block(block, url, run, first, *place)
+    return len(blocks)
 
 
 def write_block(block: np.ndarray, url: str, run: str, first: int, tile: tuple[int, int], corner: tuple[int, int],

@@ -142,16 +142,12 @@ def _run_blocks(client, blocks: TileBlocks, gain: float, done: np.ndarray, url: 
         for outcome in run_blocks(client, blocks.units(done), blocks=blocks, out=url, run=run):
             yield (outcome.block, outcome.ty, outcome.tx), outcome.error
         return
-    tiles = list(blocks.tiles(blocks.units(done)))
-    for at in range(0, len(tiles), BLOCKS_AT_ONCE):
-        chosen, graph, keys = tiles[at : at + BLOCKS_AT_ONCE], {}, []
-        for tile in chosen:
-            tasks, write, key = blocks.written(*tile, url, run)
-            graph.update(tasks)
-            graph.update(write)
-            keys.append(key)
-        dask.compute(*(Delayed(key, graph) for key in keys), optimize_graph=False)
-        yield from (((b, ty, tx), None) for b, _, ty, tx in chosen)
+    units = list(blocks.units(done))
+    for at in range(0, len(units), BLOCKS_AT_ONCE):
+        chosen = units[at : at + BLOCKS_AT_ONCE]
+        graph = dict(blocks.written(b, k, url, run) for b, k in chosen)
+        dask.compute(*(Delayed(key, graph) for key in graph), optimize_graph=False)
+        yield from (((b, ty, tx), None) for b, k in chosen for ty, tx in blocks.passes[k])
 
 
 def _in_rounds(client, written: da.Array, blocks: list[tuple[int, int, int]]):
@@ -266,7 +262,6 @@ def _written(data: da.Array, url: str, run: str) -> da.Array:
     """A task per block of ``data`` (t, y, x, rgb) uint8 (the job's: ``reconstruct_tasks.write_task``): check it
     against its chunk, write its frames' chunks of its tile into the video store at ``url``, commit them
     -> (blocks along t, tile rows, tile columns, 1) int64, the frames each wrote."""
-    from dask._task_spec import TaskRef
     from dask.highlevelgraph import HighLevelGraph
 
     name, starts = f"write-{run}", np.cumsum((0, *data.chunks[0]))
@@ -276,7 +271,7 @@ def _written(data: da.Array, url: str, run: str) -> da.Array:
         for ty, rows in enumerate(data.chunks[1]):
             for tx, columns in enumerate(data.chunks[2]):
                 key = (name, b, ty, tx, 0)
-                layer[key] = write_task(key, TaskRef((data.name, b, ty, tx, 0)), url, run, int(starts[b]), (ty, tx),
+                layer[key] = write_task(key, (data.name, b, ty, tx, 0), url, run, int(starts[b]), (ty, tx),
                                         (ty * tile_hr[0], tx * tile_hr[1]), (frames, rows, columns, 3))
     return da.Array(HighLevelGraph.from_collections(name, layer, dependencies=[data]), name,
                     tuple((1,) * len(c) for c in data.chunks), meta=np.empty((0, 0, 0, 0), np.int64))
