@@ -83,8 +83,8 @@ def plan_job(plan: Plan, part: Part, blocks: TileBlocks, done: np.ndarray, hr_si
 
 def _sampled(blocks: TileBlocks, b: int, k: int, url: str, run: str) -> dict:
     """Task of a dry run: pass ``k`` of block ``b`` of the job, its task (the job's own: read, reconstructed,
-    written) run here into the dry run's temporary store (:func:`_scratch`) -> the compressed bytes and HR pixels of video
-    it wrote, which it then drops (a sample holds one task's output at a time)."""
+    written) run here into the dry run's temporary store (:func:`_scratch`) -> the compressed bytes and HR pixels of
+    video it wrote, which it then drops (a sample holds one task's output at a time)."""
     from dask.local import get_sync
 
     key, task = blocks.written(b, k, url, run)

@@ -4,10 +4,10 @@ Output frame j is centred on spike frame ``c_j = W//2 + j*K`` and made from fram
 ``[c_j - W//2, c_j + W//2]``. The job runs the lazy graph's tasks (``pipeline.jobs.reconstruct_tasks.TileBlocks``,
 the blocks ``lazy.reconstruct`` and ``lazy.to_video`` make): a block is a few consecutive output frames (the
 method's ``batch``) of one tile; its task reads its windows and halo straight from Zarr (no overlap graph),
-reconstructs, crops the halo and writes one chunk per (frame, tile), each then recorded in ``committed``. The plan (``pipeline.jobs.reconstruct_plan``) is frozen data; ``pipeline.compute.executor`` submits
-the blocks' tasks in a bounded window. The reconstructor (a model, for ``cscsr``) is built once per worker process
-and reused. A job that starts its own local
-cluster runs its tasks in segments, each in a fresh process and cluster
+reconstructs, crops the halo and writes one chunk per (frame, tile), each then recorded in ``committed``. The plan
+(``pipeline.jobs.reconstruct_plan``) is frozen data; ``pipeline.compute.executor`` submits the blocks' tasks in a
+bounded window. The reconstructor (a model, for ``cscsr``) is built once per worker process and reused. A job that
+starts its own local cluster runs its tasks in segments, each in a fresh process and cluster
 (``pipeline.compute.executor``), so that memory stays bounded over millions of tasks.
 
 GPU workers: when the cluster has workers that advertise the ``GPU`` resource (one per GPU,

@@ -202,8 +202,8 @@ class TileBlocks:
     def written(self, b: int, k: int, url: str, run: str) -> tuple[tuple, object]:
         """(key, task) of the task that reads and reconstructs every tile of pass ``k`` of block ``b`` and writes them
         into the video store at ``url`` (:func:`write_blocks`): ``(<name>-<run>, b, ty, tx, 0)`` for a tile of its
-        own, ``(pass-<name>-<run>, b, k)`` for a joined pass (key prefixes the method's and ``pass-`` and the
-        method's). One task, so an HR block never travels between workers: a write of its own was taken by an idle
+        own (its key prefix the method's name), ``(pass-<name>-<run>, b, k)`` for a joined pass (``pass-`` and the
+        method's name). One task, so an HR block never travels between workers: a write of its own was taken by an idle
         worker (Dask's work stealing) while the worker that held the block ran its next."""
         from dask._task_spec import Task
 
