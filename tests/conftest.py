@@ -121,7 +121,14 @@ def write_dat(path, bits: np.ndarray, *, flip: bool = False) -> bytes:
 
 
 @pytest.fixture(scope="session", autouse=True)
-def workers_forked_as_the_jobs_fork_them():
+def onnx_exports_kept_apart(tmp_path_factory):
+    """ONNX Runtime's exports (``cscsr.inference.onnx_runtime``) kept in the session's own folder, never the user's
+    cache: set before any worker's server starts, whose environment every forked worker has."""
+    os.environ.setdefault("CSCSR_ONNX_CACHE", str(tmp_path_factory.mktemp("onnx-exports")))
+
+
+@pytest.fixture(scope="session", autouse=True)
+def workers_forked_as_the_jobs_fork_them(onnx_exports_kept_apart):
     """The tests' own local clusters start their workers as the jobs' clusters do (a fixture, not at import: a
     process that multiprocessing spawns imports this module too, and may not start processes while it does)."""
     dask.config.set(forked_workers())

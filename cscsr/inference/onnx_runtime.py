@@ -3,13 +3,19 @@
 PyTorch's tracing exporter fixes what Python computes from the input (the padding to a multiple
 of 16, the CFA masks, the reset mode, the scale) as constants of the graph, so one graph serves
 one kind of input: (batch, frames, height, width), CFA, reset and scale. The first window of each
-kind exports the network to memory and opens an ONNX Runtime session (about 18 s for a 256x256
-tile of ``lite`` on this project's CPU); the sessions are kept for the worker's later tasks. Each
-runs on one thread, like PyTorch on the CPU here, so the bytes do not depend on the number of
-workers. Outputs agree with PyTorch's within float rounding (about 1e-6), not bit for bit.
+kind exports the network (16 s for a 256x256 tile of ``lite`` on this project's CPU) and keeps the
+graph on disk (``CSCSR_ONNX_CACHE``, default :data:`EXPORT_CACHE`; named by the network's weights and
+every input of the export), where the node's other workers and later jobs open it (0.8 s); each
+worker keeps its sessions for its later tasks. A session runs on one thread, like PyTorch on the
+CPU here, so the bytes do not depend on the number of workers. Outputs agree with PyTorch's within
+float rounding (about 1e-6), not bit for bit.
 """
 
+import contextlib
+import hashlib
 import io
+import os
+import tempfile
 import warnings
 
 import numpy as np
@@ -45,6 +51,7 @@ class OnnxNetwork:
         check_available()
         self.model = model
         self.sessions: dict[tuple, object] = {}
+        self._weights: str | None = None  # the SHA-256 of the model's tensors, once a graph is looked up
 
     def __call__(self, spikes: torch.Tensor, cfa: str, zero_reset: bool, scale: int) -> torch.Tensor:
         kind = (tuple(spikes.shape), cfa, bool(zero_reset), int(scale))
@@ -56,12 +63,59 @@ class OnnxNetwork:
     def _session(self, shape: tuple, cfa: str, zero_reset: bool, scale: int):
         import onnxruntime
 
-        graph = export(self.model, shape, cfa, zero_reset, scale)
         options = onnxruntime.SessionOptions()
         options.intra_op_num_threads = options.inter_op_num_threads = 1
         options.execution_mode = onnxruntime.ExecutionMode.ORT_SEQUENTIAL
         options.log_severity_level = 3  # errors only
+        path = self._cached(shape, cfa, zero_reset, scale)
+        if path is not None and os.path.exists(path):
+            try:
+                with open(path, "rb") as handle:
+                    return onnxruntime.InferenceSession(handle.read(), options, providers=["CPUExecutionProvider"])
+            except Exception:  # noqa: BLE001 - a damaged file (a disk fault): exported again, replaced below
+                pass
+        graph = export(self.model, shape, cfa, zero_reset, scale)
+        if path is not None:
+            _keep(path, graph)
         return onnxruntime.InferenceSession(graph, options, providers=["CPUExecutionProvider"])
+
+    def _cached(self, shape: tuple, cfa: str, zero_reset: bool, scale: int) -> str | None:
+        """Where the export for this kind of input is kept: a file named by the SHA-256 of the network's weights
+        and configuration, the kind, the opset and the versions of torch and this module's export; None where
+        the cache folder cannot be made (a read-only home: then every worker exports, as without it)."""
+        folder = os.path.expanduser(os.environ.get("CSCSR_ONNX_CACHE") or EXPORT_CACHE)
+        try:
+            os.makedirs(folder, exist_ok=True)
+        except OSError:
+            return None
+        if self._weights is None:
+            digest = hashlib.sha256(repr(getattr(self.model, "config", None)).encode())
+            for name, tensor in self.model.state_dict().items():
+                digest.update(name.encode())
+                digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+            self._weights = digest.hexdigest()
+        key = repr((self._weights, shape, cfa, zero_reset, scale, OPSET, EXPORT_VERSION, torch.__version__))
+        return os.path.join(folder, f"{hashlib.sha256(key.encode()).hexdigest()}.onnx")
+
+
+EXPORT_CACHE = "~/.cache/cscsr/onnx"  # exported graphs, kept between worker processes and jobs
+EXPORT_VERSION = 1  # of export() below: a change to what it exports makes it 2, so no older file is opened
+
+
+def _keep(path: str, graph: bytes) -> None:
+    """Write ``graph`` to ``path`` whole or not at all (a temporary file renamed: workers exporting the same kind at
+    once each write a whole file, the last one kept); a full or read-only disk keeps nothing."""
+    try:
+        handle, temporary = tempfile.mkstemp(dir=os.path.dirname(path), suffix=".partial")
+    except OSError:
+        return
+    try:
+        with os.fdopen(handle, "wb") as file:
+            file.write(graph)
+        os.replace(temporary, path)
+    except OSError:
+        with contextlib.suppress(OSError):
+            os.unlink(temporary)
 
 
 OPSET = 18
