@@ -92,7 +92,7 @@ class OnnxNetwork:
             digest = hashlib.sha256(repr(getattr(self.model, "config", None)).encode())
             for name, tensor in self.model.state_dict().items():
                 digest.update(name.encode())
-                digest.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+                digest.update(tensor.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
             self._weights = digest.hexdigest()
         key = repr((self._weights, shape, cfa, zero_reset, scale, OPSET, EXPORT_VERSION, torch.__version__))
         return os.path.join(folder, f"{hashlib.sha256(key.encode()).hexdigest()}.onnx")
