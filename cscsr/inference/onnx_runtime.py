@@ -70,8 +70,7 @@ class OnnxNetwork:
         path = self._cached(shape, cfa, zero_reset, scale)
         if path is not None and os.path.exists(path):
             try:
-                with open(path, "rb") as handle:
-                    return onnxruntime.InferenceSession(handle.read(), options, providers=["CPUExecutionProvider"])
+                return onnxruntime.InferenceSession(path, options, providers=["CPUExecutionProvider"])
             except Exception:  # noqa: BLE001 - a damaged file (a disk fault): exported again, replaced below
                 pass
         graph = export(self.model, shape, cfa, zero_reset, scale)
