@@ -31,7 +31,7 @@ from typer.testing import CliRunner
 
 from cscsr import samples
 from pipeline.cli import app
-from pipeline.compute.worker_start import forked_workers
+from pipeline.compute.worker_start import NETWORK_PRELOAD, forked_workers
 
 
 CSCSR = os.path.join(os.path.dirname(sys.executable), "cscsr")  # the installed command, as a user runs it
@@ -139,9 +139,10 @@ def onnx_exports_kept_apart(tmp_path_factory):
 
 @pytest.fixture(scope="session", autouse=True)
 def workers_forked_as_the_jobs_fork_them(onnx_exports_kept_apart):
-    """The tests' own local clusters start their workers as the jobs' clusters do (a fixture, not at import: a
-    process that multiprocessing spawns imports this module too, and may not start processes while it does)."""
-    dask.config.set(forked_workers())
+    """The tests' own local clusters start their workers as the jobs' clusters do, as a network job's, whose workers
+    find torch imported (most of the suite's clusters run the network; a fixture, not at import: a process that
+    multiprocessing spawns imports this module too, and may not start processes while it does)."""
+    dask.config.set(forked_workers(NETWORK_PRELOAD))
 
 
 @pytest.fixture(scope="module")

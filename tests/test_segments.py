@@ -2,10 +2,12 @@
 
 import functools
 import os
+import sys
 
 import pytest
 
 from pipeline.compute.executor import in_segments
+from pipeline.compute.worker_start import NETWORK_PRELOAD
 from pipeline.jobs.reconstruct import Outcome
 from stages.errors import InputError
 
@@ -15,6 +17,13 @@ def one_outcome_per_item(client, items, label):
     assert client.run(os.getpid)  # a live cluster of its own
     for start in items:
         yield Outcome(start, start, start + 1, 0, 0, f"{label} {os.getpid()}")
+
+
+def torch_in_the_workers(client, items):
+    """A segment's work: an outcome per item, saying whether its cluster's workers had torch imported before it."""
+    for start in items:
+        imported = set(client.run(lambda: "torch" in sys.modules).values())
+        yield Outcome(start, start, start + 1, 0, 0, str(imported))
 
 
 def refuses(client, items):
@@ -51,3 +60,13 @@ def test_a_job_of_one_segment_runs_it_in_this_process_on_a_cluster_of_its_own():
     assert list(in_segments(work, iter(()), 3, workers=1, show_dashboard=False)) == []
     with pytest.raises(InputError, match="the store went away"):  # the job's own error, as it raised it
         list(in_segments(refuses, range(3), 3, workers=1, show_dashboard=False))
+
+
+def test_a_network_job_s_segments_fork_workers_that_find_torch_imported_and_a_tfp_job_s_do_not():
+    """A network job's segments (``preload=NETWORK_PRELOAD``) start their workers' server with torch imported, so
+    no worker imports it again (2.5 core-s each); a TFP job's workers never import it. Each segment a fresh process,
+    its server its own."""
+    for preload, imported in ((NETWORK_PRELOAD, "{True}"), ((), "{False}")):
+        outcomes = in_segments(torch_in_the_workers, iter(range(2)), 1, workers=1, show_dashboard=False,
+                               preload=preload)
+        assert [o.error for o in outcomes] == [imported] * 2

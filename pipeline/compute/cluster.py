@@ -277,8 +277,9 @@ def gpu_worker_specs(workers: int, gpus: int, devices: Sequence[str] | None = No
 
 @contextlib.contextmanager
 def dask_client(*, workers: int | None = None, scheduler: str | None = None,
-                gpus: int | None = None) -> Iterator[Client]:
-    """A connected client; a local cluster of ``workers`` processes unless a scheduler is named.
+                gpus: int | None = None, preload: tuple[str, ...] = ()) -> Iterator[Client]:
+    """A connected client; a local cluster of ``workers`` processes unless a scheduler is named (its CPU workers
+    forked from a server that imported ``preload`` too, if this process starts one: :func:`forked_workers`).
 
     On a machine with GPUs (``gpus``, default :func:`visible_gpus`) the first ``min(workers, gpus)``
     workers of a local cluster are pinned GPU workers and the rest CPU workers
@@ -306,7 +307,7 @@ def dask_client(*, workers: int | None = None, scheduler: str | None = None,
         options["worker_class"] = functools.partial(_pinned_nanny, specs)
     with contextlib.ExitStack() as stack:
         stack.callback(purge_stale_worker_folders)  # after the cluster closed, however it ended
-        with dask.config.set({**PRE_SPAWN, **({} if gpus else forked_workers())}), \
+        with dask.config.set({**PRE_SPAWN, **({} if gpus else forked_workers(preload))}), \
                 LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host=LOOPBACK,
                              dashboard_address=os.environ.get(DASHBOARD_VARIABLE) or f"{LOOPBACK}:0",
                              silence_logs=_dask_log_level(), env=_thread_env(workers), **options) as cluster, \

@@ -135,9 +135,9 @@ _END, _FAILED, _OUTCOME = "end", "failed", "outcome"
 
 
 def in_segments(run: Callable[..., Iterator[T]], items: Iterable, size: int, *, workers: int | None,
-                show_dashboard: bool) -> Iterator[T]:
+                show_dashboard: bool, preload: tuple[str, ...] = ()) -> Iterator[T]:
     """``run(client, segment)`` for each ``size`` items in turn, each in its own process on its own local
-    cluster of ``workers`` (items are drawn one segment at a time; ``run`` must pickle); items that fit in one
+    cluster of ``workers`` (forked from a server that imported ``preload``: ``cluster.dask_client``; items are drawn one segment at a time; ``run`` must pickle); items that fit in one
     segment run in this process, on a local cluster of its own (module docstring). The first segment
     prints the dashboard link if ``show_dashboard``, unless ``cscsr --quiet``; with ``cscsr --verbose`` each
     segment's cluster lets Dask's own warnings through, as a cluster in this process would."""
@@ -154,7 +154,7 @@ def in_segments(run: Callable[..., Iterator[T]], items: Iterable, size: int, *, 
         if first:
             log.debug("segment 0: %d tasks, the job's only one: in this process on a %s of its own", len(first),
                       cluster)
-            yield from _on_a_local_cluster(run, first, workers, show_dashboard)
+            yield from _on_a_local_cluster(run, first, workers, show_dashboard, preload)
         return
     items = itertools.chain(first, beyond, items)
     for number in itertools.count():
@@ -164,7 +164,7 @@ def in_segments(run: Callable[..., Iterator[T]], items: Iterable, size: int, *, 
         log.debug("segment %d: %d tasks, in a process of its own on a fresh %s", number, len(segment), cluster)
         messages = context.Queue()
         child = context.Process(target=_segment, name=f"cscsr-segment-{number}",
-                                args=(run, segment, workers, show_dashboard and number == 0, messages, verbose))
+                                args=(run, segment, workers, show_dashboard and number == 0, messages, verbose, preload))
         child.start()
         try:
             yield from _relay(messages, child)
@@ -210,18 +210,19 @@ def _relay(messages, child) -> Iterator:
         yield message[1]
 
 
-def _on_a_local_cluster(run, items: list, workers: int | None, show_dashboard: bool) -> Iterator:
-    """A segment in the process that calls: ``run(client, items)`` on a local cluster of ``workers`` started for it
-    (and the dashboard link, if ``show_dashboard``)."""
+def _on_a_local_cluster(run, items: list, workers: int | None, show_dashboard: bool,
+                        preload: tuple[str, ...] = ()) -> Iterator:
+    """A segment in the process that calls: ``run(client, items)`` on a local cluster of ``workers`` started for it,
+    its workers forked from a server that imported ``preload`` (and the dashboard link, if ``show_dashboard``)."""
     from pipeline.compute.cluster import dashboard_link, dask_client
 
-    with dask_client(workers=workers) as client:
+    with dask_client(workers=workers, preload=preload) as client:
         if show_dashboard and (link := dashboard_link(client)):
             print(f"dashboard: {link}", file=sys.stderr)
         yield from run(client, items)
 
 
-def _segment(run, items, workers, show_dashboard, messages, verbose=False) -> None:
+def _segment(run, items, workers, show_dashboard, messages, verbose=False, preload=()) -> None:
     """Child: start a cluster, run the segment, send each outcome, exit (and all its memory with it). Stopped
     (SIGTERM from its job, Ctrl-C at the terminal), it closes its cluster on the way out and says nothing: the job
     reports."""
@@ -232,7 +233,7 @@ def _segment(run, items, workers, show_dashboard, messages, verbose=False) -> No
 
     try:
         try:
-            for outcome in _on_a_local_cluster(run, items, workers, show_dashboard):
+            for outcome in _on_a_local_cluster(run, items, workers, show_dashboard, preload):
                 messages.put((_OUTCOME, outcome))
             messages.put((_END,))
         except Exception as error:  # reported by the parent, which owns the user's terminal and exit code

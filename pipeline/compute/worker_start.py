@@ -26,30 +26,37 @@ PRE_SPAWN = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": str(2
 # distributed.worker.multiprocessing-method) that has imported distributed, NumPy and Zarr once. Spawned, every worker
 # imported them for itself at every cluster start: a job's segments, a nanny's restart of a lost worker and every
 # local cluster of a process after the first waited on it. What a job's workers never import is not preloaded, since
-# every command that starts a cluster waits on its server: not torch (a TFP job never imports it, and a worker imports
-# it under its own thread settings, the cluster's ``env``), and not dask.array (the jobs' tasks are futures; it
-# imports xarray, pandas and SciPy: docs/performance.md, "Cluster start-up", for what leaving it out saves). A
-# forked worker's NumPy keeps the server's BLAS threads (Dask's pre-spawn default, 1). GPU workers are still spawned
-# (a fork must never carry CUDA state, and they start once per job). Python skips a preload that fails to import.
+# every command that starts a cluster waits on its server: not dask.array (the jobs' tasks are futures; it imports
+# xarray, pandas and SciPy: docs/performance.md, "Cluster start-up", for what leaving it out saves), and torch only
+# for a job that runs the network (:data:`NETWORK_PRELOAD`; a TFP job never imports it). A forked worker's NumPy
+# keeps the server's BLAS threads (Dask's pre-spawn default, 1), and its torch the server's thread count: the network
+# runs on one thread whatever it is (``cscsr.inference.reconstructor.one_thread_on_cpu``). GPU workers are still
+# spawned (a fork must never carry CUDA state, and they start once per job). Python skips a preload that fails to
+# import.
 START_METHOD = "distributed.worker.multiprocessing-method"
 FORKSERVER_PRELOAD = ("distributed", "numpy", "numcodecs", "zarr",
                       "pipeline.compute.stopping")  # stopping: a command's workers ignore Ctrl-C, as spawned ones do
+# What a network job's workers import (2.4 core-s each on a 2-core AMD EPYC): once in the server instead, so that
+# neither its workers nor a nanny's restart of one, nor every local cluster of the process after the first, waits on it
+NETWORK_PRELOAD = ("torch", "cscsr.inference.reconstructor")
 
 
 _server_of: list[int] = []  # the process that started its fork server (a process forked from it has none yet)
 
 
-def forked_workers() -> dict:
+def forked_workers(preload: tuple[str, ...] = ()) -> dict:
     """Dask's configuration for local workers forked from one server process, which the first call of a process
-    starts with :data:`FORKSERVER_PRELOAD` imported and the environment a spawned worker starts with (the nanny's
-    pre-spawn variables: malloc settings, one BLAS thread, Dask's hash seed)."""
+    starts with :data:`FORKSERVER_PRELOAD` and ``preload`` (:data:`NETWORK_PRELOAD` for a job that runs the network)
+    imported, and the environment a spawned worker starts with (the nanny's pre-spawn variables: malloc settings, one
+    BLAS thread, Dask's hash seed). The server is the process's: a later call's ``preload`` is not imported there,
+    and its workers import what they need themselves, as spawned ones do."""
     if _server_of != [os.getpid()]:
-        _start_server()
+        _start_server(preload)
         _server_of[:] = [os.getpid()]
     return {START_METHOD: "forkserver"}
 
 
-def _start_server() -> None:
+def _start_server(preload: tuple[str, ...]) -> None:
     import multiprocessing
     from multiprocessing import forkserver
 
@@ -64,7 +71,7 @@ def _start_server() -> None:
         environment = {name: str(value) for name, value in
                        dask.config.get("distributed.nanny.pre-spawn-environ").items() if value is not None}
     environment.setdefault("PYTHONHASHSEED", "6640")  # what a nanny gives a spawned worker
-    context.set_forkserver_preload(list(FORKSERVER_PRELOAD))
+    context.set_forkserver_preload([*FORKSERVER_PRELOAD, *preload])
     _short_socket_folder()
     before = dict(os.environ)
     os.environ.update(environment)

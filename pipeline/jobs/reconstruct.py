@@ -56,6 +56,7 @@ from pipeline.compute.cluster import (
 )
 from pipeline.compute.executor import in_segments
 from pipeline.compute.progress import is_quiet, progress_bar
+from pipeline.compute.worker_start import NETWORK_PRELOAD
 from pipeline.jobs.dry_run import plan_job
 from pipeline.jobs.reconstruct_plan import (
     DEFAULT_TILE,
@@ -267,7 +268,8 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
                 outcomes = work(client, blocks.units(done))
             else:  # our own local cluster: a fresh one per segment keeps memory bounded
                 outcomes = in_segments(work, blocks.units(done), options.segment_tasks, workers=workers,
-                                       show_dashboard=progress)
+                                       show_dashboard=progress,
+                                       preload=NETWORK_PRELOAD if options.method in NETWORKS else ())
             failed = _tally(outcomes, done, advance)
         if failed:
             raise JobIncomplete(out, failed, len(centres))
