@@ -262,6 +262,21 @@ def test_a_cpu_local_cluster_forks_its_workers_from_one_server_with_the_spawned_
     assert server != os.getpid() and "multiprocessing.forkserver" in " ".join(psutil.Process(server).cmdline())
 
 
+def test_a_network_job_s_workers_find_torch_imported_by_their_server_and_a_tfp_job_s_never_import_it():
+    """``dask_client(preload=NETWORK_PRELOAD)`` (a network job's, in each of its segments) starts the process's fork
+    server with torch and the reconstructor imported, so no worker imports them again (2.5 core-s each); without it
+    (a TFP job) its workers never import torch. Fresh processes, as a command and its segments are: the server is the
+    first cluster's of a process."""
+    script = ("import sys\n"
+              "from pipeline.compute.cluster import dask_client\n"
+              "from pipeline.compute.worker_start import NETWORK_PRELOAD\n"
+              "with dask_client(workers=1, gpus=0, preload=NETWORK_PRELOAD if sys.argv[1] == 'network' else ()) as c:\n"
+              "    print(*c.run(lambda: [name in sys.modules for name in NETWORK_PRELOAD]).values())\n")
+    for job, imported in (("network", "[True, True]"), ("tfp", "[False, False]")):
+        done = subprocess.run([sys.executable, "-c", script, job], capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0 and done.stdout.strip() == imported, done.stderr[-2000:]
+
+
 def test_a_local_cluster_starts_under_a_temporary_folder_too_long_for_a_socket(tmp_path):
     """The fork server listens on a Unix socket in ``$TMPDIR/pymp-*/``; with a ``TMPDIR`` too long for a socket's
     path (107 bytes) every job failed ("AF_UNIX path too long"). A fresh process, as a command is."""

@@ -1,11 +1,12 @@
 """Segments: each in a fresh process with its own cluster; outcomes, errors and crashes reach the job."""
 
+import contextlib
 import functools
 import os
-import sys
 
 import pytest
 
+from pipeline.compute import cluster
 from pipeline.compute.executor import in_segments
 from pipeline.compute.worker_start import NETWORK_PRELOAD
 from pipeline.jobs.reconstruct import Outcome
@@ -17,13 +18,6 @@ def one_outcome_per_item(client, items, label):
     assert client.run(os.getpid)  # a live cluster of its own
     for start in items:
         yield Outcome(start, start, start + 1, 0, 0, f"{label} {os.getpid()}")
-
-
-def torch_in_the_workers(client, items):
-    """A segment's work: an outcome per item, saying whether its cluster's workers had torch imported before it."""
-    for start in items:
-        imported = set(client.run(lambda: "torch" in sys.modules).values())
-        yield Outcome(start, start, start + 1, 0, 0, str(imported))
 
 
 def refuses(client, items):
@@ -62,11 +56,19 @@ def test_a_job_of_one_segment_runs_it_in_this_process_on_a_cluster_of_its_own():
         list(in_segments(refuses, range(3), 3, workers=1, show_dashboard=False))
 
 
-def test_a_network_job_s_segments_fork_workers_that_find_torch_imported_and_a_tfp_job_s_do_not():
-    """A network job's segments (``preload=NETWORK_PRELOAD``) start their workers' server with torch imported, so
-    no worker imports it again (2.5 core-s each); a TFP job's workers never import it. Each segment a fresh process,
-    its server its own."""
-    for preload, imported in ((NETWORK_PRELOAD, "{True}"), ((), "{False}")):
-        outcomes = in_segments(torch_in_the_workers, iter(range(2)), 1, workers=1, show_dashboard=False,
-                               preload=preload)
-        assert [o.error for o in outcomes] == [imported] * 2
+def test_a_segment_s_cluster_forks_its_workers_from_a_server_that_imported_what_the_job_preloads(monkeypatch):
+    """``in_segments(preload=...)`` reaches the segment's ``dask_client`` (a network job's: ``NETWORK_PRELOAD``;
+    what the server then imports: test_gpu_cluster.py)."""
+    asked = []
+
+    @contextlib.contextmanager
+    def recorded_client(*, workers, preload=()):
+        asked.append((workers, preload))
+        yield None
+
+    monkeypatch.setattr(cluster, "dask_client", recorded_client)
+    assert list(in_segments(lambda client, items: iter(items), iter(range(2)), 2, workers=1, show_dashboard=False,
+                            preload=NETWORK_PRELOAD)) == [0, 1]
+    assert list(in_segments(lambda client, items: iter(items), iter(range(1)), 2, workers=1,
+                            show_dashboard=False)) == [0]
+    assert asked == [(1, NETWORK_PRELOAD), (1, ())]
