@@ -137,8 +137,9 @@ _END, _FAILED, _OUTCOME = "end", "failed", "outcome"
 def in_segments(run: Callable[..., Iterator[T]], items: Iterable, size: int, *, workers: int | None,
                 show_dashboard: bool, preload: tuple[str, ...] = ()) -> Iterator[T]:
     """``run(client, segment)`` for each ``size`` items in turn, each in its own process on its own local
-    cluster of ``workers`` (forked from a server that imported ``preload``: ``cluster.dask_client``; items are drawn one segment at a time; ``run`` must pickle); items that fit in one
-    segment run in this process, on a local cluster of its own (module docstring). The first segment
+    cluster of ``workers``, forked from a server that imported ``preload`` (``cluster.dask_client``; items are
+    drawn one segment at a time; ``run`` must pickle); items that fit in one segment run in this process, on a
+    local cluster of its own (module docstring). The first segment
     prints the dashboard link if ``show_dashboard``, unless ``cscsr --quiet``; with ``cscsr --verbose`` each
     segment's cluster lets Dask's own warnings through, as a cluster in this process would."""
     from pipeline.compute.progress import is_quiet
@@ -164,7 +165,8 @@ def in_segments(run: Callable[..., Iterator[T]], items: Iterable, size: int, *, 
         log.debug("segment %d: %d tasks, in a process of its own on a fresh %s", number, len(segment), cluster)
         messages = context.Queue()
         child = context.Process(target=_segment, name=f"cscsr-segment-{number}",
-                                args=(run, segment, workers, show_dashboard and number == 0, messages, verbose, preload))
+                                args=(run, segment, workers, show_dashboard and number == 0, messages, verbose,
+                                      preload))
         child.start()
         try:
             yield from _relay(messages, child)

@@ -36,7 +36,7 @@ PRE_SPAWN = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": str(2
 START_METHOD = "distributed.worker.multiprocessing-method"
 FORKSERVER_PRELOAD = ("distributed", "numpy", "numcodecs", "zarr",
                       "pipeline.compute.stopping")  # stopping: a command's workers ignore Ctrl-C, as spawned ones do
-# What a network job's workers import (2.4 core-s each on a 2-core AMD EPYC): once in the server instead, so that
+# What a network job's workers import (2.5 core-s each on a 2-core AMD EPYC): once in the server instead, so that
 # neither its workers nor a nanny's restart of one, nor every local cluster of the process after the first, waits on it
 NETWORK_PRELOAD = ("torch", "cscsr.inference.reconstructor")
 
