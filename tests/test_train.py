@@ -148,25 +148,18 @@ def test_a_run_may_start_from_weights_of_the_same_network(tmp_path, two_steps):
     assert not (tmp_path / "other").exists() and not (tmp_path / "none").exists()
 
 
-def test_an_ablation_run_trains_and_records_the_switched_network(tmp_path, cli, monkeypatch):
+def test_an_ablation_run_trains_and_records_the_switched_network(tmp_path, cli):
     """--motion assembled / --no-flow-guidance train that network; the weights rebuild it; resume keeps it."""
-    import dataclasses
-
-    import cscsr.training.train as training
-
-    # the command has no --validation-clips: its run is validated on the first of its 8 clips, as the tiny runs here
-    # are (what it validates on is not what this test is about; the options it records are its own)
-    clips = training.validation_batches
-    monkeypatch.setattr(training, "validation_batches",
-                        lambda options: clips(dataclasses.replace(options, validation_clips=1)))
     result = cli("train", tmp_path / "noflow", "--steps", "2", "--batch", "2", "--lr-side", "16",
-                 "--validate-every", "2", "--warmup", "2", "--no-flow-guidance", "--threads", "1")
+                 "--validate-every", "2", "--validation-clips", "1", "--warmup", "2", "--no-flow-guidance",
+                 "--threads", "1")
     assert result.exit_code == 0, result.stdout
     model, metadata = load_model(tmp_path / "noflow" / "cscsr-lite.safetensors")
     assert model.config.flow_guidance is False and model.motion is None
     assert json.loads(metadata["options"])["flow_guidance"] is False
     assert metadata["command"] == (f"cscsr train {tmp_path / 'noflow'} --steps 2 --batch 2 --lr-side 16 --warmup 2 "
-                                   "--no-flow-guidance --validate-every 2 --threads 1")  # options in --help's order
+                                   "--no-flow-guidance --validate-every 2 --validation-clips 1 "
+                                   "--threads 1")  # options in --help's order
     options = TrainOptions(steps=2, motion="assembled", **TINY)
     model, _ = load_model(train(options, tmp_path / "assembled", log=lambda line: None))
     assert model.config.motion == "assembled" and model.config.flow_guidance

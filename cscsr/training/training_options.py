@@ -81,8 +81,8 @@ class TrainOptions:
         """Refuse options that cannot train, before any output exists (the command line and the Python API)."""
         self.network()
         for label, value in (("steps", self.steps), ("batch", self.batch), ("checkpoint_every", self.checkpoint_every),
-                             ("validate_every", self.validate_every), ("warmup", self.warmup),
-                             ("decay_every", self.decay_every)):
+                             ("validate_every", self.validate_every), ("validation_clips", self.validation_clips),
+                             ("warmup", self.warmup), ("decay_every", self.decay_every)):
             check_number(label, value, at_least=1, integer=True)
         check_number("lr_side", self.lr_side, integer=True)
         if self.lr_side < 16 or self.lr_side % 2:

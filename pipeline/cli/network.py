@@ -43,6 +43,8 @@ def train(context: typer.Context,
                                                       help="Ablation: fuse time points aligned by flow, or not.")] = True,
           checkpoint_every: Annotated[int, typer.Option(help="Steps between checkpoints.")] = 100,
           validate_every: Annotated[int, typer.Option(help="Steps between validation PSNR lines.")] = 250,
+          validation_clips: Annotated[int, typer.Option(help="Held-out clips each validation averages (fixed: "
+                                                            "dead leaves, alpha 0.6 to 1.0).")] = 8,
           pictures: Annotated[Optional[list[str]], typer.Option(
               help="A folder of training pictures (repeat for more; default: the bundled pictures).")] = None,
           dead_leaves: Annotated[float, typer.Option(help="Share of clips showing dead leaves.")] = 0.4,
@@ -71,7 +73,8 @@ def train(context: typer.Context,
                            motion=motion, flow_guidance=flow_guidance, pictures=os.pathsep.join(pictures or []),
                            dead_leaves=dead_leaves, device=device, precision=precision, time_budget=time_budget,
                            synthesis=synthesis, channels_last=channels_last,
-                           checkpoint_every=checkpoint_every, validate_every=validate_every)
+                           checkpoint_every=checkpoint_every, validate_every=validate_every,
+                           validation_clips=validation_clips)
     final = run(options, out, resume=resume, log=lambda line: stdout.print(line, highlight=False),
                 command=command_line(context))
     stdout.print(f"weights: {final}")

@@ -425,7 +425,7 @@ def test_sigterm_during_train_keeps_its_checkpoint_and_resume_goes_on(tmp_path, 
     work = tmp_path / "work"
     work.mkdir()
     args = ["train", "run", "--steps", "400", "--batch", "2", "--lr-side", "16", "--checkpoint-every", "2",
-            "--validate-every", "100", "--warmup", "2", "--pool", "4"]
+            "--validate-every", "100", "--validation-clips", "1", "--warmup", "2", "--pool", "4"]
     checkpoint = work / "run" / "checkpoint.safetensors"
     stopped, seconds = terminated_mid_work(args, checkpoint.exists, cwd=work, tmpdir=tmpdir_of_its_own)
     assert_stopped(stopped, seconds)

@@ -218,6 +218,7 @@ def test_an_unfinished_video_store_with_a_committed_tile_lost_is_damaged(cli, tm
     (["--pool", "-1"], "pool must be >= 0, got -1"),  # was truthy: a pool of no clips
     (["--pool", "1000000000"], "pool 1000000000 of LR 32x32 clips needs at least"),
     (["--batch", "0"], "batch must be >= 1, got 0"),
+    (["--validation-clips", "0"], "validation_clips must be >= 1, got 0"),  # a mean of no clips: NaN PSNR lines
 ])
 def test_train_numbers_refused_before_out_exists(cli, tmp_path, args, fragment):
     out = tmp_path / "run"
