@@ -15,7 +15,7 @@ for _pool in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 # The suite's clusters are idle most of their lives (a module's client waits while its tests run commands), and an
 # idle two-worker cluster spent a fifth of a core on Dask's housekeeping: the workers' statistical profiler (a stack
 # sample every 10 ms, for the dashboard's Profile page), the event-loop tick (every 20 ms) and the system monitor
-# (every 0.5 s). Without the profiler and at a slower tick and monitor, it spends a fortieth; a job's tasks, worker
+# (every 0.5 s). Without the profiler and at a slower tick and monitor, it spends a twentieth; a job's tasks, worker
 # loss (heartbeats, the nanny) and memory limits (the memory monitor) run as before. Set before dask is imported, so
 # the commands, clusters and workers the tests start inherit them.
 for _setting, _value in (("DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED", "False"),

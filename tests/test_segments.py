@@ -56,9 +56,10 @@ def test_a_job_of_one_segment_runs_it_in_this_process_on_a_cluster_of_its_own():
         list(in_segments(refuses, range(3), 3, workers=1, show_dashboard=False))
 
 
-def test_a_segment_s_cluster_forks_its_workers_from_a_server_that_imported_what_the_job_preloads(monkeypatch):
+def test_in_segments_hands_the_job_s_preload_to_its_segment_s_cluster(monkeypatch):
     """``in_segments(preload=...)`` reaches the segment's ``dask_client`` (a network job's: ``NETWORK_PRELOAD``;
-    what the server then imports: test_gpu_cluster.py)."""
+    what the server then imports: test_gpu_cluster.py). A job of one segment, in this process: a spawned segment
+    gets it through ``_segment``'s arguments, which no monkeypatch here reaches."""
     asked = []
 
     @contextlib.contextmanager
