@@ -21,6 +21,7 @@ import warnings
 import numpy as np
 import torch
 
+from cscsr.inference import CACHE
 from stages.errors import InputError
 
 
@@ -97,7 +98,7 @@ class OnnxNetwork:
         return os.path.join(folder, f"{hashlib.sha256(key.encode()).hexdigest()}.onnx")
 
 
-EXPORT_CACHE = "~/.cache/cscsr/onnx"  # exported graphs, kept between worker processes and jobs
+EXPORT_CACHE = f"{CACHE}/onnx"  # exported graphs, kept between worker processes and jobs
 EXPORT_VERSION = 1  # of export() below: a change to what it exports makes it 2, so no older file is opened
 
 

@@ -27,6 +27,7 @@ import torch
 from cscsr.network.config import BACKENDS, PRECISIONS
 from cscsr.network.integration import NETWORK_SCALES
 from cscsr.weights.weights_io import load_model, weights_file, weights_sha256
+from cscsr.inference import CACHE
 from cscsr.inference.device_steps import expose_uint8, unpack_bits
 from stages.reconstruction.cfa import flip_horizontally, flip_vertically, transpose
 from stages.errors import InputError
@@ -230,7 +231,7 @@ def precision_context(device_type: str, precision: str, model: torch.nn.Module |
     return torch.autocast(device_type=device_type, dtype=torch.bfloat16)
 
 
-COMPILE_CACHE = "~/.cache/cscsr/torchinductor"  # torch.compile's kernels, kept between worker processes
+COMPILE_CACHE = f"{CACHE}/torchinductor"  # torch.compile's kernels, kept between worker processes
 
 
 def compiled_blocks() -> tuple:
