@@ -13,6 +13,7 @@ import os
 import signal
 import sys
 import threading
+import warnings
 
 _handled: set = set()  # the signals interrupt_on handles in this process
 COMMAND_LINE = "CSCSR_COMMAND_LINE"  # set by the command line for the processes it starts: they belong to a command
@@ -97,6 +98,9 @@ def quiet_finalizers() -> None:
     with a traceback after the command's one line. Elsewhere (the Python API, tests) nothing changes."""
     if _handled:
         sys.unraisablehook = lambda unraisable: None
+        # a read the interrupt cut short leaves zarr's coroutine unstarted, which Python reports at exit as "sys:1:
+        # RuntimeWarning: coroutine 'AsyncArray._get_selection' was never awaited" (CI 2026-11-30, a SIGTERM'd export)
+        warnings.filterwarnings("ignore", message="coroutine .* was never awaited", category=RuntimeWarning)
 
 
 def mark_command_line() -> None:
