@@ -341,7 +341,8 @@ def prove(args) -> dict:
     env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), env.get("PYTHONPATH")) if p)
     recording = None
     with open(log_path, "a") as log:
-        if any(s.kind == "pipeline" for s in chosen):  # simulated on the CPU while the smoke step uses the GPU
+        # simulated on the CPU while the smoke step uses the GPU; not where no pipeline step could fit the budget
+        if any(s.kind == "pipeline" and s.least_s <= args.budget for s in chosen):
             log.write(f"\n=== recording: {' '.join(recording_command(size))}\n")
             log.flush()
             recording = subprocess.Popen(recording_command(size), stdout=log, stderr=subprocess.STDOUT, cwd=ROOT,
