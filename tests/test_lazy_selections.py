@@ -348,3 +348,63 @@ def test_a_resume_in_another_process_is_the_same_graph(recording, tmp_path):
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     assert int(resumed.stdout.split()[-1]) == 5 * 2  # frames 0..4 (2 tiles each) committed before the failure
     assert stored(out)[2]["state"] == "complete"
+
+
+# ---- 8. coordinates changed or dropped, spikes computed from a store's (the second probe of xarray habits) ----
+
+@pytest.mark.parametrize("where", ["spikes", "windows", "windows rechunked"])
+def test_a_relabelled_frame_is_refused_not_read_at_its_new_numbers(recording, where):
+    """``assign_coords(frame=frame + 20)`` keeps the data and its ``t``: reading the store at the new numbers gave
+    other frames than an identical rechunked array held (and "lost data" past the end). The ``t`` coordinate no
+    longer agrees with ``frame``: refused in one line, on either path."""
+    spikes = lazy.open_spikes(recording)
+    if where == "spikes":
+        refused(lambda: lazy.windows(spikes.assign_coords(frame=spikes.frame + 20), every=20),
+                "the t and frame coordinates of spikes disagree (t 0 s at frame 20, 1000 frames a second)")
+        return
+    win = lazy.windows(spikes, every=20, stop=150)
+    if where == "windows rechunked":
+        win = win.chunk({"t": 2})
+    refused(lambda: lazy.tfp(win.assign_coords(frame=win.frame + 20)), "the t and frame coordinates of windows disagree")
+
+
+def test_dropped_or_moved_coordinates_are_refused_before_anything_exists(recording, tmp_path):
+    """Without its coordinates a part of the recording was taken for another part (spikes or windows without ``y``
+    read from row 0; windows without ``dt`` cut to 21 frames recorded as 41); ``hr`` whose ``y`` moved was written
+    whole and then refused as a damaged store. Each is refused in one line, and nothing is written."""
+    spikes = lazy.open_spikes(recording)
+    refused(lambda: lazy.windows(spikes.isel(y=slice(8, 24)).drop_vars("y")), "spikes: the y coordinate is missing")
+    win = lazy.windows(spikes, every=20, region="12:20,16:24", margin=8)
+    assert win.attrs["kept"] == [4, 28, 8, 32]
+    refused(lambda: lazy.tfp(win.chunk({"t": 3}).drop_vars("y")), "windows: the y coordinate is missing")
+    refused(lambda: lazy.tfp(win.assign_coords(y=np.arange(win.sizes["y"]))), "outside the y 4:28, x 8:32")
+    refused(lambda: lazy.tfp(win.drop_vars("dt").isel(dt=slice(10, 31))), "the dt coordinate is missing")
+    refused(lambda: lazy.tfp(win.drop_vars("frame")), "the frame coordinate is missing")
+    refused(lambda: lazy.tfp(win.pad(t=(1, 0), constant_values=False)), "frame numbers [nan, 20.0, 40.0]")
+    hr = lazy.tfp(lazy.windows(spikes, every=20), tile=16)
+    refused(lambda: lazy.to_video(hr.assign_coords(y=hr.y + 4), str(tmp_path / "a.zarr")),
+            "hr holds HR y 4:196, outside the 0:192 it was made of")
+    refused(lambda: lazy.to_video(hr.isel(y=slice(8, 24)).drop_vars("y"), str(tmp_path / "b.zarr")),
+            "hr: the y coordinate is missing")
+    refused(lambda: lazy.to_video(hr.drop_vars("gain"), str(tmp_path / "c.zarr")), "hr lacks its gain coordinate")
+    assert not os.listdir(tmp_path)
+
+
+def test_spikes_computed_from_a_store_s_are_exposed_and_recorded_as_their_own(recording, tmp_path):
+    """xarray keeps the attributes that name the store through ``&``, ``~`` and ``where``: such spikes were exposed
+    with the store's automatic gain and recorded as made from it. Their gain is now their own, the one they get
+    once written and read back (the known answer), and no source is recorded; a part of them, whose recording's
+    gain needs all of it, asks for gain=. A selection or a rechunk of the store's spikes keeps the store's gain."""
+    spikes = lazy.open_spikes(recording)
+    every_other = xr.DataArray(np.arange(FRAMES) % 2 == 0, dims="t")
+    masked = spikes & every_other
+    hr = lazy.tfp(lazy.windows(masked, every=20), tile=16)
+    lazy.to_spikes(masked, str(tmp_path / "masked.zarr"))
+    stored_then_read = lazy.tfp(lazy.windows(lazy.open_spikes(tmp_path / "masked.zarr"), every=20), tile=16)
+    assert float(hr.gain) == float(stored_then_read.gain) != float(lazy.tfp(lazy.windows(spikes, every=20)).gain)
+    assert np.array_equal(hr.values, stored_then_read.values)
+    assert hr.attrs["source"] is None and hr.attrs["source_identity"] is None
+    refused(lambda: lazy.windows(masked.isel(t=slice(0, 150)), every=20).pipe(lazy.tfp), "give gain=")
+    whole = float(lazy.tfp(lazy.windows(spikes, every=20)).gain)
+    rechunked = lazy.tfp(lazy.windows(spikes.isel(t=slice(10, 150)).chunk({"t": 7}), every=20))
+    assert float(rechunked.gain) == whole and rechunked.attrs["source_identity"] == spikes.attrs["identity"]

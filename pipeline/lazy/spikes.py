@@ -152,12 +152,29 @@ def run_of(values, dim: str, what: str) -> tuple[int, int]:
     return int(values[0]), int(values[-1]) + 1
 
 
+def check_times(array: xr.DataArray, per_second: float, what: str, given_by: str) -> None:
+    """One line where ``array``'s ``t`` coordinate (where it has one) is not its ``frame`` coordinate over
+    ``per_second`` (to a quarter of a frame): one of them was changed (``assign_coords``), so which frames the data
+    hold is unknown, and reading the recording at the ``frame`` numbers would give other frames than the data."""
+    if "t" not in array.coords:
+        return
+    t, frame = (np.asarray(array.coords[name].values, np.float64) for name in ("t", "frame"))
+    off = ~(np.abs(t - frame / per_second) <= 0.25 / per_second)  # NaN is off too
+    if off.any():
+        bad = int(np.argmax(off))
+        raise InputError(f"the t and frame coordinates of {what} disagree (t {t[bad]:.9g} s at frame {frame[bad]:g}, "
+                         f"{per_second:g} frames a second): one was changed (assign_coords?), so the frames the data "
+                         f"hold are unknown: keep the coordinates {given_by} gives")
+
+
 def selection(spikes: xr.DataArray, what: str = "spikes") -> Selection:
     """The part of its recording ``spikes`` (the convention) holds, from its coordinates; one line if they are not
-    a contiguous increasing run along each dim, or lie outside the recording its attributes describe."""
+    a contiguous increasing run along each dim, lie outside the recording its attributes describe, or disagree
+    (``t`` against ``frame``)."""
     f0, f1 = run_of(spikes.coords["frame"].values, "frame", what)
-    y0, y1 = run_of(spikes.coords["y"].values, "y", what) if "y" in spikes.coords else (0, spikes.shape[1])
-    x0, x1 = run_of(spikes.coords["x"].values, "x", what) if "x" in spikes.coords else (0, spikes.shape[2])
+    check_times(spikes, float(spikes.attrs["fps"]), what, "lazy.open_spikes")
+    y0, y1 = run_of(spikes.coords["y"].values, "y", what)
+    x0, x1 = run_of(spikes.coords["x"].values, "x", what)
     attrs = spikes.attrs
     shape = tuple(int(attrs[k]) if isinstance(attrs.get(k), (int, np.integer)) else end
                   for k, end in (("frames", f1), ("height", y1), ("width", x1)))
@@ -180,11 +197,21 @@ def check_spikes(spikes, what: str = "spikes") -> xr.DataArray:
     if not isinstance(spikes.data, da.Array):
         raise InputError(f"{what} must be dask-backed (lazy.open_spikes, or .chunk() a DataArray in memory)")
     missing = [name for name in ("cfa", "fps", "reset") if name not in spikes.attrs]
-    if missing or "frame" not in spikes.coords:
-        raise InputError(f"{what} lacks the recording's {', '.join(missing) or 'frame coordinate'}: keep the "
-                         f"attrs and coordinates lazy.open_spikes gives (xarray drops attrs in arithmetic unless "
-                         f"keep_attrs)")
+    if missing:
+        raise InputError(f"{what} lacks the recording's {', '.join(missing)}: keep the attrs lazy.open_spikes gives "
+                         f"(xarray drops attrs in arithmetic unless keep_attrs)")
+    check_coordinates(spikes, ("frame", "y", "x"), what, "lazy.open_spikes")  # the recording's numbers
     return spikes
+
+
+def check_coordinates(array: xr.DataArray, names: tuple[str, ...], what: str, given_by: str) -> None:
+    """One line where ``array`` lacks any of the coordinates ``names``, which say which part of the recording it
+    holds (``drop_vars`` would leave the stages to guess it)."""
+    if lost := [name for name in names if name not in array.coords]:
+        missing = (f"the {lost[0]} coordinate is missing (it says" if len(lost) == 1 else
+                   f"the {', '.join(lost[:-1])} and {lost[-1]} coordinates are missing (they say")
+        raise InputError(f"{what}: {missing} which part of the recording is held): keep the coordinates {given_by} "
+                         f"gives")
 
 
 class _PackedFrames:

@@ -196,8 +196,8 @@ def _gain(win: xr.DataArray, gain: float | None):
     if win.attrs.get("gain") is not None:
         return float(win.attrs["gain"])
     if "auto_gain" not in win.coords:
-        raise InputError("the windows are of a selection of spikes that were not read from a store, and their "
-                         "recording's automatic gain needs all of it: give gain=")
+        raise InputError("the windows are of a part of spikes that are not a store's as it holds them (computed, or "
+                         "not read from a store), and their recording's automatic gain needs all of it: give gain=")
     return win.coords["auto_gain"].data
 
 

@@ -12,10 +12,12 @@ import dask.array as da
 import numpy as np
 import xarray as xr
 from dask.base import tokenize
+from dask.utils import key_split
 
 from pipeline.jobs.reconstruct_plan import ReconstructOptions, job_part
 from pipeline.jobs.reconstruct_tasks import WINDOW_BLOCKS, gain_key, store_gain
-from pipeline.lazy.spikes import check_spikes, open_spikes, python_words, run_of, selection
+from pipeline.lazy.spikes import (check_coordinates, check_spikes, check_times, open_spikes, python_words, run_of,
+                                  selection)
 from stages.capture.bits import pack_rows
 from stages.errors import InputError, InputTypeError
 from stages.numbers import check_number
@@ -25,6 +27,7 @@ from stages.reconstruction.tfp import tfp_rate
 
 MARGIN = 32  # LR pixels kept around a region: the largest halo of a built-in method (the network's, HALO)
 WINDOW_DIMS = ("t", "dt", "y", "x")
+AS_STORED = ("getitem", "rechunk-merge", "rechunk-split", "rechunk-p2p")  # graph layers that keep a store's values
 
 
 def windows(spikes: xr.DataArray, length: int = WINDOW, every: int = WINDOW, start=None, stop=None, region=None,
@@ -98,6 +101,8 @@ def windows(spikes: xr.DataArray, length: int = WINDOW, every: int = WINDOW, sta
                           centre0=int(centres[0]), centre1=int(centres[-1]), every=every, half=half, align_arrays=False,
                           name=f"windows-{tokenize(read.name, starts, centres[0], centres[-1], every, half)}")
     store = _store_spikes(spikes)
+    if store is not None and not _as_stored(spikes.data, store.data):  # computed from the store's: not its record
+        store, attrs = None, {k: v for k, v in attrs.items() if k not in ("store", "identity")}
     if store is not None and _as_read(store.data, chosen).name == spikes.data.name:  # nothing between store and here
         attrs = {**attrs, "reads": PackedReads(store.attrs["store"], store.attrs["identity"], data.name, data.chunks,
                                                part.centres[0], every)}
@@ -134,8 +139,8 @@ class PackedReads:
     def holds(self, data: da.Array, first_centre: int) -> bool:
         """Whether ``data`` are these windows, or one run of them along t from the window centred on
         ``first_centre`` (the name Dask gives that selection of them)."""
-        if data.name == self.name:
-            return True
+        if data.name == self.name:  # all of them, but only at their own centres (not a frame relabelled)
+            return first_centre == self.first_centre and data.shape == self.shape
         start = (first_centre - self.first_centre) // self.every
         if start < 0 or start + data.shape[0] > sum(self.chunks[0]) or data.shape[1:] != self.shape[1:]:
             return False
@@ -162,6 +167,15 @@ def _store_spikes(spikes: xr.DataArray) -> xr.DataArray | None:
         raise InputError(f"spike store {url} is not the recording these spikes were read from (it was replaced): "
                          f"open it again")
     return whole
+
+
+def _as_stored(bits: da.Array, stored: da.Array) -> bool:
+    """Whether ``bits`` hold the values of the store's ``stored`` spikes as the store holds them: selected (``isel``,
+    ``sel``) or rechunked, nothing else. xarray keeps the attributes that name the store through arithmetic,
+    ``where``, ``shift`` and the user's ``map_blocks``, whose spikes are then not the store's: their automatic gain
+    is their own, and an output made of them does not record the store as its source."""
+    below = stored.__dask_graph__().layers
+    return all(key_split(name) in AS_STORED for name in bits.__dask_graph__().layers if name not in below)
 
 
 def _as_read(bits: da.Array, chosen) -> da.Array:
@@ -223,14 +237,22 @@ def check_windows(win, what: str = "windows") -> xr.DataArray:
         raise InputError(f"{what} lack the attributes lazy.windows gives ({', '.join(missing)}): keep its attrs")
     attrs = win.attrs
     half = attrs["window"] // 2
-    if "dt" in win.coords and not np.array_equal(win.coords["dt"].values, np.arange(-half, half + 1)):
+    check_coordinates(win, ("frame", "dt", "y", "x"), what, "lazy.windows")
+    if not np.array_equal(win.coords["dt"].values, np.arange(-half, half + 1)):
         dt = win.coords["dt"].values
         raise InputError(f"{what} are a selection along dt ({len(dt)} of the {attrs['window']} frames of each window, "
                          f"from dt={dt[0] if len(dt) else None}): a window is all its frames in order; make shorter "
                          f"ones with lazy.windows(spikes, length=...)")
+    if not np.issubdtype(win.coords["frame"].dtype, np.integer):
+        raise InputError(f"{what} have frame numbers {win.coords['frame'].values[:3].tolist()}... that are not whole "
+                         f"(pad? reindex?): keep the frame coordinate lazy.windows gives")
+    check_times(win, float(attrs["fps"]), what, "lazy.windows")
     y0, y1, x0, x1 = attrs["region"]
-    ys, xs = (run_of(win.coords[d].values, d, what) if d in win.coords else (0, n) for d, n in
-              (("y", win.shape[2]), ("x", win.shape[3])))
+    ys, xs = (run_of(win.coords[d].values, d, what) for d in ("y", "x"))
+    if (kept := attrs.get("kept")) and (ys[0] < kept[0] or ys[1] > kept[1] or xs[0] < kept[2] or xs[1] > kept[3]):
+        raise InputError(f"{what} hold pixels y {ys[0]}:{ys[1]}, x {xs[0]}:{xs[1]}, outside the y {kept[0]}:{kept[1]}, "
+                         f"x {kept[2]}:{kept[3]} lazy.windows kept: their y or x coordinate was changed "
+                         f"(assign_coords?): keep the coordinates lazy.windows gives")
     if ys[0] > y0 or ys[1] < y1 or xs[0] > x0 or xs[1] < x1:
         raise InputError(f"{what} are a selection of pixels (y {ys[0]}:{ys[1]}, x {xs[0]}:{xs[1]}) inside their "
                          f"region ({y0}:{y1},{x0}:{x1}): select pixels on the spikes, before lazy.windows, or give "

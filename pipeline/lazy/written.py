@@ -20,7 +20,8 @@ from dask.delayed import Delayed
 
 from pipeline.compute.progress import progress_bar
 from pipeline.jobs.reconstruct_tasks import TileBlocks, run_blocks, write_task
-from pipeline.lazy.spikes import check_here, distributed_client, run_of, url_text
+from pipeline.lazy.spikes import (check_coordinates, check_here, check_times, distributed_client, run_of,
+                                  url_text)
 from pipeline.lazy.video import VIDEO_DIMS, tile_blocks
 from pipeline.lazy.windows import _output_part
 from pipeline.stores.lease import claimed, held
@@ -78,6 +79,10 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
     tiles = (len(data.chunks[1]), len(data.chunks[2]))
     centres = [int(c) for c in hr.coords["frame"].values]
     gain = hr.coords["gain"].data if "gain" in hr.coords else None
+    from_store = tile_blocks(data)
+    if from_store is not None and gain is None:
+        raise InputError("hr lacks its gain coordinate, the exposure its blocks are reconstructed with: keep the "
+                         "coordinates lazy.reconstruct gives")
     client = distributed_client(hr.data)
     if client is not None and isinstance(gain, da.Array):  # the automatic exposure: computed once for every round,
         gain = client.persist(gain)  # held by the cluster (the same key) until this call returns
@@ -110,7 +115,6 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
         total = (sum(1 for c in data.chunks[0] if c) if per_block else n) * tiles[0] * tiles[1]
         piped = progress and not sys.stderr.isatty()  # no bar to draw: a line every BLOCKS_AT_ONCE blocks
         failed, finished, finished_units = {}, 0, 0
-        from_store = tile_blocks(data)
         with held(url), progress_bar(f"to_video {url}", to_run, unit="tasks", enabled=progress) as advance:
             for (b, ty, tx), error in (_run_blocks(client, from_store, attrs["gain"], done, url, run)
                                        if from_store is not None
@@ -197,8 +201,11 @@ def _open_to_resume(url: str) -> None:
 
 def _selected_part(hr: xr.DataArray) -> dict:
     """The ``start``/``stop`` and ``region`` a selection of a reconstruction holds (none where it is all of it, or
-    ``hr`` does not say what it was made of); one line for a selection that cannot be written as one."""
+    ``hr`` does not say what it was made of); one line for a selection that cannot be written as one, or whose
+    coordinates were changed (``t`` against ``frame``; pixels outside the reconstruction's region)."""
     attrs, changed = hr.attrs, {}
+    if isinstance(attrs.get("fps"), (int, float)) and isinstance(attrs.get("every"), int):
+        check_times(hr, attrs["fps"] * attrs["every"], "hr", "lazy.reconstruct")  # t: the centre's time
     if all(isinstance(attrs.get(k), int) for k in ("every", "window")) and attrs.get("source_shape"):
         part = _output_part(hr.coords["frame"].values, {**attrs, "frames": attrs["source_shape"][0]}, "hr")
         changed.update({k: part[k] for k in ("start", "stop")})
@@ -208,10 +215,15 @@ def _selected_part(hr: xr.DataArray) -> dict:
             raise InputError("hr's output frames repeat or run backwards (coordinate frame): only increasing "
                              "frames are written")
     scale, region = attrs.get("scale"), attrs.get("region")
-    if isinstance(scale, int) and region is not None and "y" in hr.coords and "x" in hr.coords:
+    if isinstance(scale, int) and region is not None:
+        check_coordinates(hr, ("y", "x"), "hr", "lazy.reconstruct")
         box = []
-        for dim in ("y", "x"):
+        for dim, (lo, hi) in zip(("y", "x"), (region[:2], region[2:])):
             a, b = run_of(hr.coords[dim].values, dim, "hr")
+            if a < lo * scale or b > hi * scale:
+                raise InputError(f"hr holds HR {dim} {a}:{b}, outside the {lo * scale}:{hi * scale} it was made of "
+                                 f"(region {lo}:{hi} at scale {scale}): its {dim} coordinate was changed "
+                                 f"(assign_coords?): keep the coordinates lazy.reconstruct gives")
             if a % scale or b % scale:
                 raise InputError(f"hr is a selection of HR {dim} {a}:{b}, which cuts through LR pixels (scale={scale}):"
                                  f" select whole ones ({dim} a multiple of {scale} at both ends)")
