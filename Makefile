@@ -24,7 +24,7 @@ demo: $(STAMP)
 # Three pytest processes (pytest-xdist), a test file each at a time: most tests wait on clusters, processes and
 # signals, so three of them share 2 cores well, 16 % sooner than two (docs/reliability.md, A suite for any machine).
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -rfE --durations=15 --numprocesses 3 --dist loadfile
+	$(BIN)/python -m pytest -q -rfE --durations=30 --numprocesses 3 --dist loadfile
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run_all.py
