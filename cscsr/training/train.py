@@ -58,7 +58,11 @@ def train(options: TrainOptions, out: str | os.PathLike, *, resume: bool = False
     options = options.check()
     out = Path(out)
     checkpoint = out / "checkpoint.safetensors"
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out} is a file, not a training folder: choose another OUT")
     if out.exists() and any(out.iterdir()) and not resume:
+        if not (out / "log.jsonl").exists() and not any(out.glob("checkpoint*.safetensors")):  # portable parts too
+            raise InputError(f"{out} holds files of another kind, not a training run: choose another OUT")
         raise InputError(f"{out} already exists: pass --resume to continue its training")
     resume_from = resumable(out) if resume else None  # refused before any output
     start = initial_weights(options) if options.init and not resume else None  # refused before any output

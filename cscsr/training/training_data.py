@@ -112,7 +112,8 @@ def picture_files(folders) -> tuple[str, ...]:
     for folder in folders:
         root = Path(folder)
         if not root.is_dir():
-            raise InputError(f"picture folder {folder} does not exist")
+            raise InputError(f"picture folder {folder} " + ("is a file: give the folder that holds it" if root.exists()
+                                                              else "does not exist"))
         found = sorted(str(f) for f in root.rglob("*") if f.suffix.lower() in PICTURE_SUFFIXES and f.is_file())
         if not found:
             raise InputError(f"picture folder {folder} holds no pictures ({', '.join(PICTURE_SUFFIXES)})")

@@ -88,6 +88,7 @@ class TrainOptions:
         if self.lr_side < 16 or self.lr_side % 2:
             raise InputError(f"lr_side must be even and >= 16, got {self.lr_side}")
         check_number("pool", self.pool, at_least=0, integer=True)  # -1 was truthy: a pool of no clips, then a crash
+        check_number("seed", self.seed, at_least=0, at_most=2**63 - 1, integer=True)  # -1 failed after OUT existed
         # nan and -1 failed in Adam after OUT existed, inf left a NaN checkpoint, 0 ships the random weights
         check_number("learning_rate", self.learning_rate, at_least=0, at_most=MAX_LEARNING_RATE,
                      why="Adam moves every weight by up to the rate at each step, and trained weights are mostly "

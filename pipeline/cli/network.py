@@ -64,9 +64,11 @@ def train(context: typer.Context,
 
     from cscsr.training.train import TrainOptions, train as run
     from pipeline.stores.storage import check_apart
+    from stages.numbers import check_number
 
     check_apart(out, init, *(pictures or []))
-    if threads:
+    if threads is not None:  # 0 was taken as "every core", -3 failed in torch
+        check_number("--threads", threads, at_least=1, integer=True)
         torch.set_num_threads(threads)
     options = TrainOptions(config=config, steps=steps, batch=batch, lr_side=lr_side, learning_rate=learning_rate,
                            warmup=warmup, decay_every=decay_every, seed=seed, pool=pool, init=init or "",

@@ -104,9 +104,9 @@ def preview(store: Annotated[str, typer.Argument(help="Spike store URL.")],
     """One TFP picture (window mean, demosaicked, upsampled) from a spike store."""
     from pipeline.stores.images import image_suffix, write_image
     from pipeline.jobs.preview import preview as run
-    from pipeline.stores.storage import check_apart
+    from pipeline.stores.storage import check_apart, source_of
 
-    check_apart(image, store)
+    check_apart(image, store, source_of(store))  # nor the picture or capture the store was made from
     image_suffix(image)  # a picture we cannot write is refused before the work
     shot = run(store, centre=centre, window=window, gain=gain, scale=scale)
     write_image(image, shot.image, overwrite=overwrite)

@@ -16,7 +16,7 @@ from pipeline.compute.progress import progress_bar
 from pipeline.compute.stopping import interrupts_deferred
 from pipeline.stores.spike_store import open_spike_store
 from pipeline.stores.outputs import FRAME_FOLDER, new_output
-from pipeline.stores.storage import check_apart, open_group, resolve
+from pipeline.stores.storage import check_apart, open_group, resolve, source_of
 from pipeline.stores.video_store import FRAMES, VIDEO, lost_frames, open_video_store
 from stages.capture.dat import DatLayout, packed_to_dat
 from stages.errors import InputError
@@ -32,7 +32,7 @@ log = logging.getLogger("cscsr.export")  # the package is ``pipeline``; the logg
 
 def export(store_url: str, dest: str, *, overwrite: bool = False, progress: bool = True) -> None:
     """Write the store at ``store_url`` to ``dest``: the kind of store and ``dest``'s extension decide how."""
-    check_apart(dest, store_url)
+    check_apart(dest, store_url, source_of(store_url))  # nor what the store was made from
     is_video = VIDEO in open_group(store_url)
     suffix = str(dest).lower().rsplit(".", 1)[-1] if "." in str(dest).rsplit("/", 1)[-1] else ""
     if is_video:
@@ -63,7 +63,7 @@ def export_mp4(store_url: str, dest: str, *, overwrite: bool = False, progress: 
     (never resampled: imageio's default would stretch every frame to multiples of 16, with a warning of its own)."""
     import imageio.v2 as iio2
 
-    check_apart(dest, store_url)
+    check_apart(dest, store_url, source_of(store_url))  # nor what the store was made from
     group = _complete_video(store_url)
     video = group[VIDEO]
     height, width = video.shape[1:3]
@@ -90,7 +90,7 @@ def export_pngs(store_url: str, dest: str, *, overwrite: bool = False, progress:
     """One PNG per output frame, ``frame_<centre spike frame>.png``."""
     from pipeline.stores.images import write_image
 
-    check_apart(dest, store_url)
+    check_apart(dest, store_url, source_of(store_url))  # nor what the store was made from
     group = _complete_video(store_url)
     video, frames = group[VIDEO], group[FRAMES][:]
     # replaces only a folder of our frames (frame_<centre>.png and nothing else), kept until the new one is written
@@ -102,8 +102,8 @@ def export_pngs(store_url: str, dest: str, *, overwrite: bool = False, progress:
 
 
 def export_dat(store_url: str, dest: str, *, overwrite: bool = False, progress: bool = True) -> None:
-    check_apart(dest, store_url)
-    check_apart(f"{dest}.partial", store_url)
+    check_apart(dest, store_url, source_of(store_url))  # nor what the store was made from
+    check_apart(f"{dest}.partial", store_url, source_of(store_url))
     store = open_spike_store(store_url)
     meta = store.meta
     layout = DatLayout(meta.height, meta.width, head_columns=meta.head_columns, flip=meta.flipped, head_at=meta.head_at)

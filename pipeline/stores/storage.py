@@ -50,8 +50,17 @@ def resolve(url: str) -> tuple[fsspec.AbstractFileSystem, str]:
     return fs, path
 
 
+def check_not_empty(url: str) -> None:
+    """Refuse an empty path or URL in one line: fsspec takes it for the current folder (a ``simulate ""`` read
+    whatever picture it found there)."""
+    if not str(url).strip():
+        raise InputError(f"a path is empty ({str(url)!r}): give a path or URL (an empty one is not the current "
+                         f"folder)")
+
+
 def _filesystem(url: str) -> tuple[fsspec.AbstractFileSystem, str]:
     """:func:`resolve` without a request: for what only compares or parses locations."""
+    check_not_empty(url)
     try:
         return fsspec.core.url_to_fs(str(url), **storage_options(url))
     except (ValueError, ImportError) as error:
@@ -335,6 +344,17 @@ def check_place(output: str) -> None:
         raise InputError(f"cannot write {output}: {name or here} is a file, not a folder")
     if not os.access(here, os.W_OK | os.X_OK):
         raise InputError(f"cannot write {output}: the folder {name or here} {UNWRITABLE}")
+
+
+def source_of(url: str) -> str | None:
+    """What the store at ``url`` records it was made from (its ``source``: a capture, a picture, a spike store), or
+    None: an output of a store must not replace that either (``export --overwrite`` onto the capture it was
+    ingested from)."""
+    try:
+        source = open_group(url).attrs.get("source")
+    except Exception:  # noqa: BLE001 - not a store: the command refuses it in its own words
+        return None
+    return source if isinstance(source, str) and source.strip() else None
 
 
 def check_apart(output: str, *inputs: str | None) -> None:

@@ -121,6 +121,31 @@ def test_export_refuses_what_is_not_ours(cli, world, user):
     refused(cli, user, "preview", s, user / "photo.png", "--overwrite", says="a file that is not PNG")
 
 
+def test_export_and_preview_never_replace_what_the_store_was_made_from(cli, world, tmp_path):
+    """A capture is a .dat and a picture a PNG, the very kinds export and preview write: ``--overwrite`` onto the
+    capture a store was ingested from (or the picture it was simulated from) destroyed the only copy. The store
+    records its ``source``, which is an input of theirs too."""
+    capture = tmp_path / "capture.dat"
+    capture.write_bytes(np.packbits(spikes(1).astype(bool), axis=-1).tobytes())
+    assert cli("ingest", capture, tmp_path / "c.zarr", "--height", SIDE, "--width", SIDE).exit_code == 0
+    refused(cli, tmp_path, "export", tmp_path / "c.zarr", capture, "--overwrite", says="is the same as input")
+    picture = tmp_path / "scene.png"
+    picture.write_bytes((world / "scene.png").read_bytes())
+    assert cli("simulate", picture, tmp_path / "s.zarr", "--frames", 41, "--motion", "static",
+               "--workers", 1).exit_code == 0
+    refused(cli, tmp_path, "preview", tmp_path / "s.zarr", picture, "--overwrite", says="is the same as input")
+
+
+def test_an_empty_path_is_refused_not_taken_for_the_current_folder(cli, world, tmp_path, monkeypatch):
+    """fsspec reads "" as the current folder: ``simulate "" OUT`` simulated whatever picture lay there, and an
+    empty OUT was refused as "contains input"."""
+    monkeypatch.chdir(world)  # scene.png lies here
+    for args in (("simulate", "", tmp_path / "out.zarr", "--frames", 41, "--motion", "static", "--workers", 1),
+                 ("simulate", "scene.png", "", "--frames", 41, "--motion", "static", "--workers", 1),
+                 ("ingest", "", tmp_path / "out.zarr"), ("export", "", tmp_path / "out.mp4")):
+        refused(cli, tmp_path, *args, says="a path is empty ('')")
+
+
 def asides(folder) -> list[str]:
     return [name for name in os.listdir(folder) if ".old-" in name]
 

@@ -219,11 +219,28 @@ def test_an_unfinished_video_store_with_a_committed_tile_lost_is_damaged(cli, tm
     (["--pool", "1000000000"], "pool 1000000000 of LR 32x32 clips needs at least"),
     (["--batch", "0"], "batch must be >= 1, got 0"),
     (["--validation-clips", "0"], "validation_clips must be >= 1, got 0"),  # a mean of no clips: NaN PSNR lines
+    (["--seed", "-1"], "seed must be >= 0, got -1"),  # numpy refused it after OUT existed, the option unnamed
+    (["--threads", "0"], "--threads must be >= 1, got 0"),  # was taken for "every core"
+    (["--threads", "-3"], "--threads must be >= 1, got -3"),  # torch's RuntimeError
 ])
 def test_train_numbers_refused_before_out_exists(cli, tmp_path, args, fragment):
     out = tmp_path / "run"
     assert_refused(cli("train", out, *args), fragment)
     assert not out.exists()
+
+
+def test_train_refuses_an_out_that_is_not_a_training_run(cli, tmp_path):
+    """A file was a raw NotADirectoryError; a folder of other things was told to pass --resume, as a run is."""
+    (tmp_path / "notes.txt").write_text("mine\n")
+    assert_refused(cli("train", tmp_path / "notes.txt"), "notes.txt is a file, not a training folder")
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "thesis.tex").write_text("x\n")
+    assert_refused(cli("train", tmp_path / "mine"), "holds files of another kind, not a training run")
+    (tmp_path / "pictures.png").write_bytes(b"\x89PNG\r\n\x1a\n")
+    assert_refused(cli("train", tmp_path / "run", "--pictures", tmp_path / "pictures.png"),
+                   "picture folder " + str(tmp_path / "pictures.png") + " is a file: give the folder that holds it")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mine", "notes.txt", "pictures.png"]
+    assert os.listdir(tmp_path / "mine") == ["thesis.tex"]
 
 
 def test_train_options_are_checked_in_the_python_api_too():
