@@ -115,3 +115,18 @@ def test_an_object_store_inbox_refuses_a_folder_named_as_a_file_and_a_file_named
                                 "NAME.zarr folders are read)",
                       "flat": "flat.zarr is a regular file, not a folder: refused (a NAME.zarr recording is the "
                               "folder of a Zarr store)"}
+
+
+def test_a_store_given_as_the_inbox_is_refused_in_one_line_before_the_outbox_is_made(tmp_path, cli):
+    """A recording's own store given as INBOX was walked as a folder of recordings: a line refusing each of its
+    arrays, then a failed pass, with OUTBOX made. Now one line, and nothing made."""
+    import zarr
+
+    store = tmp_path / "rec.zarr"
+    zarr.open_group(str(store), mode="w").create_array("spikes", shape=(4, 2), dtype="uint8")
+    outbox = tmp_path / "out"
+    result = cli("watch", store, outbox, "--once", "--settle", "0")
+    assert result.exit_code != 0
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "is a Zarr store, not a folder of recordings" in lines[0], result.stderr
+    assert not outbox.exists()

@@ -155,6 +155,9 @@ def check_inbox(inbox: str):
     if not fs.isdir(root):
         what = "is a file, not a folder" if fs.exists(root) else "does not exist"
         raise InputError(f"inbox {inbox} {what}: give the folder where recordings land")
+    if any(fs.exists(f"{root.rstrip('/')}/{name}") for name in ("zarr.json", ".zgroup", ".zarray")):
+        raise InputError(f"inbox {inbox} is a Zarr store, not a folder of recordings: give the folder where "
+                         f"recordings land (a NAME.zarr there is taken as one)")
     return fs, root
 
 
