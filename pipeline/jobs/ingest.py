@@ -196,11 +196,7 @@ def _prepare(src: str, dest: str, options: IngestOptions, *, parallel: bool, cli
     if asked is None and isinstance(found.get("task_frames"), int) and found["task_frames"] > 0:
         asked = found["task_frames"]  # resumed as it was cut
     task_frames = task_frames_for(chunk, capture.height * packed_width(capture.width), asked)
-    record = {"units": COMMITTED_UNITS, "task_frames": task_frames, "capture": capture.fingerprint(),
-              "options": {"height": capture.height, "width": capture.width, "cfa": sensor_cfa, "fps": options.fps,
-                          "flip": options.flip, "head_columns": options.head_columns,
-                          "key": getattr(capture, "key", None), "reset": options.reset,
-                          "layout": options.layout or default_layout(src)}}
+    record = {"units": COMMITTED_UNITS, "task_frames": task_frames, **capture_record(src, options, capture, sensor_cfa)}
     plan = IngestPlan(recorded(src), recorded(dest), options.height, options.width, options.flip, options.head_columns,
                       options.key, capture.n_frames, task_frames, uuid.uuid4().hex, options.layout)
     job = _Job(capture, meta, chunk, plan, record, np.full(plan.n_tasks, -1, np.int64))
@@ -228,6 +224,33 @@ def capture_meta(src: str, options: IngestOptions, capture) -> tuple[str, SpikeM
     return sensor_cfa, meta
 
 
+def capture_record(src: str, options: IngestOptions, capture, sensor_cfa: str) -> dict:
+    """What ``committed`` records of the capture a store is ingested from, for a resume to compare
+    (:func:`check_same_capture`): its fingerprint (size, SHA-256 of its ends) and how it was read. ``cscsr ingest``
+    and ``lazy.to_spikes`` of ``lazy.open_capture`` record it alike, so either resumes the other's store."""
+    return {"capture": capture.fingerprint(),
+            "options": {"height": capture.height, "width": capture.width, "cfa": sensor_cfa, "fps": options.fps,
+                        "flip": options.flip, "head_columns": options.head_columns,
+                        "key": getattr(capture, "key", None), "reset": options.reset,
+                        "layout": options.layout or default_layout(src)}}
+
+
+def check_same_capture(dest: str, src: str, found: dict, record: dict, *, again: str = "--overwrite") -> None:
+    """Refuse to resume ``dest`` (``found``: its ``committed`` attributes) from a capture other than the one it was
+    ingested from, or read with other options (``record``: :func:`capture_record` of ``src`` now)."""
+    was, now = found.get("capture") or {}, record["capture"]
+    if was != now:
+        why = (f"{was.get('bytes')} bytes -> {now['bytes']} bytes" if was.get("bytes") != now["bytes"]
+               else "the same size, but its first or last MiB differ")
+        raise InputError(f"cannot resume {dest}: {src} is not the capture it was ingested from ({why}): give that "
+                         f"capture, or start again with {again}")
+    options = dict(found.get("options") or {})
+    options.setdefault("layout", default_layout(src))  # recorded before layouts: read by extension, as now
+    if changed := [f"{k} {options.get(k)!r} -> {v!r}" for k, v in record["options"].items() if options.get(k) != v]:
+        raise InputError(f"cannot resume {dest}: it was ingested with other options ({', '.join(changed)}): give "
+                         f"those, or start again with {again}")
+
+
 def cut_short(src: str, unread: int, n_frames: int) -> str:
     """The line that says a capture's last ``unread`` bytes, after its ``n_frames`` whole frames, are a frame cut
     short (checked with the last frames: ``captures.RawCapture._packed``), not read."""
@@ -249,20 +272,11 @@ def _check_resumable(dest: str, src: str, job: _Job, resumed: tuple[SpikeStore, 
     capture, with other options or another cut into tasks; -> the spike counts of its tasks (-1: not
     committed). Reads, never writes."""
     store, found = resumed or _resumed(dest)
-    was, now = found.get("capture") or {}, job.record["capture"]
-    if was != now:
-        why = (f"{was.get('bytes')} bytes -> {now['bytes']} bytes" if was.get("bytes") != now["bytes"]
-               else "the same size, but its first or last MiB differ")
-        raise InputError(f"cannot resume {dest}: {src} is not the capture it was ingested from ({why}): give that "
-                         f"capture, or start again with --overwrite")
-    options = dict(found.get("options") or {})
-    options.setdefault("layout", default_layout(src))  # recorded before layouts: read by extension, as now
-    changed = [f"{k} {options.get(k)!r} -> {v!r}" for k, v in job.record["options"].items() if options.get(k) != v]
+    check_same_capture(dest, src, found, job.record)
     if found.get("task_frames") != job.plan.task_frames:
-        changed.append(f"task_frames {found.get('task_frames')!r} -> {job.plan.task_frames!r}")
-    if changed:
-        raise InputError(f"cannot resume {dest}: it was ingested with other options ({', '.join(changed)}): give "
-                         f"those, or start again with --overwrite")
+        raise InputError(f"cannot resume {dest}: it was ingested with other options (task_frames "
+                         f"{found.get('task_frames')!r} -> {job.plan.task_frames!r}): give those, or start again "
+                         f"with --overwrite")
     committed = store.group[COMMITTED]
     if (store.n_frames != job.plan.n_frames or store.spikes.chunks[0] != job.chunk
             or committed.shape != (job.plan.n_tasks,)):

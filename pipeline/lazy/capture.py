@@ -18,6 +18,7 @@ when the block is computed, naming the byte offset (``stages.capture.sps100.Capt
 """
 
 import functools
+import json
 import logging
 import weakref
 from dataclasses import dataclass
@@ -27,7 +28,7 @@ import numpy as np
 import xarray as xr
 from dask.base import tokenize
 
-from pipeline.jobs.ingest import IngestOptions, capture_meta, cut_short, opened_capture
+from pipeline.jobs.ingest import IngestOptions, capture_meta, capture_record, cut_short, opened_capture
 from pipeline.lazy.spikes import as_spikes, check_here, python_words, unpacked_bits, url_text
 from pipeline.stores.captures import RANGED_KINDS
 from pipeline.stores.spike_store import chunk_frames_for
@@ -60,14 +61,15 @@ def open_capture(path, *, height: int | None = None, width: int | None = None, l
         if not capture.ranged:
             raise InputError(f"{path}: a .npz is read as one stream, and lazy spikes are read by frame range "
                              f"({', '.join(RANGED_KINDS)}): save the array as .npy (or ingest it with cscsr ingest)")
-        _, meta = capture_meta(path, options, capture)
+        sensor_cfa, meta = capture_meta(path, options, capture)
+        record = capture_record(path, options, capture, sensor_cfa)  # its fingerprint: two range reads
         n_frames = capture.n_frames
         if capture.unread_bytes:  # a frame cut short: its packets checked now, with the last whole frame's
             capture.read(n_frames - 1, n_frames)
     if capture.unread_bytes:
         log.warning("%s", cut_short(path, capture.unread_bytes, n_frames))
     frames = _CaptureFrames(path, options.height, options.width, flip, head_columns, layout, n_frames,
-                            capture.height, packed_width(capture.width))
+                            capture.height, packed_width(capture.width), json.dumps(record))
     chunk = min(chunk_frames or chunk_frames_for(meta, n_frames), n_frames)
     token = tokenize(frames, capture.fs.size(capture.path), capture.fs.ukey(capture.path))
     packed = da.from_array(frames, chunks=(chunk, -1, -1), asarray=False, fancy=False,
@@ -104,6 +106,7 @@ class _CaptureFrames:
     n_frames: int
     rows: int  # the frames' height
     packed_columns: int  # bytes a packed row
+    record: str  # what a store written from it records of the capture (ingest.capture_record), as JSON
 
     ndim = 3
     dtype = np.dtype(np.uint8)

@@ -17,6 +17,7 @@ run is resumed (``resume=True``) where it stopped; on the active scheduler (a ``
 active, else Dask's default).
 """
 
+import json
 import operator
 import uuid
 
@@ -31,7 +32,8 @@ from dask.highlevelgraph import HighLevelGraph
 
 from pipeline.stores.frame_sources import FrameSource
 from pipeline.compute.hold import hold_point
-from pipeline.jobs.ingest import COMMITTED_UNITS, IngestPlan, ingest_task, run_tasks, task_frames_for
+from pipeline.jobs.ingest import (COMMITTED_UNITS, IngestPlan, check_same_capture, ingest_task, run_tasks,
+                                  task_frames_for)
 from pipeline.lazy.capture import capture_frames
 from pipeline.lazy.spikes import (as_spikes, check_here, check_spikes, distributed_client, python_words, selection,
                                   unpacked_bits, url_text)
@@ -169,9 +171,11 @@ def to_spikes(spikes: xr.DataArray, url: str, *, chunk_frames: int | None = None
     by ``chunk_frames`` frames (default: about 4 MiB packed). Each task packs and writes ``task_frames`` frames (whole
     chunks; default: one chunk) and records them in ``committed``. Spikes of ``lazy.open_capture``, as it made them,
     are written by ``cscsr ingest``'s own tasks (each reads its frames packed by one byte range: no unpacked bits
-    made or moved), on a client through the job's executor. A failed run raises :class:`SpikesIncomplete` and
-    keeps what it committed; ``resume=True`` runs only the tasks not committed, cut as the store was (it refuses a
-    store of other attributes, frame count or chunking; that the spikes are the same data is the caller's word).
+    made or moved), on a client through the job's executor, and the store records the capture as ingest records
+    it (its size and a SHA-256 of its ends, how it was read), so either finishes the other's store. A failed run
+    raises :class:`SpikesIncomplete` and keeps what it committed; ``resume=True`` runs only the tasks not
+    committed, cut as the store was (it refuses a store of other attributes, frame count or chunking, and a
+    capture's store resumed from another capture; that other spikes are the same data is the caller's word).
     Everything is checked, in one line, before anything is written.
 
     ``truth``: the HR scene frames the spikes were simulated from (:func:`simulate`'s ``frames``), written as the
@@ -193,7 +197,8 @@ def to_spikes(spikes: xr.DataArray, url: str, *, chunk_frames: int | None = None
             else:
                 writer = SpikeStoreWriter(url, plan.meta, plan.n_frames, chunk_frames=plan.chunk)
                 writer.add_array(COMMITTED, (plan.n_tasks,), (1,), np.int64, ("task",),
-                                 {"units": COMMITTED_UNITS, "task_frames": plan.task_frames}, fill_value=-1)
+                                 {"units": COMMITTED_UNITS, "task_frames": plan.task_frames, **plan.record},
+                                 fill_value=-1)
                 counts = np.full(plan.n_tasks, -1, np.int64)
                 if truth is not None:
                     meta = plan.meta
@@ -201,9 +206,8 @@ def to_spikes(spikes: xr.DataArray, url: str, *, chunk_frames: int | None = None
             todo = [index for index in range(plan.n_tasks) if counts[index] < 0]
             if todo:
                 with held(url):
-                    frames = capture_frames(spikes.data)
-                    counts[todo] = (plan.run(spikes.data, todo) if frames is None
-                                    else plan.run_ingest(frames, todo, distributed_client(spikes.data)))
+                    counts[todo] = (plan.run(spikes.data, todo) if plan.capture is None
+                                    else plan.run_ingest(plan.capture, todo, distributed_client(spikes.data)))
             if truth is not None and writer.group.attrs.get("state") != "complete":
                 with held(url):
                     _write_truths(truth, centres, url, spikes.attrs["cfa"])
@@ -269,6 +273,8 @@ class _ToSpikes:
         chunk_frames, task_frames = (None if n is None else min(n, n_frames) for n in (chunk_frames, task_frames))
         self.asked = (chunk_frames, task_frames)
         self.resumed: SpikeStore | None = None
+        self.capture = None  # lazy.open_capture's reader, when the spikes are all a capture's frames as it made them
+        self.record: dict = {}  # then what the store records of the capture (ingest.capture_record)
         self.cut(chunk_frames or chunk_frames_for(meta, n_frames), task_frames)
 
     def cut(self, chunk: int, task_frames: int | None) -> None:
@@ -313,6 +319,8 @@ class _ToSpikes:
         if not resume:
             check_existing(url, overwrite=overwrite, kind=SPIKE_STORE, flag=RESUME_FLAG)
         plan = cls(url, meta, n_frames, chunk_frames, task_frames)
+        if (frames := capture_frames(spikes.data)) is not None:  # written by ingest's tasks, recorded as it records
+            plan.capture, plan.record = frames, json.loads(frames.record)
         if resume:  # opened once for the checks before the claim: its cut here, its truth by _checked_truth
             plan.resumed = open_spike_store(url, allow_incomplete=True)
             plan.resumable(plan.resumed)
@@ -332,6 +340,8 @@ class _ToSpikes:
         if changed := [f"{k} {was.get(k)!r} -> {now.get(k)!r}" for k in sorted(was | now) if was.get(k) != now.get(k)]:
             raise InputError(f"cannot resume {self.url}: it records other attributes ({', '.join(changed)}): give "
                              f"the spikes it was written from, or write it again with overwrite=True")
+        if self.record:  # the capture it was written from, read as it was (what ingest --resume checks)
+            check_same_capture(self.url, self.capture.url, dict(committed.attrs), self.record, again="overwrite=True")
         asked_chunk, asked_task = self.asked
         recorded_task = committed.attrs.get("task_frames")
         recorded_ok = isinstance(recorded_task, int) and not isinstance(recorded_task, bool) and recorded_task > 0
