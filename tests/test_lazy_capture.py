@@ -154,11 +154,17 @@ def test_ingest_and_to_spikes_of_open_capture_each_finish_the_other_s_store_and_
     shutil.copytree(reference, begun_by_ingest)
     cut_short_of_tasks(begun_by_ingest, 3)
     before = store_files(begun_by_ingest)
+    opened_before = lazy.open_capture(tmp_path / "c.dat", height=16, width=24)
     (tmp_path / "c.dat").write_bytes(bytes(replaced))
     with pytest.raises(InputError, match=r"c\.dat is not the capture it was ingested from \(the same size, but "
                                          r"its first or last MiB differ\): .*overwrite=True"):
         lazy.to_spikes(lazy.open_capture(tmp_path / "c.dat", height=16, width=24), begun_by_ingest, resume=True)
-    assert store_files(begun_by_ingest) == before  # nothing written
+    with pytest.raises(InputError, match=r"c\.dat changed since lazy.open_capture opened it \(the same size, but "
+                                         r"its first or last MiB differ\): open it again"):
+        lazy.to_spikes(opened_before, begun_by_ingest, resume=True)  # its record is of the bytes it was opened on
+    with pytest.raises(InputError, match="changed since lazy.open_capture opened it"):
+        lazy.to_spikes(opened_before, tmp_path / "new.zarr")
+    assert store_files(begun_by_ingest) == before and not (tmp_path / "new.zarr").exists()  # nothing written
     (tmp_path / "c.dat").write_bytes(recorded)
     done = lazy.to_spikes(lazy.open_capture(tmp_path / "c.dat", height=16, width=24), begun_by_ingest, resume=True)
     assert (done["tasks_run"], done["tasks_skipped"]) == (2, 3)

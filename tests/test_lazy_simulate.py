@@ -295,6 +295,7 @@ def test_to_spikes_refuses_bad_input_in_one_line_before_anything_is_written(tmp_
         (lambda: to_spikes(spikes.isel(t=slice(None, None, 2)), out), InputError, "skips (a step of 2)"),
         (lambda: to_spikes(spikes.isel(t=slice(None, None, -1)), out), InputError, "runs backwards"),
         (lambda: to_spikes(spikes, out, overwrite="yes"), InputTypeError, "overwrite"),
+        (lambda: to_spikes(spikes, out, progress="no"), InputTypeError, "progress"),
         (lambda: to_spikes(spikes, out, task_frames=0), InputError, "task_frames"),
         (lambda: to_spikes(spikes, out, resume=True), InputError, "cannot resume"),
         (lambda: to_spikes(spikes, existing, resume=True, overwrite=True), InputError, "contradict"),
@@ -310,3 +311,44 @@ def test_to_spikes_refuses_bad_input_in_one_line_before_anything_is_written(tmp_
         assert store_files(tmp_path) == before and not os.path.exists(out)
     with dask.config.set(scheduler="threads"):  # this process's own memory:// store
         assert to_spikes(spikes, f"memory://{tmp_path.name}.zarr")["spikes"] == open_spike_store(existing).spike_count
+
+
+@pytest.mark.parametrize("on", ["threads", "client"])
+def test_progress_counts_each_frame_written_once_on_a_client_or_dask_s_own_scheduler(on, client, tmp_path,
+                                                                                      monkeypatch):
+    """``progress=True``: a bar of the frames written, advanced as each task is written (spikes computed from a
+    scene, and a capture's frames written by ingest's tasks); a resume's bar holds only the frames left."""
+    import contextlib
+
+    from cscsr import lazy
+    from tests.conftest import write_dat
+
+    bars = []
+
+    @contextlib.contextmanager
+    def recorded(description, total, *, unit="frames", enabled=True):
+        bars.append({"description": description, "total": total, "advanced": [], "enabled": enabled})
+        yield bars[-1]["advanced"].append
+
+    monkeypatch.setattr(importlib.import_module("pipeline.lazy.simulate"), "progress_bar", recorded)
+    bits = (np.random.default_rng(4).random((50, 8, 16)) < 0.2).astype(np.uint8)
+    write_dat(tmp_path / "c.dat", bits)
+    frames, spikes, failing, flag = failing_at_frame_55(tmp_path)
+    with dask.config.set(scheduler=client if on == "client" else "threads"):
+        to_spikes(spikes, str(tmp_path / "s.zarr"), chunk_frames=8, progress=True)
+        to_spikes(lazy.open_capture(tmp_path / "c.dat", height=8, width=16), str(tmp_path / "c.zarr"),
+                  chunk_frames=5, task_frames=10, progress=True)
+        with pytest.raises(SpikesIncomplete):
+            to_spikes(failing, str(tmp_path / "f.zarr"), chunk_frames=8, progress=True)
+        done = open_spike_store(str(tmp_path / "f.zarr"), allow_incomplete=True).group[COMMITTED][:] >= 0
+        open(flag, "w").close()
+        to_spikes(failing, str(tmp_path / "f.zarr"), resume=True, progress=True)
+    whole, capture, failed, resumed = bars
+    written_first = sum(min(8, N_FRAMES - 8 * i) for i in np.flatnonzero(done))  # frames the failed run committed
+    assert whole["description"] == f"to_spikes {tmp_path / 's.zarr'}" and whole["enabled"]
+    assert whole["total"] == N_FRAMES and sorted(whole["advanced"]) == [6] + [8] * 8  # a chunk a task, as written
+    assert capture["total"] == 50 and capture["advanced"] == [10] * 5
+    # the failed task not counted (nor, on dask's own scheduler, one that finished after the failure was raised)
+    assert failed["total"] == N_FRAMES and 0 < sum(failed["advanced"]) <= written_first
+    assert resumed["total"] == sum(resumed["advanced"]) == N_FRAMES - written_first
+    assert store_files(tmp_path / "f.zarr") == store_files(tmp_path / "s.zarr")

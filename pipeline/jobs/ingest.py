@@ -235,10 +235,15 @@ def capture_record(src: str, options: IngestOptions, capture, sensor_cfa: str) -
                         "layout": options.layout or default_layout(src)}}
 
 
-def check_same_capture(dest: str, src: str, found: dict, record: dict, *, again: str = "--overwrite") -> None:
+def check_same_capture(dest: str, src: str, found: dict, record: dict, *, task_frames: int | None = None,
+                       again: str = "--overwrite") -> None:
     """Refuse to resume ``dest`` (``found``: its ``committed`` attributes) from a capture other than the one it was
-    ingested from, or read with other options (``record``: :func:`capture_record` of ``src`` now)."""
-    was, now = found.get("capture") or {}, record["capture"]
+    ingested from, or read with other options (``record``: :func:`capture_record` of ``src`` now), or, given
+    ``task_frames``, cut into other tasks."""
+    was, now = found.get("capture"), record["capture"]
+    if not isinstance(was, dict):
+        raise InputError(f"cannot resume {dest}: it records no capture to compare {src} with (written from other "
+                         f"spikes, or before captures were recorded): start again with {again}")
     if was != now:
         why = (f"{was.get('bytes')} bytes -> {now['bytes']} bytes" if was.get("bytes") != now["bytes"]
                else "the same size, but its first or last MiB differ")
@@ -246,7 +251,10 @@ def check_same_capture(dest: str, src: str, found: dict, record: dict, *, again:
                          f"capture, or start again with {again}")
     options = dict(found.get("options") or {})
     options.setdefault("layout", default_layout(src))  # recorded before layouts: read by extension, as now
-    if changed := [f"{k} {options.get(k)!r} -> {v!r}" for k, v in record["options"].items() if options.get(k) != v]:
+    changed = [f"{k} {options.get(k)!r} -> {v!r}" for k, v in record["options"].items() if options.get(k) != v]
+    if task_frames is not None and found.get("task_frames") != task_frames:
+        changed.append(f"task_frames {found.get('task_frames')!r} -> {task_frames!r}")
+    if changed:
         raise InputError(f"cannot resume {dest}: it was ingested with other options ({', '.join(changed)}): give "
                          f"those, or start again with {again}")
 
@@ -272,11 +280,7 @@ def _check_resumable(dest: str, src: str, job: _Job, resumed: tuple[SpikeStore, 
     capture, with other options or another cut into tasks; -> the spike counts of its tasks (-1: not
     committed). Reads, never writes."""
     store, found = resumed or _resumed(dest)
-    check_same_capture(dest, src, found, job.record)
-    if found.get("task_frames") != job.plan.task_frames:
-        raise InputError(f"cannot resume {dest}: it was ingested with other options (task_frames "
-                         f"{found.get('task_frames')!r} -> {job.plan.task_frames!r}): give those, or start again "
-                         f"with --overwrite")
+    check_same_capture(dest, src, found, job.record, task_frames=job.plan.task_frames)
     committed = store.group[COMMITTED]
     if (store.n_frames != job.plan.n_frames or store.spikes.chunks[0] != job.chunk
             or committed.shape != (job.plan.n_tasks,)):

@@ -88,6 +88,16 @@ def capture_frames(data: da.Array) -> "_CaptureFrames | None":
     return _READS.get(data.name)
 
 
+def check_unchanged(frames: "_CaptureFrames") -> None:
+    """Refuse, in one line, a capture whose bytes are not those :func:`open_capture` fingerprinted (its size, a
+    SHA-256 of its ends: two range reads): another recording written under the same name since."""
+    was, now = json.loads(frames.record)["capture"], _opened(frames).fingerprint()
+    if now != was:
+        why = (f"{was['bytes']} bytes -> {now['bytes']} bytes" if was["bytes"] != now["bytes"]
+               else "the same size, but its first or last MiB differ")
+        raise InputError(f"{frames.url} changed since lazy.open_capture opened it ({why}): open it again")
+
+
 _READS: "weakref.WeakValueDictionary[str, _CaptureFrames]" = weakref.WeakValueDictionary()  # kept while a graph
 # holds the capture's reader
 

@@ -27,14 +27,16 @@ import numpy as np
 import xarray as xr
 import zarr
 from dask.base import tokenize
+from dask.callbacks import Callback
 from dask.delayed import Delayed
 from dask.highlevelgraph import HighLevelGraph
 
 from pipeline.stores.frame_sources import FrameSource
 from pipeline.compute.hold import hold_point
+from pipeline.compute.progress import progress_bar
 from pipeline.jobs.ingest import (COMMITTED_UNITS, IngestPlan, check_same_capture, ingest_task, run_tasks,
                                   task_frames_for)
-from pipeline.lazy.capture import capture_frames
+from pipeline.lazy.capture import capture_frames, check_unchanged
 from pipeline.lazy.spikes import (as_spikes, check_here, check_spikes, distributed_client, python_words, selection,
                                   unpacked_bits, url_text)
 from pipeline.stores.lease import check_free, claimed, held
@@ -162,7 +164,8 @@ class SpikesIncomplete(RuntimeError):
 
 
 def to_spikes(spikes: xr.DataArray, url: str, *, chunk_frames: int | None = None, task_frames: int | None = None,
-              overwrite: bool = False, resume: bool = False, truth: xr.DataArray | None = None) -> dict:
+              overwrite: bool = False, resume: bool = False, truth: xr.DataArray | None = None,
+              progress: bool = False) -> dict:
     """Write lazy ``spikes`` (t, y, x) bool (the convention of ``pipeline.lazy.spikes``) into a new spike store at
     ``url``, computed on the active scheduler; -> ``attrs`` (the store's final attributes), ``frames``, ``spikes``
     (their count), ``tasks``, ``tasks_run``, ``tasks_skipped``.
@@ -176,7 +179,8 @@ def to_spikes(spikes: xr.DataArray, url: str, *, chunk_frames: int | None = None
     raises :class:`SpikesIncomplete` and keeps what it committed; ``resume=True`` runs only the tasks not
     committed, cut as the store was (it refuses a store of other attributes, frame count or chunking, and a
     capture's store resumed from another capture; that other spikes are the same data is the caller's word).
-    Everything is checked, in one line, before anything is written.
+    Everything is checked, in one line, before anything is written. ``progress=True``: a bar of the frames written
+    on standard error (on a client or on dask's own scheduler).
 
     ``truth``: the HR scene frames the spikes were simulated from (:func:`simulate`'s ``frames``), written as the
     ``simulate`` job writes its ground truth (``pipeline.stores.ground_truth``: the picture at each 41-frame window
@@ -184,6 +188,7 @@ def to_spikes(spikes: xr.DataArray, url: str, *, chunk_frames: int | None = None
     evaluate`` scores reconstructions of it. A resume of a store written with truth needs it again.
     """
     url = url_text(url)
+    check_flag("progress", progress)
     plan = _ToSpikes.checked(spikes, url, chunk_frames, task_frames, overwrite, resume)
     centres = _checked_truth(truth, spikes, url, plan.resumed)
     with claimed(url):  # one job per store, taken atomically before the store is touched
@@ -205,9 +210,10 @@ def to_spikes(spikes: xr.DataArray, url: str, *, chunk_frames: int | None = None
                     declare_truth(writer, centres, truth.shape[1:3], float(meta.fps), with_flow=False)
             todo = [index for index in range(plan.n_tasks) if counts[index] < 0]
             if todo:
-                with held(url):
-                    counts[todo] = (plan.run(spikes.data, todo) if plan.capture is None
-                                    else plan.run_ingest(plan.capture, todo, distributed_client(spikes.data)))
+                to_write = sum(plan.frames_of(index) for index in todo)
+                with held(url), progress_bar(f"to_spikes {url}", to_write, enabled=progress) as advance:
+                    counts[todo] = (plan.run(spikes.data, todo, advance) if plan.capture is None
+                                    else plan.run_ingest(plan.capture, todo, distributed_client(spikes.data), advance))
             if truth is not None and writer.group.attrs.get("state") != "complete":
                 with held(url):
                     _write_truths(truth, centres, url, spikes.attrs["cfa"])
@@ -284,6 +290,10 @@ class _ToSpikes:
         self.task_frames = task_frames_for(chunk, frame_bytes, task_frames or chunk)
         self.n_tasks = -(-self.n_frames // self.task_frames)
 
+    def frames_of(self, index: int) -> int:
+        """How many frames task ``index`` writes (the last may hold fewer)."""
+        return min(self.task_frames, self.n_frames - index * self.task_frames)
+
     @classmethod
     def checked(cls, spikes, url, chunk_frames, task_frames, overwrite, resume) -> "_ToSpikes":
         """Every check of the arguments, the output and (``resume``) the store to finish; reads, never writes."""
@@ -320,6 +330,7 @@ class _ToSpikes:
             check_existing(url, overwrite=overwrite, kind=SPIKE_STORE, flag=RESUME_FLAG)
         plan = cls(url, meta, n_frames, chunk_frames, task_frames)
         if (frames := capture_frames(spikes.data)) is not None:  # written by ingest's tasks, recorded as it records
+            check_unchanged(frames)  # the capture as it is now is the one its record describes
             plan.capture, plan.record = frames, json.loads(frames.record)
         if resume:  # opened once for the checks before the claim: its cut here, its truth by _checked_truth
             plan.resumed = open_spike_store(url, allow_incomplete=True)
@@ -355,17 +366,17 @@ class _ToSpikes:
                              f"it again with overwrite=True")
         return committed[:].astype(np.int64)
 
-    def run(self, bits: da.Array, todo: list[int]) -> np.ndarray:
-        """Tasks ``todo`` of ``bits`` (t, y, x) bool on the active scheduler; -> their spike counts. Raises
-        :class:`SpikesIncomplete` if any fails (what the others committed stays)."""
+    def run(self, bits: da.Array, todo: list[int], advance) -> np.ndarray:
+        """Tasks ``todo`` of ``bits`` (t, y, x) bool on the active scheduler, ``advance(frames)`` as each is written;
+        -> their spike counts. Raises :class:`SpikesIncomplete` if any fails (what the others committed stays)."""
         blocks = bits.rechunk((self.task_frames, -1, -1))
         name = f"to-spikes-{tokenize(blocks.name, self.url, todo)}"
         layer = {(name, j): (_write_task, (blocks.name, index, 0, 0), self.url, index * self.task_frames, index)
                  for j, index in enumerate(todo)}
         graph = HighLevelGraph.from_collections(name, layer, dependencies=[blocks])
-        counts = da.Array(graph, name, chunks=((1,) * len(todo),), meta=np.empty((0,), np.int64))
+        frames = {(name, j): self.frames_of(index) for j, index in enumerate(todo)}
         try:
-            return counts.compute()
+            return np.concatenate(_computed(graph, frames, advance, distributed_client(bits)))
         except Exception as error:
             store = open_spike_store(self.url, allow_incomplete=True)
             done = int((store.group[COMMITTED][:] >= 0).sum())
@@ -373,7 +384,7 @@ class _ToSpikes:
                                    f"({describe(error)}): fix the cause and call to_spikes again with "
                                    f"resume=True") from error
 
-    def run_ingest(self, frames, todo: list[int], client) -> np.ndarray:
+    def run_ingest(self, frames, todo: list[int], client, advance) -> np.ndarray:
         """Tasks ``todo`` of the capture ``frames`` (``lazy.open_capture``'s reader) as ``cscsr ingest`` runs them
         (``pipeline.jobs.ingest``: each reads its frames by one byte range and writes them packed, so no unpacked
         bits are made or moved), on ``client`` through its executor, else on dask's own scheduler; -> their spike
@@ -381,11 +392,15 @@ class _ToSpikes:
         plan = IngestPlan(frames.url, recorded(self.url), frames.height, frames.width, frames.flip,
                           frames.head_columns, None, frames.n_frames, self.task_frames, uuid.uuid4().hex, frames.layout)
         if client is not None:
-            outcomes = {o.index: o.spikes if o.error is None else o.error for o in run_tasks(client, todo, plan=plan)}
+            outcomes = {}
+            for outcome in run_tasks(client, todo, plan=plan):
+                outcomes[outcome.index] = outcome.spikes if outcome.error is None else outcome.error
+                if outcome.error is None:
+                    advance(self.frames_of(outcome.index))
         else:
             tasks = dict(ingest_task(plan, index) for index in todo)
             try:
-                done = dask.compute(*(Delayed(key, tasks) for key in tasks))
+                done = _computed(tasks, {key: self.frames_of(index) for key, index in zip(tasks, todo)}, advance, None)
             except Exception as error:  # noqa: BLE001 - every failure is said, as plan.run says it
                 done = [describe(error)] * len(todo)
             outcomes = dict(zip(todo, done))
@@ -394,6 +409,34 @@ class _ToSpikes:
             raise SpikesIncomplete(f"to_spikes {self.url}: {committed} of {self.n_tasks} tasks committed, the others "
                                    f"not ({failed[0]}): fix the cause and call to_spikes again with resume=True")
         return np.array([outcomes[index] for index in todo], np.int64)
+
+
+def _computed(graph, frames: dict, advance, client) -> list:
+    """The results of the tasks ``frames`` names (key -> frames it writes) of ``graph``, in that order, computed on
+    ``client`` (else dask's own scheduler), ``advance(frames)`` as each finishes; the first error raised."""
+    keys = list(frames)
+    if isinstance(graph, HighLevelGraph):
+        graph = dict(graph.cull(set(keys)))  # only what they need (a resume's tasks), their names kept: no fusing
+    if client is not None:
+        from distributed import as_completed
+
+        futures = client.compute([Delayed(key, graph) for key in keys], optimize_graph=False)
+        try:
+            for future in as_completed(futures):
+                if future.status == "finished":
+                    advance(frames[future.key])
+            return client.gather(futures)
+        finally:  # forgotten by the cluster even while an error holds them: a resume computes them afresh
+            for future in futures:
+                future.release()
+
+    class Advance(Callback):  # dask's local schedulers call it as each task finishes, in their own thread
+        def _posttask(self, key, result, dsk, state, worker_id):
+            if key in frames:
+                advance(frames[key])
+
+    with Advance():
+        return list(dask.compute(*(Delayed(key, graph) for key in keys), optimize_graph=False))
 
 
 def _write_task(bits: np.ndarray, url: str, start: int, index: int) -> np.ndarray:

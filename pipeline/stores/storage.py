@@ -352,9 +352,19 @@ def source_of(url: str) -> str | None:
     ingested from)."""
     try:
         source = open_group(url).attrs.get("source")
-    except Exception:  # noqa: BLE001 - not a store: the command refuses it in its own words
+    except InputError as error:
+        if str(error).startswith("cannot reach"):  # said once, now, not after a second wait for the same answer
+            raise
+        return None  # not a store: the command refuses it in its own words
+    except Exception:  # noqa: BLE001 - as above
         return None
-    return source if isinstance(source, str) and source.strip() else None
+    if not isinstance(source, str) or not source.strip():
+        return None
+    try:
+        _filesystem(source)  # a place this machine cannot name (gs:// without gcsfs) is no output of ours either
+    except InputError:
+        return None
+    return source
 
 
 def check_apart(output: str, *inputs: str | None) -> None:
