@@ -5,6 +5,7 @@ anything is written."""
 
 import importlib
 import os
+import re
 import shutil
 
 import dask
@@ -144,6 +145,46 @@ def test_to_spikes_writes_the_job_s_truth_and_evaluate_scores_a_lazy_video_besid
         to_spikes(simulate(frames_array(frames, 9), **settings), str(tmp_path / "bad.zarr"),
                   truth=frames_array(frames[:, :16], 5))
     assert not (tmp_path / "bad.zarr").exists()
+
+
+def test_open_frames_of_the_job_s_source_writes_the_job_s_store_spikes_and_truth(job, tmp_path):
+    """``cscsr simulate`` of a folder of as many frames as spike frames is ``to_spikes(simulate(open_frames(folder)),
+    truth=open_frames(folder))``: every chunk of spikes and truth, the attributes (the source's place included)."""
+    from cscsr import lazy
+    from pipeline.stores.ground_truth import TRUTH, TRUTH_FRAMES
+
+    frames, settings, store = job
+    folder = open_spike_store(store).attrs["source"]
+    scene = lazy.open_frames(folder, chunk_frames=9)
+    assert scene.dims == ("t", "y", "x", "rgb") and scene.shape == frames.shape and scene.dtype == np.uint8
+    assert scene.data.chunks[0] == (9,) * 7 + (7,) and scene.attrs == {"source": folder}
+    np.testing.assert_array_equal(scene[20:30].values, frames[20:30])  # read a block at a time, as stored
+    out = str(tmp_path / "lazy.zarr")
+    to_spikes(lazy.simulate(scene, **settings), out, truth=scene)
+    written, made = open_spike_store(out), open_spike_store(store)
+    for name in ("spikes", TRUTH, TRUTH_FRAMES):
+        np.testing.assert_array_equal(written.group[name][:], made.group[name][:])
+    assert {k: v for k, v in written.attrs.items() if k != "identity"} == \
+        {k: v for k, v in made.attrs.items() if k != "identity"}
+    assert store_identity(written) == store_identity(made)
+
+
+def test_open_frames_refuses_what_simulate_cannot_read_in_one_line(tmp_path):
+    from cscsr import lazy
+
+    (tmp_path / "empty").mkdir()
+    frames = tmp_path / "mixed"
+    frames.mkdir()
+    iio.imwrite(frames / "0.png", np.zeros((8, 8, 3), np.uint8))
+    iio.imwrite(frames / "1.png", np.zeros((8, 8), np.uint8))  # grey after colour
+    for call, fragment in ((lambda: lazy.open_frames(tmp_path / "nothing"), "no such file or folder"),
+                           (lambda: lazy.open_frames(tmp_path / "empty"), "holds no images"),
+                           (lambda: lazy.open_frames(frames, chunk_frames=0), "chunk_frames must be >= 1"),
+                           (lambda: lazy.open_frames(frames).values, "frame 1 is uint8 with 1 colours")):
+        with pytest.raises(InputError, match=re.escape(fragment)) as raised:
+            call()
+        assert "\n" not in str(raised.value)
+    assert lazy.open_frames(frames, chunk_frames=1)[:1].values.shape == (1, 8, 8, 3)  # frame 0 alone: read
 
 
 def test_simulate_computes_nothing_until_asked():

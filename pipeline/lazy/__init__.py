@@ -19,17 +19,19 @@ pixels, or refused in one line before anything is written (``docs/python.md``, "
 The same arithmetic, reconstructors and store writers as the jobs: ``to_video(reconstruct(windows(...)))`` writes
 the bytes ``cscsr reconstruct`` writes with the same options. Spikes: :mod:`pipeline.lazy.spikes` (reading stores),
 :mod:`pipeline.lazy.capture` (reading raw captures, as ``cscsr ingest`` reads them) and :mod:`pipeline.lazy.simulate`
-(simulating, writing); windows: :mod:`pipeline.lazy.windows`; reconstructions:
+(simulating, writing; the scene frames it takes, as ``cscsr simulate`` reads them: :mod:`pipeline.lazy.frames`);
+windows: :mod:`pipeline.lazy.windows`; reconstructions:
 :mod:`pipeline.lazy.video`; video stores written and read back: :mod:`pipeline.lazy.written`.
 Guide: ``docs/python.md``.
 """
 
 from pipeline.lazy.capture import open_capture
+from pipeline.lazy.frames import open_frames
 from pipeline.lazy.simulate import SpikesIncomplete, simulate, to_spikes
 from pipeline.lazy.spikes import open_spikes
 from pipeline.lazy.video import apply, reconstruct, tfi, tfp
 from pipeline.lazy.windows import windows
 from pipeline.lazy.written import open_video, to_video
 
-__all__ = ["open_spikes", "open_capture", "windows", "tfp", "tfi", "reconstruct", "apply", "simulate", "to_video",
-           "to_spikes", "open_video", "SpikesIncomplete"]
+__all__ = ["open_spikes", "open_capture", "open_frames", "windows", "tfp", "tfi", "reconstruct", "apply", "simulate",
+           "to_video", "to_spikes", "open_video", "SpikesIncomplete"]
