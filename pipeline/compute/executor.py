@@ -78,6 +78,17 @@ def submitted(client, tasks: Iterable[T], submit: Callable[[T], Future], *,
         yield task_of.pop(future.key), future
 
 
+def result_of(client, function: Callable, args: tuple, key: str):
+    """``function(*args)`` computed on ``client`` under ``key``, its future released whatever happens: an error's
+    traceback holds the future, and the cluster kept the erred key for the client's life, giving every later call
+    of that key (a resume, once the cause is fixed) the stale error."""
+    future = client.submit(function, *args, key=key)
+    try:
+        return future.result()
+    finally:
+        future.release()
+
+
 def still_computing(future: Future) -> Future | None:
     """``future`` if it finished but its result died with a worker before it was read (Dask is computing it again:
     wait for that), else None: an ``again`` for :func:`in_bounded_window`."""

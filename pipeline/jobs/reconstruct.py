@@ -54,7 +54,7 @@ from pipeline.compute.cluster import (
     scheduler_address,
     visible_gpus,
 )
-from pipeline.compute.executor import in_segments
+from pipeline.compute.executor import in_segments, result_of
 from pipeline.compute.progress import is_quiet, progress_bar
 from pipeline.compute.worker_start import NETWORK_PRELOAD
 from pipeline.jobs.dry_run import plan_job
@@ -239,7 +239,7 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
             whole = output_centres(store.n_frames, options.window, options.every)  # the same gain for any part
             args = (recorded(store_url), store_identity(store), meta.width, whole[len(whole) // 2], options.window,
                     meta.reset)
-            gain = client.submit(store_gain, *args, key=gain_key(*args)).result() if client else store_gain(*args)
+            gain = result_of(client, store_gain, args, gain_key(*args)) if client else store_gain(*args)
         # the spike store as workers find it, whatever their working directory (and as the output records it)
         plan = Plan(recorded(store_url), out, options.method, method.weights, options.window, options.every, float(gain),
                     scale, meta.cfa, meta.reset, options.tile, uuid.uuid4().hex, precision, options.gpu_batch, backend,

@@ -88,7 +88,12 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
         gain = client.persist(gain)  # held by the cluster (the same key) until this call returns
         from distributed import futures_of
 
-        attrs["gain"] = float(futures_of(gain)[0].result())
+        try:
+            attrs["gain"] = float(futures_of(gain)[0].result())
+        except BaseException:  # an exposure that failed is not kept by the error's traceback: computed afresh next
+            for future in futures_of(gain):
+                future.release()
+            raise
     else:
         attrs["gain"] = None if gain is None else float(dask.compute(gain)[0])
     fps = attrs.get("fps")
@@ -123,7 +128,8 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
                     failed.update({i: f"tile ({ty}, {tx}): {error}" for i in range(starts[b], starts[b + 1])})
                 elif (b, ty, tx) in unit_of:  # a GPU pass also rewrites the tiles it shares with one not committed
                     advance(unit_of[b, ty, tx])
-                finished, finished_units = finished + 1, finished_units + unit_of.get((b, ty, tx), 0)
+                finished += 1
+                finished_units += unit_of.get((b, ty, tx), 0) if error is None else 0  # as the bar: written ones
                 if piped and (finished % BLOCKS_AT_ONCE == 0 or finished == len(blocks)):
                     print(f"to_video {url}: {finished_units} of {to_run} tasks", file=sys.stderr, flush=True)
         if failed:
