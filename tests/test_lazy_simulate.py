@@ -169,6 +169,25 @@ def test_open_frames_of_the_job_s_source_writes_the_job_s_store_spikes_and_truth
     assert store_identity(written) == store_identity(made)
 
 
+def test_open_frames_of_a_video_reads_each_block_in_one_pass_the_frames_the_job_reads(tmp_path):
+    """A block of a video's frames is decoded by one reader, in order (the job's reader decodes from the start, or
+    a seek, for each frame): the same frames."""
+    import imageio.v2 as iio2
+    from cscsr import lazy
+    from pipeline.stores.frame_sources import open_frame_source
+
+    writer = iio2.get_writer(str(tmp_path / "v.mp4"), fps=25, codec="libx264", quality=8, macro_block_size=1)
+    for frame in scene(20, 16, 24):
+        writer.append_data(frame)
+    writer.close()
+    source = open_frame_source(str(tmp_path / "v.mp4"))
+    one_by_one = np.stack([source.read(index) for index in range(source.n_frames)])
+    frames = lazy.open_frames(tmp_path / "v.mp4", chunk_frames=7)
+    assert frames.shape == (20, 16, 24, 3) and frames.data.chunks[0] == (7, 7, 6)
+    np.testing.assert_array_equal(frames.values, one_by_one)
+    np.testing.assert_array_equal(frames[9:13].values, one_by_one[9:13])  # across two blocks, each from its start
+
+
 def test_open_frames_refuses_what_simulate_cannot_read_in_one_line(tmp_path):
     from cscsr import lazy
 

@@ -93,5 +93,6 @@ class _SourceFrames:
         frames, *rest = key
         start, stop, _ = frames.indices(self.source.n_frames)
         like = (self.dtype_str, self.colours)
-        block = np.concatenate([_as_4d(self.source.read(i), self.source, i, like) for i in range(start, stop)])
+        block = np.concatenate([_as_4d(frame, self.source, i, like)
+                                for i, frame in enumerate(self.source.read_run(start, stop), start)])
         return block[(slice(None), *rest)]

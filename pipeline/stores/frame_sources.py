@@ -52,6 +52,18 @@ class FrameSource:
             return video_array(self.url)[index]
         return _video_frame(self.url, index)
 
+    def read_run(self, start: int, stop: int) -> list[np.ndarray]:
+        """Frames ``start`` to ``stop - 1``: a video's decoded by one reader in order (a reader per frame decodes
+        from the start each time), the others one by one."""
+        if self.kind != "video":
+            return [self.read(index) for index in range(start, stop)]
+        if not 0 <= start <= stop <= self.n_frames:
+            raise IndexError(f"frames {start}..{stop - 1} outside 0..{self.n_frames - 1}")
+        import imageio.v2 as iio2
+
+        with iio2.get_reader(_local_copy(self.url), format="FFMPEG") as reader:
+            return [reader.get_data(index) for index in range(start, stop)]
+
 
 def _local_copy(url: str) -> str:
     """A local path for a video (ffmpeg reads files): the path itself, or a cached download."""
