@@ -157,7 +157,7 @@ def test_open_frames_of_the_job_s_source_writes_the_job_s_store_spikes_and_truth
     folder = open_spike_store(store).attrs["source"]
     scene = lazy.open_frames(folder, chunk_frames=9)
     assert scene.dims == ("t", "y", "x", "rgb") and scene.shape == frames.shape and scene.dtype == np.uint8
-    assert scene.data.chunks[0] == (9,) * 7 + (7,) and scene.attrs == {"source": folder}
+    assert scene.data.chunks[0] == (9,) * 7 + (7,) and scene.attrs == {"source": folder, "motion": "video"}
     np.testing.assert_array_equal(scene[20:30].values, frames[20:30])  # read a block at a time, as stored
     out = str(tmp_path / "lazy.zarr")
     to_spikes(lazy.simulate(scene, **settings), out, truth=scene)
@@ -188,6 +188,36 @@ def test_open_frames_of_a_video_reads_each_block_in_one_pass_the_frames_the_job_
     np.testing.assert_array_equal(frames[9:13].values, one_by_one[9:13])  # across two blocks, each from its start
 
 
+@pytest.mark.parametrize("motion", ["random", "static"])
+def test_a_picture_under_motion_is_the_job_s_scene_spikes_and_truth(motion, tmp_path):
+    """``open_frames(picture, frames=, motion=, seed=)`` is the scene ``cscsr simulate PICTURE --motion`` makes:
+    the job's camera path of its seed, each frame rendered (or the picture in every frame): the job's spikes,
+    truth and attributes (the job also writes the path's flow)."""
+    from cscsr import lazy
+    from pipeline.stores.ground_truth import TRUTH, TRUTH_FRAMES
+
+    picture = tmp_path / "scene.png"
+    iio.imwrite(picture, scene(1, 64, 96)[0])
+    options = dict(scale=4, cfa="rggb", reset="subtract", noise="realistic", seed=3)
+    job = str(tmp_path / "job.zarr")
+    simulate_job(str(picture), job, SimulateOptions(frames=90, motion=motion, interp="linear", speed=1.5, **options),
+                 workers=1, progress=False)
+    frames = lazy.open_frames(picture, frames=90, motion=motion, seed=3, speed=1.5, chunk_frames=16)
+    assert frames.shape == (90, 64, 96, 3) and frames.attrs["motion"] == motion
+    assert frames.dtype == (np.float32 if motion == "random" else np.uint8)
+    out = str(tmp_path / "lazy.zarr")
+    to_spikes(lazy.simulate(frames, **options), out, truth=frames)
+    written, made = open_spike_store(out), open_spike_store(job)
+    for name in ("spikes", TRUTH, TRUTH_FRAMES):
+        np.testing.assert_array_equal(written.group[name][:], made.group[name][:])
+    job_only = {"identity", "flow_convention"}  # the job's flow beside its truth, which to_spikes does not write
+    assert {k: v for k, v in written.attrs.items() if k not in job_only} == \
+        {k: v for k, v in made.attrs.items() if k not in job_only}
+    if motion == "random":  # the scene moves: another seed, another path
+        other = lazy.open_frames(picture, frames=90, motion=motion, seed=4, speed=1.5)
+        assert not np.array_equal(other[60].values, frames[60].values)
+
+
 def test_open_frames_refuses_what_simulate_cannot_read_in_one_line(tmp_path):
     from cscsr import lazy
 
@@ -199,7 +229,14 @@ def test_open_frames_refuses_what_simulate_cannot_read_in_one_line(tmp_path):
     for call, fragment in ((lambda: lazy.open_frames(tmp_path / "nothing"), "no such file or folder"),
                            (lambda: lazy.open_frames(tmp_path / "empty"), "holds no images"),
                            (lambda: lazy.open_frames(frames, chunk_frames=0), "chunk_frames must be >= 1"),
-                           (lambda: lazy.open_frames(frames).values, "frame 1 is uint8 with 1 colours")):
+                           (lambda: lazy.open_frames(frames).values, "frame 1 is uint8 with 1 colours"),
+                           (lambda: lazy.open_frames(frames, frames=50, motion="random"), "for a picture; "),
+                           (lambda: lazy.open_frames(frames / "0.png"), "give frames= and motion="),
+                           (lambda: lazy.open_frames(frames / "0.png", frames=50, motion="wobble"), "'wobble'"),
+                           (lambda: lazy.open_frames(frames / "0.png", frames=50, motion="random", seed=-1),
+                            "seed must be >= 0"),
+                           (lambda: lazy.open_frames(frames / "0.png", frames=0, motion="static"),
+                            "frames must be >= 1")):
         with pytest.raises(InputError, match=re.escape(fragment)) as raised:
             call()
         assert "\n" not in str(raised.value)

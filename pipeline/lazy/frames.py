@@ -5,9 +5,12 @@ frames ``(t, y, x, rgb)`` that :func:`pipeline.lazy.simulate.simulate` takes, ea
 or uint16; grey frames with ``rgb`` of size 1, RGBA with 4), read a block at a time when something computes it,
 through the reader of the ``simulate`` job (``pipeline.stores.frame_sources``). So
 ``to_spikes(simulate(frames), url, truth=frames)`` writes the recording and ground truth that ``cscsr simulate``
-writes of a source with one frame per spike frame (``--interp linear``: spike frame ``t`` is frame ``t``).
+writes of a source with one frame per spike frame (``--interp linear``: spike frame ``t`` is frame ``t``). A
+picture becomes the job's scene under ``--motion``: repeated, or rendered along the job's camera path (the job
+also writes that path's flow between truth frames; ``to_spikes`` writes none).
 """
 
+import math
 from dataclasses import dataclass
 
 import dask.array as da
@@ -15,33 +18,59 @@ import numpy as np
 import xarray as xr
 from dask.base import tokenize
 
+from pipeline.jobs.simulate import MAX_FRAMES, MAX_FRAMES_WHY, MOTIONS
 from pipeline.lazy.spikes import check_here, python_words, url_text
 from pipeline.stores.frame_sources import FrameSource, open_frame_source
 from pipeline.stores.storage import recorded, resolve
 from stages.errors import InputError
-from stages.numbers import check_number
+from stages.numbers import check_number, check_text
+from stages.simulation.camera_path import CameraPath, render
+from stages.simulation.intensities import to_unit_rgb
 
 FRAME_DIMS = ("t", "y", "x", "rgb")
-FRAMES_A_BLOCK = 8  # frames read by one task unless chunk_frames= says otherwise
+BLOCK_BYTES = 64 * 2**20  # frames a block unless chunk_frames= says otherwise: about this many bytes, at least one
 
 
-def open_frames(url, *, chunk_frames: int | None = None) -> xr.DataArray:
+def open_frames(url, *, chunk_frames: int | None = None, frames: int | None = None, motion: str | None = None,
+                seed: int = 0, speed: float = 0.5, deform: float = 0.0) -> xr.DataArray:
     """The frames at ``url`` (a video, a folder of pictures, a Zarr video, a picture) as lazy scene frames
-    ``(t, y, x, rgb)``, ``chunk_frames`` frames a block (default :data:`FRAMES_A_BLOCK`); attribute ``source``: the
-    place, as a store records it. The first frame is read now (its dtype and colours are every frame's); a frame
-    of another size, dtype or colours is refused, in one line naming it, when its block is computed."""
+    ``(t, y, x, rgb)``, ``chunk_frames`` frames a block (default: about :data:`BLOCK_BYTES`); attributes ``source``
+    (the place, as a store records it) and ``motion``. The first frame is read now (its dtype and colours are every
+    frame's); a frame of another size, dtype or colours is refused, in one line naming it, when its block is read.
+
+    A picture is a scene of ``frames`` frames under ``motion``, as ``cscsr simulate PICTURE --motion`` makes it:
+    ``"static"``, the picture in every frame as stored; ``"random"``, the camera path of ``seed``, ``speed`` and
+    ``deform`` (``stages.simulation.camera_path.CameraPath.random``: the job's own, of its ``--seed``), each frame
+    rendered as float32 intensities in [0, 1]. ``frames`` and ``motion`` are for a picture alone."""
     url = url_text(url)
     with python_words():
-        if chunk_frames is not None:
-            check_number("chunk_frames", chunk_frames, at_least=1, integer=True)
+        for name, value in (("chunk_frames", chunk_frames), ("frames", frames)):
+            if value is not None:
+                check_number(name, value, at_least=1, at_most=MAX_FRAMES, integer=True, why=MAX_FRAMES_WHY)
+        check_text("motion", motion, optional=True)
+        check_number("seed", seed, at_least=0, integer=True)
+        check_number("speed", speed, at_least=0)
+        check_number("deform", deform, at_least=0)
         check_here([url])  # a memory:// source is this process's alone
         source = open_frame_source(url)
         first = _as_4d(source.read(0), source, 0, None)
-    frames = _SourceFrames(source, first.dtype.str, first.shape[-1], _modified(url))
-    data = da.from_array(frames, chunks=(min(chunk_frames or FRAMES_A_BLOCK, source.n_frames), -1, -1, -1),
-                         asarray=False, fancy=False, meta=np.empty((0, 0, 0, 0), first.dtype),
-                         name=f"frames-{tokenize(frames)}")
-    return xr.DataArray(data, dims=FRAME_DIMS, attrs={"source": recorded(url)})
+        if source.kind == "image" or frames is not None or motion is not None:
+            if source.kind != "image":
+                raise InputError(f"frames= and motion= are for a picture; {url} is a {source.kind} with motion of "
+                                 f"its own")
+            if frames is None or motion not in MOTIONS:
+                raise InputError(f"{url} is one picture: give frames= and motion= ({' or '.join(MOTIONS)}), the "
+                                 f"scene's length and how the camera moves, got frames={frames}, motion={motion!r}")
+            path = CameraPath.random(frames, source.height, source.width, seed=seed, speed=speed, deform=deform) \
+                if motion == "random" else None
+            scene = _CameraFrames(source, frames, first.dtype.str, first.shape[-1], path, _modified(url))
+        else:
+            scene = _SourceFrames(source, first.dtype.str, first.shape[-1], _modified(url))
+    frame_bytes = scene.dtype.itemsize * math.prod(scene.shape[1:])
+    chunk = min(chunk_frames or max(1, BLOCK_BYTES // frame_bytes), scene.shape[0])
+    data = da.from_array(scene, chunks=(chunk, -1, -1, -1), asarray=False, fancy=False,
+                         meta=np.empty((0, 0, 0, 0), scene.dtype), name=f"frames-{tokenize(scene)}")
+    return xr.DataArray(data, dims=FRAME_DIMS, attrs={"source": recorded(url), "motion": motion or "video"})
 
 
 def _modified(url: str):
@@ -67,6 +96,40 @@ def _as_4d(frame: np.ndarray, source: FrameSource, index: int, like: tuple[str, 
         raise InputError(f"{source.url}: frame {index} is {frame.dtype} with {frame.shape[2]} colours, frame 0 "
                          f"{np.dtype(like[0])} with {like[1]}: convert the frames alike")
     return frame[None]
+
+
+@dataclass(frozen=True)
+class _CameraFrames:
+    """A picture as ``n_frames`` scene frames under a camera ``path`` (None: static), as dask reads them, a block
+    at a time; the picture decoded once a block. Pickled as its fields."""
+
+    source: FrameSource
+    n_frames: int
+    dtype_str: str  # the picture's (static), float32 (rendered)
+    colours: int
+    path: CameraPath | None
+    version: object  # :func:`_modified`: only in the token
+
+    ndim = 4
+
+    @property
+    def dtype(self) -> np.dtype:
+        return np.dtype(self.dtype_str if self.path is None else np.float32)
+
+    @property
+    def shape(self) -> tuple[int, int, int, int]:
+        return self.n_frames, self.source.height, self.source.width, self.colours if self.path is None else 3
+
+    def __getitem__(self, key) -> np.ndarray:
+        frames, *rest = key
+        start, stop, _ = frames.indices(self.n_frames)
+        picture = _as_4d(self.source.read(0), self.source, 0, (self.dtype_str, self.colours))
+        if self.path is None:
+            block = np.broadcast_to(picture, (stop - start, *picture.shape[1:]))
+        else:
+            image = to_unit_rgb(picture[0])
+            block = np.stack([render(image, self.path, t) for t in range(start, stop)])
+        return np.ascontiguousarray(block[(slice(None), *rest)])
 
 
 @dataclass(frozen=True)

@@ -17,6 +17,7 @@ run is resumed (``resume=True``) where it stopped; on the active scheduler (a ``
 active, else Dask's default).
 """
 
+import dataclasses
 import json
 import operator
 import uuid
@@ -41,7 +42,7 @@ from pipeline.lazy.spikes import (as_spikes, check_here, check_spikes, distribut
                                   unpacked_bits, url_text)
 from pipeline.stores.lease import check_free, claimed, held
 from pipeline.stores.outputs import SPIKE_STORE, check_existing, new_output
-from pipeline.jobs.simulate import SimulateOptions, check_options, fire_chunk, simulated_meta, state_after
+from pipeline.jobs.simulate import MOTIONS, SimulateOptions, check_options, fire_chunk, simulated_meta, state_after
 from pipeline.stores.spike_store import (COMMITTED, SPIKES, SpikeMeta, SpikeStore, SpikeStoreWriter,
                                   chunk_frames_for, open_spike_store, write_region)
 from pipeline.stores.ground_truth import declare_truth, has_truth, write_truth
@@ -69,8 +70,8 @@ def simulate(frames: xr.DataArray, *, scale: int = 4, cfa: str = "rggb", brightn
     ``(t, H, W)`` bool, one spike frame per scene frame, chunked along ``t`` as ``frames`` is; nothing computed.
 
     The bytes of ``cscsr simulate --interp linear`` on a video of as many frames as it simulates (spike frame ``t``
-    is then scene frame ``t``), with the same options; the attributes it records (``source``: the frames' own
-    ``source`` attribute, else ""). Refuses, in one line and before any graph exists, what the job refuses
+    is then scene frame ``t``), or on a picture under ``--motion`` (``lazy.open_frames``), with the same options;
+    the attributes it records (``source`` and ``motion``: the frames' own attributes, else "" and "video"). Refuses, in one line and before any graph exists, what the job refuses
     (``pipeline.jobs.simulate.check_options``) and frames of other dims or dtype; float frames must hold
     intensities in [0, 1] (a scene of 0..255 as floats, NaN, inf or negatives are refused: before the graph for
     frames in memory, when their block is computed for lazy ones, never clipped).
@@ -85,8 +86,9 @@ def simulate(frames: xr.DataArray, *, scale: int = 4, cfa: str = "rggb", brightn
     # the job's checks; of its source they read the frame count and size only
     with python_words():
         height, width = check_options(options, FrameSource("frames", "array", n_frames, hr_height, hr_width))
-    source = frames.attrs.get("source")
-    meta = simulated_meta(options, height, width, source if isinstance(source, str) else "")
+    source, motion = frames.attrs.get("source"), frames.attrs.get("motion")
+    made = dataclasses.replace(options, motion=motion if motion in MOTIONS else None)  # lazy.open_frames of a picture
+    meta = simulated_meta(made, height, width, source if isinstance(source, str) else "")
     scene = frames.data
     if not isinstance(scene, da.Array):  # in memory: checked now, then chunks of Dask's size, whole frames
         check_intensities(np.asarray(scene), 0)
