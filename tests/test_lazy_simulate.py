@@ -216,6 +216,26 @@ def test_a_picture_under_motion_is_the_job_s_scene_spikes_and_truth(motion, tmp_
     if motion == "random":  # the scene moves: another seed, another path
         other = lazy.open_frames(picture, frames=90, motion=motion, seed=4, speed=1.5)
         assert not np.array_equal(other[60].values, frames[60].values)
+        # what the job would not make is not recorded as its: the path of another seed, a part of a longer path
+        with pytest.raises(InputError, match=r"camera path of seed 3 .*simulate\(seed=4\)"):
+            lazy.simulate(frames, **{**options, "seed": 4})
+        with pytest.raises(InputError, match=r"frames are 60 of a camera path of 90 frames: .*frames=60\)"):
+            lazy.simulate(frames.isel(t=slice(0, 60)), **options)
+
+
+def test_a_folder_s_frames_rewritten_in_place_are_a_new_graph(tmp_path):
+    """The graph's name says which version of the frames it reads: a picture rewritten inside the folder (the
+    folder's own time unchanged) makes another, so a cluster holding the old one does not answer for the new."""
+    from cscsr import lazy
+
+    for t in range(3):
+        iio.imwrite(tmp_path / f"{t}.png", np.full((8, 8, 3), t, np.uint8))
+    before = lazy.open_frames(tmp_path)
+    assert lazy.open_frames(tmp_path).data.name == before.data.name  # the same frames: the same graph
+    os.utime(tmp_path / "1.png", ns=(1, 1))  # as if rewritten long ago: the time alone
+    iio.imwrite(tmp_path / "1.png", np.full((8, 8, 3), 9, np.uint8))
+    after = lazy.open_frames(tmp_path)
+    assert after.data.name != before.data.name and after[1].values.max() == 9
 
 
 def test_open_frames_refuses_what_simulate_cannot_read_in_one_line(tmp_path):

@@ -1,15 +1,16 @@
 """Scene frames as lazy xarray (``cscsr.lazy``, issue #56): :func:`open_frames`, what ``cscsr simulate`` reads.
 
 A video file, a folder of pictures, a Zarr video (``cscsr reconstruct``'s output) or one picture, as the HR scene
-frames ``(t, y, x, rgb)`` that :func:`pipeline.lazy.simulate.simulate` takes, each frame as the file holds it (uint8
-or uint16; grey frames with ``rgb`` of size 1, RGBA with 4), read a block at a time when something computes it,
-through the reader of the ``simulate`` job (``pipeline.stores.frame_sources``). So
+frames ``(t, y, x, rgb)`` that :func:`pipeline.lazy.simulate.simulate` takes, each frame as the job's reader gives
+it (uint8; uint16 for a 16-bit grey picture; grey frames with ``rgb`` of size 1, RGBA with 4), read a block at a
+time when something computes it, through the reader of the ``simulate`` job (``pipeline.stores.frame_sources``). So
 ``to_spikes(simulate(frames), url, truth=frames)`` writes the recording and ground truth that ``cscsr simulate``
 writes of a source with one frame per spike frame (``--interp linear``: spike frame ``t`` is frame ``t``). A
 picture becomes the job's scene under ``--motion``: repeated, or rendered along the job's camera path (the job
 also writes that path's flow between truth frames; ``to_spikes`` writes none).
 """
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -41,7 +42,9 @@ def open_frames(url, *, chunk_frames: int | None = None, frames: int | None = No
     A picture is a scene of ``frames`` frames under ``motion``, as ``cscsr simulate PICTURE --motion`` makes it:
     ``"static"``, the picture in every frame as stored; ``"random"``, the camera path of ``seed``, ``speed`` and
     ``deform`` (``stages.simulation.camera_path.CameraPath.random``: the job's own, of its ``--seed``), each frame
-    rendered as float32 intensities in [0, 1]. ``frames`` and ``motion`` are for a picture alone."""
+    rendered as float32 intensities in [0, 1]; the attributes ``seed`` and ``frames`` say which path, and
+    ``simulate`` must be given that seed (the job's one ``--seed`` draws both). ``frames`` and ``motion`` are for a
+    picture alone."""
     url = url_text(url)
     with python_words():
         for name, value in (("chunk_frames", chunk_frames), ("frames", frames)):
@@ -70,16 +73,22 @@ def open_frames(url, *, chunk_frames: int | None = None, frames: int | None = No
     chunk = min(chunk_frames or max(1, BLOCK_BYTES // frame_bytes), scene.shape[0])
     data = da.from_array(scene, chunks=(chunk, -1, -1, -1), asarray=False, fancy=False,
                          meta=np.empty((0, 0, 0, 0), scene.dtype), name=f"frames-{tokenize(scene)}")
-    return xr.DataArray(data, dims=FRAME_DIMS, attrs={"source": recorded(url), "motion": motion or "video"})
+    attrs = {"source": recorded(url), "motion": motion or "video"}
+    if motion == "random":  # the path's: lazy.simulate records the job's options only for the job's scene
+        attrs.update(seed=seed, frames=frames)
+    return xr.DataArray(data, dims=FRAME_DIMS, attrs=attrs)
 
 
 def _modified(url: str):
-    """What tells this version of the source from a later one at the same place (in the graph's token)."""
+    """What tells this version of the source from a later one at the same place (in the graph's token): a file's
+    key, a folder's (pictures, a Zarr video) every file's name, size and time (a file rewritten inside a folder
+    leaves the folder's own as it was)."""
     fs, path = resolve(url)
-    try:
-        return fs.ukey(path)
-    except (OSError, NotImplementedError):  # a folder: its listing's names and sizes
-        return tuple(sorted((entry["name"], entry.get("size")) for entry in fs.ls(path, detail=True)))
+    if fs.isdir(path):
+        return tuple(sorted((entry["name"], entry.get("size"), str(entry.get("mtime") or entry.get("LastModified")
+                                                                    or entry.get("ETag")))
+                            for entry in fs.find(path, detail=True).values()))
+    return fs.ukey(path)
 
 
 def _as_4d(frame: np.ndarray, source: FrameSource, index: int, like: tuple[str, int] | None) -> np.ndarray:
@@ -123,13 +132,21 @@ class _CameraFrames:
     def __getitem__(self, key) -> np.ndarray:
         frames, *rest = key
         start, stop, _ = frames.indices(self.n_frames)
-        picture = _as_4d(self.source.read(0), self.source, 0, (self.dtype_str, self.colours))
+        picture = _picture(self.source, self.version, (self.dtype_str, self.colours))
         if self.path is None:
             block = np.broadcast_to(picture, (stop - start, *picture.shape[1:]))
         else:
             image = to_unit_rgb(picture[0])
             block = np.stack([render(image, self.path, t) for t in range(start, stop)])
         return np.ascontiguousarray(block[(slice(None), *rest)])
+
+
+@functools.lru_cache(maxsize=2)
+def _picture(source: FrameSource, version, like: tuple[str, int]) -> np.ndarray:
+    """The picture of a scene, (1, H, W, colours), decoded once a process (every block of its frames reads it)."""
+    picture = _as_4d(source.read(0), source, 0, like)
+    picture.flags.writeable = False  # shared between blocks
+    return picture
 
 
 @dataclass(frozen=True)

@@ -22,14 +22,13 @@ import json
 import operator
 import uuid
 
-import dask
 import dask.array as da
+import dask.threaded
 import numpy as np
 import xarray as xr
 import zarr
-from dask.base import tokenize
+from dask.base import get_scheduler, tokenize
 from dask.callbacks import Callback
-from dask.delayed import Delayed
 from dask.highlevelgraph import HighLevelGraph
 
 from pipeline.stores.frame_sources import FrameSource
@@ -87,7 +86,9 @@ def simulate(frames: xr.DataArray, *, scale: int = 4, cfa: str = "rggb", brightn
     with python_words():
         height, width = check_options(options, FrameSource("frames", "array", n_frames, hr_height, hr_width))
     source, motion = frames.attrs.get("source"), frames.attrs.get("motion")
-    made = dataclasses.replace(options, motion=motion if motion in MOTIONS else None)  # lazy.open_frames of a picture
+    if motion == "random":  # lazy.open_frames of a picture along a camera path: the job's scene, as recorded
+        _check_camera_path(frames.attrs, seed, n_frames)
+    made = dataclasses.replace(options, motion=motion if motion in MOTIONS else None)
     meta = simulated_meta(made, height, width, source if isinstance(source, str) else "")
     scene = frames.data
     if not isinstance(scene, da.Array):  # in memory: checked now, then chunks of Dask's size, whole frames
@@ -95,6 +96,18 @@ def simulate(frames: xr.DataArray, *, scale: int = 4, cfa: str = "rggb", brightn
         scene = da.from_array(scene, chunks=("auto", -1, -1, -1))
     scene = scene.rechunk({1: -1, 2: -1, 3: -1})  # whole frames per block
     return as_spikes(_fired_spikes(scene, options, height, width), {**meta.attrs(), "frames": n_frames})
+
+
+def _check_camera_path(attrs: dict, seed: int, n_frames: int) -> None:
+    """Refuse, in one line, to record as the ``simulate`` job's a scene along a camera path it would not make: one
+    of another seed (the job's one ``--seed`` draws both path and noise) or a part of a longer path (the job's path
+    spans its ``--frames``)."""
+    if attrs.get("seed") != seed:
+        raise InputError(f"frames follow the camera path of seed {attrs.get('seed')} (open_frames(seed=...)), but "
+                         f"simulate(seed={seed}): give the same seed, as cscsr simulate's one --seed draws both")
+    if attrs.get("frames") != n_frames:
+        raise InputError(f"frames are {n_frames} of a camera path of {attrs.get('frames')} frames: the job's path of "
+                         f"{n_frames} frames is open_frames(..., frames={n_frames})")
 
 
 def check_intensities(frames: np.ndarray, first_frame: int) -> None:
@@ -415,14 +428,15 @@ class _ToSpikes:
 
 def _computed(graph, frames: dict, advance, client) -> list:
     """The results of the tasks ``frames`` names (key -> frames it writes) of ``graph``, in that order, computed on
-    ``client`` (else dask's own scheduler), ``advance(frames)`` as each finishes; the first error raised."""
+    ``client`` (else dask's own scheduler), ``advance(frames)`` as each finishes; the first error raised. The graph
+    is handed over once, culled to what they need (a resume's tasks), its tasks' names kept (nothing fused)."""
     keys = list(frames)
     if isinstance(graph, HighLevelGraph):
-        graph = dict(graph.cull(set(keys)))  # only what they need (a resume's tasks), their names kept: no fusing
+        graph = dict(graph.cull(set(keys)))
     if client is not None:
         from distributed import as_completed
 
-        futures = client.compute([Delayed(key, graph) for key in keys], optimize_graph=False)
+        futures = client.get(graph, keys, sync=False)
         try:
             for future in as_completed(futures):
                 if future.status == "finished":
@@ -432,13 +446,13 @@ def _computed(graph, frames: dict, advance, client) -> list:
             for future in futures:
                 future.release()
 
-    class Advance(Callback):  # dask's local schedulers call it as each task finishes, in their own thread
+    class Advance(Callback):  # dask's local schedulers call it as each task finishes, from their main loop
         def _posttask(self, key, result, dsk, state, worker_id):
             if key in frames:
                 advance(frames[key])
 
-    with Advance():
-        return list(dask.compute(*(Delayed(key, graph) for key in keys), optimize_graph=False))
+    with Advance():  # dask's configured scheduler, else its default for arrays and delayed: threads
+        return list((get_scheduler() or dask.threaded.get)(graph, keys))
 
 
 def _write_task(bits: np.ndarray, url: str, start: int, index: int) -> np.ndarray:
