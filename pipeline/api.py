@@ -85,7 +85,7 @@ def _checked(job: str, *, client=None, workers=None, scheduler=None, progress=Fa
         if client.status != "running":
             raise InputError(f"{job}(): client is {client.status}, not running: pass a connected Client, "
                              "or leave client out")
-    check_workers(workers)
+    check_workers(workers, scheduler)
     check_text("scheduler", scheduler, optional=True)
     check_flag("progress", progress)
 

@@ -136,3 +136,21 @@ def test_real_process_exit_status(cli_process, tmp_path):
     assert result.returncode == 1
     assert result.stderr.strip().count("\n") == 0 and "missing.dat" in result.stderr
     assert "Usage" in cli_process("--help").stdout
+
+
+def test_workers_and_a_named_scheduler_contradict_each_other(cli, small_dat, tmp_path):
+    """--workers starts a local cluster, --scheduler runs on a named one: given both, the workers were silently
+    ignored (or the job waited on an unreachable scheduler). Refused at once, before anything is read or made."""
+    assert cli("ingest", small_dat, tmp_path / "s.zarr", "--height", 8, "--width", 16).exit_code == 0
+    picture = tmp_path / "p.png"
+    import imageio.v3 as iio
+
+    iio.imwrite(picture, np.zeros((32, 32, 3), np.uint8))
+    both = ("--workers", 1, "--scheduler", "tcp://127.0.0.1:1")  # nothing listens there: refused before trying
+    for args in (("reconstruct", tmp_path / "s.zarr", tmp_path / "out.zarr"),
+                 ("ingest", small_dat, tmp_path / "out.zarr", "--height", 8, "--width", 16),
+                 ("simulate", picture, tmp_path / "out.zarr", "--motion", "static"),
+                 ("evaluate", tmp_path / "s.zarr", "--out", tmp_path / "out"),
+                 ("watch", tmp_path, tmp_path / "out", "--once")):
+        assert_refused(cli(*args, *both), "--workers 1 and --scheduler tcp://127.0.0.1:1 contradict each other")
+        assert not (tmp_path / "out.zarr").exists() and not (tmp_path / "out").exists()

@@ -45,7 +45,7 @@ def watch(context: typer.Context,
 
     options = WatchOptions(method, weights, every, tile, settle, max_attempts, backoff,
                            IngestOptions(height, width, cfa, fps, flip, reset=reset))
-    check_workers(workers)
+    check_workers(workers, scheduler)
     options.check()  # before OUTBOX is created
     seconds = parse_interval(interval)
     if log_file is not None:

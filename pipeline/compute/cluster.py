@@ -68,12 +68,16 @@ def most_workers() -> int:
     return min(MOST_WORKERS, WORKERS_PER_CORE * (os.cpu_count() or 1))
 
 
-def check_workers(workers: int | None) -> None:
-    """Refuse a ``--workers`` outside 1..:func:`most_workers` (None: one per core); every command
-    that takes ``--workers`` calls this before it creates any output."""
+def check_workers(workers: int | None, scheduler: str | None = None) -> None:
+    """Refuse a ``--workers`` outside 1..:func:`most_workers` (None: one per core), and with a ``--scheduler``
+    named too (a local cluster of our own, and a running one: the workers were silently ignored); every
+    command that takes ``--workers`` calls this before it creates any output."""
     if workers is not None:
         check_number("--workers", workers, at_least=1, at_most=most_workers(), integer=True,
                      why=f"at most {WORKERS_PER_CORE} per core and {MOST_WORKERS} in all")
+        if scheduler is not None:
+            raise InputError(f"--workers {workers} and --scheduler {scheduler} contradict each other: --workers "
+                             f"starts a local cluster of its own, --scheduler runs on the one there: give one")
 
 
 def scheduler_address(scheduler: str | None) -> str | None:

@@ -131,7 +131,7 @@ def evaluate(store_url: str, methods: list[str], out_dir: str, *, weights: str |
     and a failed evaluation leaves none."""
     videos = {} if videos is None else videos
     check_apart(out_dir, store_url, weights, *(videos.values() if isinstance(videos, dict) else ()))
-    check_workers(workers)
+    check_workers(workers, scheduler)
     check_in_memory((store_url, out_dir, weights), client=client)  # the reconstructions' tasks read and write them
     store, truth, truth_frames, options = _checked_evaluation(store_url, methods, weights, videos)
     written = checked_videos(videos, store, truth, truth_frames, methods)

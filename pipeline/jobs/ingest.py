@@ -321,7 +321,7 @@ def run_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *,
     ``workers``). ``options.cfa`` is the pattern as recorded by the sensor; with ``flip`` the store
     records the pattern of the upright image it holds.
     """
-    check_workers(workers)
+    check_workers(workers, scheduler)
     check_text("--scheduler", scheduler, optional=True)
     parallel = on_dask(client, workers, scheduler)
     job = _prepare(src, dest, options, parallel=parallel, client=client)
@@ -512,7 +512,7 @@ def plan_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *
     """``ingest --dry-run``: every check a run makes, nothing created, and the plan: frames, the capture's bytes,
     tasks, chunks, the store's size at rest and the hours on 1, 8 and 64 workers, both from one task read,
     packed and compressed into memory here (the middle task; the first of a ``.npz``)."""
-    check_workers(workers)
+    check_workers(workers, scheduler)
     check_text("--scheduler", scheduler, optional=True)
     parallel = on_dask(client, workers, scheduler)
     job = _prepare(src, dest, options, parallel=parallel, client=client)

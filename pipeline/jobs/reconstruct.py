@@ -199,7 +199,7 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
     counts: output frames, tasks run now, tasks found already committed. ``dry_run``: every check, nothing
     created; returns the plan, priced by a few of its tasks run for real (:func:`plan_job`).
     """
-    check_workers(workers)
+    check_workers(workers, scheduler)
     options.check()
     check_apart(out, store_url, options.weights)
     check_in_memory((store_url, out, options.weights), client=client)  # workers read and write them

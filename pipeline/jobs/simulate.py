@@ -281,7 +281,7 @@ class _Tasks:
 def simulate(src: str, dest: str, options: SimulateOptions = SimulateOptions(), *, workers: int | None = None,
              scheduler: str | None = None, progress: bool = True) -> dict:
     """Simulate ``options.frames`` spike frames from ``src`` into a new spike store at ``dest``."""
-    check_workers(workers)
+    check_workers(workers, scheduler)
     check_apart(dest, src)
     check_in_memory((src, dest))  # read and written by the tasks, in worker processes
     source = open_frame_source(src)

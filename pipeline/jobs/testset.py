@@ -101,7 +101,7 @@ def evaluate_testset(testset: str, methods: list[str], out: str, *, weights: str
     check_flag("--overwrite", overwrite)
     check_apart(out, testset, weights)
     check_methods(methods, weights)
-    check_workers(workers)
+    check_workers(workers, scheduler)
     check_in_memory((testset, out, weights))  # read and written by the reconstructions' worker processes
     fs, root = resolve(testset)
     if not fs.exists(f"{root}/manifest.json"):
