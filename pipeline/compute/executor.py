@@ -27,6 +27,7 @@
   committed task left it.
 """
 
+import contextlib
 import ctypes
 import itertools
 import logging
@@ -78,15 +79,23 @@ def submitted(client, tasks: Iterable[T], submit: Callable[[T], Future], *,
         yield task_of.pop(future.key), future
 
 
-def result_of(client, function: Callable, args: tuple, key: str):
-    """``function(*args)`` computed on ``client`` under ``key``, its future released whatever happens: an error's
-    traceback holds the future, and the cluster kept the erred key for the client's life, giving every later call
-    of that key (a resume, once the cause is fixed) the stale error."""
-    future = client.submit(function, *args, key=key)
+@contextlib.contextmanager
+def released(futures: Iterable[Future]) -> Iterator[None]:
+    """Release ``futures`` on leaving, whatever happens: an error's traceback holds them, and the cluster kept their
+    erred keys for the client's life, giving every later computation of those keys (a resume, once the cause is
+    fixed) the stale error."""
     try:
-        return future.result()
+        yield
     finally:
-        future.release()
+        for future in futures:
+            future.release()
+
+
+def result_of(client, function: Callable, args: tuple, key: str):
+    """``function(*args)`` computed on ``client`` under ``key``, its future :func:`released`."""
+    future = client.submit(function, *args, key=key)
+    with released([future]):
+        return future.result()
 
 
 def still_computing(future: Future) -> Future | None:

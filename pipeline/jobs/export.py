@@ -32,7 +32,7 @@ log = logging.getLogger("cscsr.export")  # the package is ``pipeline``; the logg
 
 def export(store_url: str, dest: str, *, overwrite: bool = False, progress: bool = True) -> None:
     """Write the store at ``store_url`` to ``dest``: the kind of store and ``dest``'s extension decide how."""
-    check_apart(dest, store_url, source_of(store_url))  # nor what the store was made from
+    check_apart(dest, store_url, source_of(store_url))  # nor what the store was made from, before the claim
     is_video = VIDEO in open_group(store_url)
     suffix = str(dest).lower().rsplit(".", 1)[-1] if "." in str(dest).rsplit("/", 1)[-1] else ""
     if is_video:
@@ -102,8 +102,9 @@ def export_pngs(store_url: str, dest: str, *, overwrite: bool = False, progress:
 
 
 def export_dat(store_url: str, dest: str, *, overwrite: bool = False, progress: bool = True) -> None:
-    check_apart(dest, store_url, source_of(store_url))  # nor what the store was made from
-    check_apart(f"{dest}.partial", store_url, source_of(store_url))
+    source = source_of(store_url)  # nor what the store was made from
+    check_apart(dest, store_url, source)
+    check_apart(f"{dest}.partial", store_url, source)
     store = open_spike_store(store_url)
     meta = store.meta
     layout = DatLayout(meta.height, meta.width, head_columns=meta.head_columns, flip=meta.flipped, head_at=meta.head_at)

@@ -235,18 +235,25 @@ def capture_record(src: str, options: IngestOptions, capture, sensor_cfa: str) -
                         "layout": options.layout or default_layout(src)}}
 
 
+def capture_change(was: dict, now: dict) -> str | None:
+    """How a capture's fingerprint ``now`` differs from the one recorded, ``was`` (:func:`capture_record`), or None."""
+    if was == now:
+        return None
+    if was.get("bytes") != now["bytes"]:
+        return f"{was.get('bytes')} bytes -> {now['bytes']} bytes"
+    return "the same size, but its first or last MiB differ"
+
+
 def check_same_capture(dest: str, src: str, found: dict, record: dict, *, task_frames: int | None = None,
                        again: str = "--overwrite") -> None:
     """Refuse to resume ``dest`` (``found``: its ``committed`` attributes) from a capture other than the one it was
     ingested from, or read with other options (``record``: :func:`capture_record` of ``src`` now), or, given
     ``task_frames``, cut into other tasks."""
-    was, now = found.get("capture"), record["capture"]
+    was = found.get("capture")
     if not isinstance(was, dict):
         raise InputError(f"cannot resume {dest}: it records no capture to compare {src} with (written from other "
                          f"spikes, or before captures were recorded): start again with {again}")
-    if was != now:
-        why = (f"{was.get('bytes')} bytes -> {now['bytes']} bytes" if was.get("bytes") != now["bytes"]
-               else "the same size, but its first or last MiB differ")
+    if why := capture_change(was, record["capture"]):
         raise InputError(f"cannot resume {dest}: {src} is not the capture it was ingested from ({why}): give that "
                          f"capture, or start again with {again}")
     options = dict(found.get("options") or {})

@@ -28,7 +28,8 @@ import numpy as np
 import xarray as xr
 from dask.base import tokenize
 
-from pipeline.jobs.ingest import IngestOptions, capture_meta, capture_record, cut_short, opened_capture
+from pipeline.jobs.ingest import (IngestOptions, capture_change, capture_meta, capture_record, cut_short,
+                                  opened_capture)
 from pipeline.lazy.spikes import as_spikes, check_here, python_words, unpacked_bits, url_text
 from pipeline.stores.captures import RANGED_KINDS
 from pipeline.stores.spike_store import chunk_frames_for
@@ -91,10 +92,7 @@ def capture_frames(data: da.Array) -> "_CaptureFrames | None":
 def check_unchanged(frames: "_CaptureFrames") -> None:
     """Refuse, in one line, a capture whose bytes are not those :func:`open_capture` fingerprinted (its size, a
     SHA-256 of its ends: two range reads): another recording written under the same name since."""
-    was, now = json.loads(frames.record)["capture"], _opened(frames).fingerprint()
-    if now != was:
-        why = (f"{was['bytes']} bytes -> {now['bytes']} bytes" if was["bytes"] != now["bytes"]
-               else "the same size, but its first or last MiB differ")
+    if why := capture_change(json.loads(frames.record)["capture"], _opened(frames).fingerprint()):
         raise InputError(f"{frames.url} changed since lazy.open_capture opened it ({why}): open it again")
 
 

@@ -32,6 +32,7 @@ from dask.callbacks import Callback
 from dask.highlevelgraph import HighLevelGraph
 
 from pipeline.stores.frame_sources import FrameSource
+from pipeline.compute.executor import released
 from pipeline.compute.hold import hold_point
 from pipeline.compute.progress import progress_bar
 from pipeline.jobs.ingest import (COMMITTED_UNITS, IngestPlan, check_same_capture, ingest_task, run_tasks,
@@ -70,10 +71,11 @@ def simulate(frames: xr.DataArray, *, scale: int = 4, cfa: str = "rggb", brightn
 
     The bytes of ``cscsr simulate --interp linear`` on a video of as many frames as it simulates (spike frame ``t``
     is then scene frame ``t``), or on a picture under ``--motion`` (``lazy.open_frames``), with the same options;
-    the attributes it records (``source`` and ``motion``: the frames' own attributes, else "" and "video"). Refuses, in one line and before any graph exists, what the job refuses
-    (``pipeline.jobs.simulate.check_options``) and frames of other dims or dtype; float frames must hold
-    intensities in [0, 1] (a scene of 0..255 as floats, NaN, inf or negatives are refused: before the graph for
-    frames in memory, when their block is computed for lazy ones, never clipped).
+    the attributes it records (``source`` and ``motion``: the frames' own attributes, else "" and "video").
+    Refuses, in one line and before any graph exists, what the job refuses (``pipeline.jobs.simulate.check_options``)
+    and frames of other dims or dtype; float frames must hold intensities in [0, 1] (a scene of 0..255 as floats,
+    NaN, inf or negatives are refused: before the graph for frames in memory, when their block is computed for
+    lazy ones, never clipped).
 
     ``reset`` defaults to ``zero``, the ``simulate`` job's default (``cscsr simulate``), so that the same options
     give the job's bytes; ``ingest`` records ``subtract`` by default because that is how the real camera resets.
@@ -228,7 +230,7 @@ def to_spikes(spikes: xr.DataArray, url: str, *, chunk_frames: int | None = None
                 to_write = sum(plan.frames_of(index) for index in todo)
                 with held(url), progress_bar(f"to_spikes {url}", to_write, enabled=progress) as advance:
                     counts[todo] = (plan.run(spikes.data, todo, advance) if plan.capture is None
-                                    else plan.run_ingest(plan.capture, todo, distributed_client(spikes.data), advance))
+                                    else plan.run_ingest(todo, distributed_client(spikes.data), advance))
             if truth is not None and writer.group.attrs.get("state") != "complete":
                 with held(url):
                     _write_truths(truth, centres, url, spikes.attrs["cfa"])
@@ -399,11 +401,12 @@ class _ToSpikes:
                                    f"({describe(error)}): fix the cause and call to_spikes again with "
                                    f"resume=True") from error
 
-    def run_ingest(self, frames, todo: list[int], client, advance) -> np.ndarray:
-        """Tasks ``todo`` of the capture ``frames`` (``lazy.open_capture``'s reader) as ``cscsr ingest`` runs them
-        (``pipeline.jobs.ingest``: each reads its frames by one byte range and writes them packed, so no unpacked
+    def run_ingest(self, todo: list[int], client, advance) -> np.ndarray:
+        """Tasks ``todo`` of the capture (:attr:`capture`, ``lazy.open_capture``'s reader) as ``cscsr ingest`` runs
+        them (``pipeline.jobs.ingest``: each reads its frames by one byte range and writes them packed, so no unpacked
         bits are made or moved), on ``client`` through its executor, else on dask's own scheduler; -> their spike
         counts. Raises :class:`SpikesIncomplete` if any fails or finds the capture damaged."""
+        frames = self.capture
         plan = IngestPlan(frames.url, recorded(self.url), frames.height, frames.width, frames.flip,
                           frames.head_columns, None, frames.n_frames, self.task_frames, uuid.uuid4().hex, frames.layout)
         if client is not None:
@@ -437,14 +440,11 @@ def _computed(graph, frames: dict, advance, client) -> list:
         from distributed import as_completed
 
         futures = client.get(graph, keys, sync=False)
-        try:
+        with released(futures):  # forgotten by the cluster even while an error holds them: a resume computes afresh
             for future in as_completed(futures):
                 if future.status == "finished":
                     advance(frames[future.key])
             return client.gather(futures)
-        finally:  # forgotten by the cluster even while an error holds them: a resume computes them afresh
-            for future in futures:
-                future.release()
 
     class Advance(Callback):  # dask's local schedulers call it as each task finishes, from their main loop
         def _posttask(self, key, result, dsk, state, worker_id):

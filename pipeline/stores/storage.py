@@ -50,6 +50,11 @@ def resolve(url: str) -> tuple[fsspec.AbstractFileSystem, str]:
     return fs, path
 
 
+class Unreachable(InputError):
+    """Remote storage that cannot be reached (no such host, no answer, no credentials): said in one line, as any
+    bad input, and never taken for a place that holds nothing."""
+
+
 def check_not_empty(url: str) -> None:
     """Refuse an empty path or URL in one line: fsspec takes it for the current folder (a ``simulate ""`` read
     whatever picture it found there)."""
@@ -66,7 +71,7 @@ def _filesystem(url: str) -> tuple[fsspec.AbstractFileSystem, str]:
     except (ValueError, ImportError) as error:
         raise InputError(f"cannot use URL {url!r}: {error}") from None
     except OSError as error:  # a filesystem that connects on creation (ftp://): no such host, refused, ...
-        raise InputError(f"cannot reach {url}: {describe(error)}") from None
+        raise Unreachable(f"cannot reach {url}: {describe(error)}") from None
 
 
 def check_answers(fs: fsspec.AbstractFileSystem, url: str, path: str) -> None:
@@ -92,13 +97,13 @@ def check_answers(fs: fsspec.AbstractFileSystem, url: str, path: str) -> None:
         return
     except (fsspec.exceptions.FSTimeoutError, TimeoutError):
         endpoint = getattr(getattr(getattr(fs, "_s3", None), "meta", None), "endpoint_url", None)
-        raise InputError(f"cannot reach {url}: no answer from {endpoint or 'the S3 endpoint'} within {seconds:g} s "
+        raise Unreachable(f"cannot reach {url}: no answer from {endpoint or 'the S3 endpoint'} within {seconds:g} s "
                          "(something accepts connections there but does not answer; check the endpoint: "
                          "AWS_ENDPOINT_URL or FSSPEC_S3_ENDPOINT_URL)") from None
     except Exception as error:  # noqa: BLE001 - an answer (an HTTP status), or a failure to reach it, named below
         answered = any(getattr(e, "response", None) is not None for e in (error, error.__cause__))
         if not answered and (line := unreachable(error, [str(url)])) is not None:
-            raise InputError(line) from None
+            raise Unreachable(line) from None
     _ANSWERED.add(token)
 
 
@@ -352,11 +357,9 @@ def source_of(url: str) -> str | None:
     ingested from)."""
     try:
         source = open_group(url).attrs.get("source")
-    except InputError as error:
-        if str(error).startswith("cannot reach"):  # said once, now, not after a second wait for the same answer
-            raise
-        return None  # not a store: the command refuses it in its own words
-    except Exception:  # noqa: BLE001 - as above
+    except Unreachable:  # said once, now, not after a second wait for the same answer
+        raise
+    except Exception:  # noqa: BLE001 - not a store: the command refuses it in its own words
         return None
     if not isinstance(source, str) or not source.strip():
         return None
