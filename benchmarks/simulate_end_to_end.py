@@ -73,39 +73,41 @@ def timed(fn, *args, repeats: int = 3):
 
 def stage_breakdown(video: str, frames: int, dest: str) -> list[tuple[str, float, int]]:
     """(stage, seconds per call, calls in the run) for every stage of the graph, this code."""
-    from pipeline.stores.frame_sources import open_frame_source
-    from pipeline.jobs.simulate import Scene, SimulateOptions, _fire, _hr_frame, _increments, _write_truth
+    from cscsr import lazy
+    from pipeline.jobs.simulate import SimulateOptions
+    from pipeline.jobs.simulate_plan import intensities
+    from pipeline.lazy.frames import made_scene
+    from pipeline.jobs.simulate import _made_increments, _write_made_truth, fire_chunk
     from pipeline.stores.spike_store import SpikeMeta, SpikeStoreWriter
     from stages.simulation import sensor
     from stages.simulation.interpolate import estimate_motion
-    from stages.simulation.latent import bracket, source_position, upscale_motion
+    from stages.simulation.latent import upscale_motion
     from stages.reconstruction.methods import WINDOW, output_centres
 
-    options = SimulateOptions(scale=4, cfa="rggb", frames=frames, reset="zero", interp="flow", chunk_frames=CHUNK_FRAMES)
-    source = open_frame_source(video)
+    options = SimulateOptions(scale=4, cfa="rggb", frames=frames, reset="zero", interp="flow",
+                              chunk_frames=CHUNK_FRAMES)
+    scene = made_scene(lazy.open_frames(video, frames=frames, interp="flow", scale=4, chunk_frames=CHUNK_FRAMES).data)
+    source = scene.source
     model = options.sensor_model()
     decode, frame0 = timed(source.read, 0, repeats=1)
-    downsample, lr0 = timed(sensor.area_downsample, _hr_frame(source, 0), options.scale)
-    lr = [lr0] + [sensor.area_downsample(_hr_frame(source, i), options.scale) for i in range(1, source.n_frames)]
+    downsample, lr0 = timed(sensor.area_downsample, intensities(source, scene.version, 0), options.scale)
+    lr = [lr0] + [scene.lr_frame(i) for i in range(1, source.n_frames)]
     motion_time, motion = timed(estimate_motion, lr0, lr[1])
     chunk = range(0, CHUNK_FRAMES)
-    scene = Scene(source, None)
-    needed = {bracket(source_position(t, frames, source.n_frames), source.n_frames)[0] for t in chunk}
-    pairs = {i: (lr[i], lr[i + 1], motion if i == 0 else estimate_motion(lr[i], lr[i + 1])) for i in needed}
+    pairs = [[i, lr[i], lr[i + 1], motion if i == 0 else estimate_motion(lr[i], lr[i + 1])] for i in scene.pairs(chunk)]
     height, width = lr0.shape[:2]
     dark = sensor.dark_increments(model, height, width)
-    inc_time, increments = timed(_increments, scene, pairs, chunk, options, dark)
+    inc_time, increments = timed(_made_increments, scene, pairs, chunk, options, dark)
     state = sensor.initial_state(model, height, width)
-    fire_time, fired = timed(_fire, increments, state, options.reset, None)
+    fire_time, fired = timed(fire_chunk, increments, state, options.reset, None)
     meta = SpikeMeta(height=height, width=width, cfa=options.cfa)
     writer = SpikeStoreWriter(dest, meta, CHUNK_FRAMES, chunk_frames=CHUNK_FRAMES)
     write_time, _ = timed(writer.write, 0, fired.packed)
     hr_motion_time, hr_motion = timed(upscale_motion, motion, options.scale, repeats=1)
     truth_at = output_centres(frames, WINDOW, options.truth_every)
-    first_pair = [t for t in truth_at if bracket(source_position(t, frames, source.n_frames), source.n_frames)[0] == 0]
+    first_pair = [t for t in truth_at if scene.pair(t)[0] == 0]
     writer.add_array("truth", (1, *frame0.shape), (1, *frame0.shape), np.uint8, ("k", "y", "x", "c"))
-    _hr_frame(source, 0), _hr_frame(source, 1)  # decoded already, as on the worker that made the pair's LR frames
-    truth_time, _ = timed(_write_truth, dest, 0, scene, first_pair[-1], options, hr_motion, repeats=1)
+    truth_time, _ = timed(_write_made_truth, dest, 0, scene, first_pair[-1], options.cfa, hr_motion, repeats=1)
     n_chunks = -(-frames // CHUNK_FRAMES)
     pairs_used = source.n_frames - 1
     return [

@@ -98,7 +98,7 @@ def test_simulate_and_evaluate_with_a_given_client(client, tmp_path):
         made = simulate(str(tmp_path / "scene.png"), store, scale=4, frames=41, motion="static", client=client)
     assert made.url == store and made.counts["frames"] == 41 and made.counts["spikes"] == made.attrs["spike_count"] > 0
     assert (made.attrs["height"], made.attrs["width"], made.attrs["scale"]) == (16, 16, 4)
-    assert any("_write_spikes" in str(task["key"]) for task in stream.data)  # simulated on the given cluster
+    assert any(key_split(task["key"]) == "to-spikes" for task in stream.data)  # simulated on the given cluster
 
     scored = evaluate(store, "tfp,tfi", str(tmp_path / "evaluation"), client=client)
     assert scored.url == str(tmp_path / "evaluation") and [row["method"] for row in scored.rows] == ["tfp", "tfi"]

@@ -192,7 +192,7 @@ def test_open_frames_of_a_video_reads_each_block_in_one_pass_the_frames_the_job_
 def test_a_picture_under_motion_is_the_job_s_scene_spikes_and_truth(motion, tmp_path):
     """``open_frames(picture, frames=, motion=, seed=)`` is the scene ``cscsr simulate PICTURE --motion`` makes:
     the job's camera path of its seed, each frame rendered (or the picture in every frame): the job's spikes,
-    truth and attributes (the job also writes the path's flow)."""
+    truth, the path's flow between truth frames, and attributes."""
     from cscsr import lazy
     from pipeline.stores.ground_truth import TRUTH, TRUTH_FRAMES
 
@@ -200,7 +200,7 @@ def test_a_picture_under_motion_is_the_job_s_scene_spikes_and_truth(motion, tmp_
     iio.imwrite(picture, scene(1, 64, 96)[0])
     options = dict(scale=4, cfa="rggb", reset="subtract", noise="realistic", seed=3)
     job = str(tmp_path / "job.zarr")
-    simulate_job(str(picture), job, SimulateOptions(frames=90, motion=motion, interp="linear", speed=1.5, **options),
+    simulate_job(str(picture), job, SimulateOptions(frames=90, motion=motion, speed=1.5, **options),
                  workers=1, progress=False)
     frames = lazy.open_frames(picture, frames=90, motion=motion, seed=3, speed=1.5, chunk_frames=16)
     assert frames.shape == (90, 64, 96, 3) and frames.attrs["motion"] == motion
@@ -208,11 +208,11 @@ def test_a_picture_under_motion_is_the_job_s_scene_spikes_and_truth(motion, tmp_
     out = str(tmp_path / "lazy.zarr")
     to_spikes(lazy.simulate(frames, **options), out, truth=frames)
     written, made = open_spike_store(out), open_spike_store(job)
-    for name in ("spikes", TRUTH, TRUTH_FRAMES):
+    for name in ("spikes", TRUTH, TRUTH_FRAMES) + (("flow",) if motion == "random" else ()):
         np.testing.assert_array_equal(written.group[name][:], made.group[name][:])
-    job_only = {"identity", "flow_convention"}  # the job's flow beside its truth, which to_spikes does not write
-    assert {k: v for k, v in written.attrs.items() if k not in job_only} == \
-        {k: v for k, v in made.attrs.items() if k not in job_only}
+    assert ("flow" in written.group) == (motion == "random")
+    assert {k: v for k, v in written.attrs.items() if k != "identity"} == \
+        {k: v for k, v in made.attrs.items() if k != "identity"}
     if motion == "random":  # the scene moves: another seed, another path
         other = lazy.open_frames(picture, frames=90, motion=motion, seed=4, speed=1.5)
         assert not np.array_equal(other[60].values, frames[60].values)
@@ -316,6 +316,7 @@ def test_a_resume_needs_the_truth_it_was_begun_with_and_opens_the_store_once_a_p
     """A failed ``to_spikes(truth=)`` resumes only with the truth again, to the bytes of an uninterrupted one; the
     resume opens the store once for the checks before the claim (its cut and its truth) and once under the claim."""
     lazy_simulate = importlib.import_module("pipeline.lazy.simulate")  # pipeline.lazy.simulate is the function
+    writes = importlib.import_module("pipeline.jobs.simulate")  # the store's writes (the job's, resumed here)
 
     frames, spikes, failing, flag = failing_at_frame_55(tmp_path)
     whole, resumed = str(tmp_path / "whole.zarr"), str(tmp_path / "resumed.zarr")
@@ -327,8 +328,9 @@ def test_a_resume_needs_the_truth_it_was_begun_with_and_opens_the_store_once_a_p
             to_spikes(failing, resumed, resume=True)
         open(flag, "w").close()
         opened = []
-        monkeypatch.setattr(lazy_simulate, "open_spike_store",
-                            lambda url, **kwargs: opened.append(url) or open_spike_store(url, **kwargs))
+        for module in (lazy_simulate, writes):
+            monkeypatch.setattr(module, "open_spike_store",
+                                lambda url, **kwargs: opened.append(url) or open_spike_store(url, **kwargs))
         result = to_spikes(failing, resumed, resume=True, truth=frames)
     assert opened == [resumed, resumed]  # the checks before the claim, the check under it (the writer its own)
     assert result["tasks_skipped"] > 0 and result["attrs"]["state"] == "complete"
@@ -447,7 +449,7 @@ def test_progress_counts_each_frame_written_once_on_a_client_or_dask_s_own_sched
         bars.append({"description": description, "total": total, "advanced": [], "enabled": enabled})
         yield bars[-1]["advanced"].append
 
-    monkeypatch.setattr(importlib.import_module("pipeline.lazy.simulate"), "progress_bar", recorded)
+    monkeypatch.setattr(importlib.import_module("pipeline.jobs.simulate"), "progress_bar", recorded)
     bits = (np.random.default_rng(4).random((50, 8, 16)) < 0.2).astype(np.uint8)
     write_dat(tmp_path / "c.dat", bits)
     frames, spikes, failing, flag = failing_at_frame_55(tmp_path)
@@ -469,3 +471,68 @@ def test_progress_counts_each_frame_written_once_on_a_client_or_dask_s_own_sched
     assert failed["total"] == N_FRAMES and 0 < sum(failed["advanced"]) <= written_first
     assert resumed["total"] == sum(resumed["advanced"]) == N_FRAMES - written_first
     assert store_files(tmp_path / "f.zarr") == store_files(tmp_path / "s.zarr")
+
+
+@pytest.mark.parametrize("kind", ["video", "picture"])
+def test_on_one_client_the_simulate_job_runs_the_lazy_stages_tasks(kind, client, tmp_path):
+    """``cscsr simulate`` is a front door to the lazy stages: on one client its Dask tasks are those of
+    ``to_spikes(simulate(open_frames(...)), truth=scene)`` (a video of fewer frames than spike frames, interpolated
+    by flow at LR; a picture along the camera path), the same key prefixes and the same bytes, flow included."""
+    from distributed import get_task_stream
+    from cscsr import lazy
+
+    if kind == "video":
+        source = tmp_path / "frames"
+        source.mkdir()
+        for t, frame in enumerate(scene(4, 64, 64)[::1]):
+            iio.imwrite(source / f"{t}.png", np.roll(frame, 5 * t, axis=1))
+        motion = None
+    else:
+        source = tmp_path / "scene.png"
+        iio.imwrite(source, scene(1, 64, 64)[0])
+        motion = "random"
+    settings = dict(scale=4, seed=2, noise="realistic", reset="subtract")
+    with get_task_stream(client) as job:
+        simulate_job(str(source), str(tmp_path / "job.zarr"),
+                     SimulateOptions(frames=100, motion=motion, chunk_frames=20, truth_every=30, **settings),
+                     scheduler=client.scheduler.address, progress=False)
+    with get_task_stream(client) as graph:
+        frames = lazy.open_frames(source, frames=100, motion=motion, seed=2, chunk_frames=20)
+        to_spikes(lazy.simulate(frames, truth_every=30, **settings), str(tmp_path / "lazy.zarr"), chunk_frames=20,
+                  truth=frames)
+    def stage(key) -> str:  # the key's name without its token
+        return re.sub(r"-[0-9a-f]{32}", "", key[0] if isinstance(key, tuple) else key)
+
+    ran = {name: sorted(stage(r["key"]) for r in stream.data) for name, stream in (("job", job), ("graph", graph))}
+    assert ran["job"] == ran["graph"]
+    assert ran["job"].count("to-spikes") == 5 and ran["job"].count("truth") == 2  # at frames 20 and 50
+    assert ran["job"].count("truth-flow") == (1 if kind == "picture" else 0)  # from one truth frame to the next
+    assert ran["job"].count("simulated-spikes-source-motion") == (3 if kind == "video" else 0)  # once a pair
+    written, made = open_spike_store(str(tmp_path / "lazy.zarr")), open_spike_store(str(tmp_path / "job.zarr"))
+    for name in ("spikes", "truth", "truth_frames") + (("flow",) if kind == "picture" else ()):
+        np.testing.assert_array_equal(written.group[name][:], made.group[name][:])
+    assert {k: v for k, v in written.attrs.items() if k != "identity"} == \
+        {k: v for k, v in made.attrs.items() if k != "identity"}
+
+
+def test_a_video_over_more_spike_frames_is_interpolated_between_its_frames(tmp_path):
+    """``open_frames(video, frames=N)``: the video's frames spread evenly over N spike frames, each spike frame the
+    blend of the two frames it lies between (linear), its source frames exact where it lies on one; the scale of
+    the motion's estimate is simulate's own, refused otherwise."""
+    from cscsr import lazy
+
+    for t, frame in enumerate(scene(3, 16, 24)):
+        iio.imwrite(tmp_path / f"{t}.png", frame)
+    source = scene(3, 16, 24).astype(np.float32) / 255
+    frames = lazy.open_frames(tmp_path, frames=41, interp="linear", chunk_frames=8)
+    assert frames.shape == (41, 16, 24, 3) and frames.dtype == np.float32 and frames.data.chunks[0][0] == 8
+    assert frames.attrs == {"source": str(tmp_path), "motion": "video", "interp": "linear", "scale": 4}
+    values = frames.values
+    np.testing.assert_allclose(values[[0, 20, 40]], source, atol=1e-6)  # frames 0, 20, 40 lie on the video's
+    np.testing.assert_allclose(values[5], 0.75 * source[0] + 0.25 * source[1], atol=1e-6)
+    with pytest.raises(InputError, match=r"open_frames\(scale=4\).*simulate\(scale=2\)"):
+        simulate(frames, scale=2)
+    with pytest.raises(InputError, match="unknown interpolation 'cubic'"):
+        lazy.open_frames(tmp_path, frames=41, interp="cubic")
+    with pytest.raises(InputError, match="motion= is for a picture"):
+        lazy.open_frames(tmp_path, frames=41, motion="random")

@@ -174,21 +174,24 @@ def test_a_video_s_bytes_are_unchanged_since_the_first_simulator(tmp_path):
 
 
 def test_a_worker_decodes_each_source_frame_once(tmp_path, monkeypatch):
-    from pipeline.jobs import simulate as simulation
-    from pipeline.stores.frame_sources import FrameSource, open_frame_source
+    from cscsr import lazy
+    from pipeline.jobs import simulate_plan as scenes
+    from pipeline.lazy.frames import made_scene
+    from pipeline.stores.frame_sources import FrameSource
 
     folder = tmp_path / "frames"
     folder.mkdir()
     for i in range(3):
         iio.imwrite(folder / f"{i:03d}.png", np.roll(picture("astronaut", 64), 4 * i, axis=1))
-    source = open_frame_source(str(folder))
+    scene = made_scene(lazy.open_frames(folder, frames=82).data)  # the job's scene of the folder
     reads = []
     monkeypatch.setattr(FrameSource, "read", lambda self, index: reads.append(index) or iio.imread(self.files[index]))
-    simulation._hr_frame.cache_clear()
-    lr = [simulation._lr_frame(source, i, 4) for i in range(3)]  # each frame's LR task...
-    hr = [simulation._hr_frame(source, i) for i in (1, 2)]  # ...then truth between frames 1 and 2
-    assert reads == [0, 1, 2]
-    np.testing.assert_array_equal(lr[1], area_downsample(hr[0], 4))
+    scenes.intensities.cache_clear()
+    lr = [scene.lr_frame(i) for i in range(3)]  # each frame's LR task...
+    assert scene.pair(60)[0] == 1 and 0 < scene.pair(60)[1] < 1
+    truth = scene.intensities(60)  # ...then truth between frames 1 and 2 (their motion made from their LR frames)
+    assert reads == [0, 1, 2] and truth.shape == (64, 64, 3)
+    np.testing.assert_array_equal(lr[1], area_downsample(scenes.intensities(scene.source, scene.version, 1), 4))
 
 
 @pytest.mark.parametrize("args,fragment", [
@@ -222,16 +225,18 @@ def test_a_zarr_source_without_video_names_the_video_stores_dimensions(cli, tmp_
     assert "t, y, x" not in result.stderr and not (tmp_path / "s.zarr").exists()
 
 
-def test_the_plan_is_frozen_steps_in_submission_order():
-    from pipeline.jobs.simulate_plan import FlowField, SpikeChunk, TruthFrame, simulation_steps
+def test_a_video_s_lr_frames_and_pair_motions_are_one_task_each(tmp_path):
+    """The job's graph of a video of 4 frames over 100 spike frames in chunks of 40: every chunk's mosaics read the
+    LR frames and motion of the pairs they lie in (0-1, 1-2 and 2-3), each made by one task of the graph."""
+    from cscsr import lazy
 
-    still = list(simulation_steps(100, 40, [20, 61], None, camera_moves=True))
-    assert still == [SpikeChunk(range(0, 40), ()), TruthFrame(0, 20, None), FlowField(0, 20, 61),
-                     SpikeChunk(range(40, 80), ()), TruthFrame(1, 61, None), SpikeChunk(range(80, 100), ())]
-    assert list(simulation_steps(100, 40, [20, 61], None, camera_moves=False)) == [
-        step for step in still if not isinstance(step, FlowField)]
-    video = list(simulation_steps(100, 40, [20, 61], 4, camera_moves=False))  # 4 source frames: pairs 0, 1, 2
-    chunks = [step for step in video if isinstance(step, SpikeChunk)]
-    assert [c.source_frames for c in chunks] == [(0, 1), (1, 2), (2,)]
-    assert [step.source_frame for step in video if isinstance(step, TruthFrame)] == [0, 1]
-    assert len({hash(step) for step in video}) == len(video)  # frozen: hashable, each step distinct
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i in range(4):
+        iio.imwrite(folder / f"{i:03d}.png", np.roll(picture("astronaut", 64), 4 * i, axis=1))
+    spikes = lazy.simulate(lazy.open_frames(folder, frames=100, chunk_frames=40), truth_every=30)
+    graph = dict(spikes.data.__dask_graph__())
+    names = [key[0].rsplit("-", 1)[-1] for key in graph if isinstance(key, tuple) and "-source-" in key[0]]
+    assert sorted(names) == ["lr"] * 4 + ["motion"] * 3
+    pairs = [[pair[0] for pair in task[2]] for key, task in graph.items() if "increments" in str(key)]
+    assert sorted(pairs) == [[0, 1], [1, 2], [2]]

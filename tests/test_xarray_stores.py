@@ -55,8 +55,10 @@ def test_an_ingested_store_opens_with_xarray(tmp_path, monkeypatch):
 
 def test_a_simulated_store_opens_with_xarray(simulated):
     ds = opened(simulated)
-    assert dict(ds.sizes) == {"t": 82, "y": 8, "xbyte": 1, "k": 3, "hr_y": 16, "hr_x": 16, "c": 3, "k_flow": 2, "d": 2}
-    assert ds["spikes"].dims == ("t", "y", "xbyte")
+    assert dict(ds.sizes) == {"t": 82, "y": 8, "xbyte": 1, "k": 3, "hr_y": 16, "hr_x": 16, "c": 3, "k_flow": 2, "d": 2,
+                              "task": 1}
+    assert ds["spikes"].dims == ("t", "y", "xbyte") and ds["committed"].dims == ("task",)
+    assert ds["committed"].values.tolist() == [ds.attrs["spike_count"]]  # its one task, committed
     assert ds["truth"].dims == ("k", "hr_y", "hr_x", "c") and ds["flow"].dims == ("k_flow", "hr_y", "hr_x", "d")
     assert list(ds.coords) == ["truth_frames"] and ds["truth_frames"].dims == ("k",)
     assert ds["truth_frames"].values.tolist() == [20, 40, 60]

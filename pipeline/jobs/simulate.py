@@ -1,183 +1,153 @@
-"""``cscsr simulate``: an LR Bayer spike recording with HR ground truth (Algorithm 2), on Dask.
+"""``cscsr simulate``: an LR Bayer spike recording with HR ground truth (Algorithm 2), on Dask; and its graph, which
+``pipeline.lazy`` offers as ``open_frames`` -> ``simulate`` -> ``to_spikes`` (the job's tasks, on one client).
 
-The graph, per time chunk of the output:
+The job checks its options against the source (``pipeline.jobs.simulate_plan``) before anything is made, then writes
+the spikes of its scene (:func:`fired_spikes`) into a new store (:func:`write_store`), per time chunk of the output:
 
-    mosaics + increments (parallel over chunks: the costly part, interpolation/warping)
-      -> fire (a chain: the integer accumulator passes from chunk to chunk, exactly)
-      -> write (one task per chunk region of ``spikes``: no two writers share a chunk)
+    LR mosaics -> increments (parallel over chunks: the costly part, interpolation or warping; a video's LR frames
+                              and pair motion a task each, shared by the chunks between them)
+      -> fire (a chain: chunk k fires on from the integrator state chunk k - 1 left, exactly)
+      -> write (one task per chunk region of ``spikes``, recorded in ``committed``: no two writers share a chunk)
 
-plus one task per ground-truth frame (and per flow field for synthetic motion). The steps are
-planned as frozen data (``pipeline.jobs.simulate_plan``) and submitted in a bounded window
-(``pipeline.compute.executor``), so memory and graph size stay bounded however long the recording is. The accumulator is an integer (``stages.simulation.sensor.UNITS`` per threshold) and all
-noise is keyed by frame index, so the bytes written do not depend on the chunking or on the
-number of workers.
+with the sensor's fixed draws (dark current, threshold mismatch, initial state) made once, a task each; then a task
+per ground-truth picture (and per flow field for synthetic motion: :func:`made_truth`). The accumulator is an
+integer (``stages.simulation.sensor.UNITS`` per threshold) and all noise is keyed by frame index, so the bytes
+written do not depend on the chunking or on the number of workers. :func:`write_store` is also ``lazy.to_spikes``'s:
+any spikes written as the jobs write a store (claimed, metadata first, a task per run of whole chunks committed as
+it is stored, resumable), on the given client or Dask's own scheduler.
 """
 
-import functools
+import contextlib
+import dataclasses
 import logging
-from dataclasses import dataclass
+import math
+import operator
+import uuid
 
+import dask.array as da
+import dask.threaded
 import numpy as np
-from distributed import Client
+import zarr
+from dask.base import get_scheduler, tokenize
+from dask.callbacks import Callback
+from dask.highlevelgraph import HighLevelGraph
 
 from pipeline.compute.cluster import check_in_memory, check_scheduler, check_workers, dask_client
-from pipeline.compute.executor import submitted
-from pipeline.stores.frame_sources import FrameSource, open_frame_source
+from pipeline.compute.executor import released
 from pipeline.compute.hold import hold_point
-from pipeline.stores.lease import claimed, held
 from pipeline.compute.progress import progress_bar
-from pipeline.jobs.simulate_plan import SpikeChunk, Step, TruthFrame, simulation_steps
+from pipeline.jobs.ingest import (COMMITTED_UNITS, IngestPlan, check_same_capture, ingest_task, run_tasks,
+                                  task_frames_for)
+from pipeline.jobs.simulate_plan import (SimulateOptions, check_options, hr_pair_motion, open_scene,
+                                         simulated_meta)
+from pipeline.stores.frame_sources import open_frame_source
 from pipeline.stores.ground_truth import declare_truth, write_flow, write_truth
-from pipeline.stores.spike_store import SPIKES, SpikeMeta, SpikeStoreWriter, chunk_frames_for, write_region
-from pipeline.stores.outputs import SPIKE_STORE, new_output
+from pipeline.stores.lease import check_free, claimed, held
+from pipeline.stores.outputs import SPIKE_STORE, check_existing, new_output
+from pipeline.stores.spike_store import (COMMITTED, SPIKES, SpikeMeta, SpikeStore, SpikeStoreWriter, chunk_frames_for,
+                                         open_spike_store, write_region)
 from pipeline.stores.storage import check_apart, recorded
-from stages.simulation import sensor
-from stages.reconstruction.cfa import check_cfa
-from stages.reconstruction.colour import check_gain
-from stages.errors import InputError
-from stages.simulation.intensities import to_unit_rgb
-from stages.simulation.interpolate import INTERPOLATIONS, PairMotion, estimate_motion
-from stages.numbers import check_flag, check_number, check_text
-from stages.simulation.latent import bracket, between, source_position, still_mosaics, truth_image, upscale_motion, video_mosaics
-from stages.simulation.camera_path import CameraPath, render
+from stages.capture.bits import count_spikes, pack_rows, packed_width, unpacked_bits
+from stages.errors import InputError, describe
 from stages.reconstruction.methods import WINDOW, output_centres
+from stages.simulation import sensor
+from stages.simulation.intensities import to_unit_rgb
+from stages.simulation.latent import truth_image
 
-TRUTH_SCALES = (1, 2, 4)  # the HR truth the simulator can draw beside the LR spikes
-MOTIONS = ("static", "random")
-# The longest simulation: 10^9 spike frames are 13.9 hours at 20,000 fps, beyond any recording a reconstruction
-# is tested on; 10^12 would run for years (it ended in a bare MemoryError, listing its truth frames).
-MAX_FRAMES = 10**9
-MAX_FRAMES_WHY = "13.9 hours at 20,000 fps"
-MAX_TRUTH_FRAMES = 2**25  # their indices: a Python list of ~1.2 GB and one int64 chunk of 256 MiB
+BLOCK_BYTES = 64 * 2**20  # scene frames a block unless chunk_frames says otherwise: about this many bytes, at least one
 
 
-@dataclass(frozen=True)
-class SimulateOptions:
-    scale: int = 4
-    cfa: str = "rggb"
-    brightness: float = 0.6
-    threshold: float = 1.0
-    frames: int = WINDOW
-    motion: str | None = None  # for a still image: "static" or "random"
-    seed: int = 0
-    noise: str = "none"
-    reset: str = "zero"
-    interp: str = "flow"
-    truth_every: int = WINDOW
-    speed: float = 0.5  # random motion: typical HR pixels per spike frame
-    deform: float = 0.0  # random motion: local deformation amplitude, HR pixels
-    fps: float = 20000.0
-    chunk_frames: int | None = None
-    overwrite: bool = False
-
-    def check(self) -> None:
-        """The type of every option (only the Python API can get them wrong: ``scale=4.0``, ``frames="82"``,
-        ``overwrite="no"``), before :func:`check_options` checks their values against the source."""
-        for name in ("cfa", "noise", "reset", "interp"):
-            check_text(f"--{name}", getattr(self, name))
-        check_text("--motion", self.motion, optional=True)
-        for name in ("scale", "frames", "seed", "truth_every"):
-            check_number(f"--{name.replace('_', '-')}", getattr(self, name), integer=True)
-        if self.chunk_frames is not None:
-            check_number("--chunk-frames", self.chunk_frames, integer=True)
-        for name in ("brightness", "threshold", "speed", "deform", "fps"):
-            check_number(f"--{name}", getattr(self, name))
-        check_flag("--overwrite", self.overwrite)
-
-    def sensor_model(self) -> sensor.SensorModel:
-        return sensor.SensorModel(self.brightness, self.threshold, self.reset, self.noise, self.seed)
+def simulate(src: str, dest: str, options: SimulateOptions = SimulateOptions(), *, workers: int | None = None,
+             scheduler: str | None = None, progress: bool = True) -> dict:
+    """Simulate ``options.frames`` spike frames from ``src`` into a new spike store at ``dest``; -> its attributes."""
+    check_workers(workers, scheduler)
+    check_apart(dest, src)
+    check_in_memory((src, dest))  # read and written by the tasks, in worker processes
+    source = open_frame_source(src)
+    height, width = check_options(options, source)
+    meta = simulated_meta(options, height, width, recorded(src))
+    chunk = options.chunk_frames or chunk_frames_for(meta, options.frames)
+    check_existing(dest, overwrite=options.overwrite, kind=SPIKE_STORE, flag="--overwrite")
+    check_scheduler(scheduler)  # a named scheduler answers (within seconds) before DEST is claimed or replaced
+    scene = open_scene(src, frames=options.frames, motion=options.motion, seed=options.seed, speed=options.speed,
+                       deform=options.deform, interp=options.interp, scale=options.scale)
+    bits = fired_spikes(frames_array(scene, chunk), options, height, width, scene)
+    truth = made_truth(scene, output_centres(options.frames, WINDOW, options.truth_every), dest, options.cfa)
+    on = scheduler or f"a local cluster ({workers or 'a worker per core'} workers)"
+    logging.getLogger("cscsr.simulate").debug(  # cscsr --verbose
+        "%s -> %s: %d frames of %dx%d LR (x%d HR), cfa %s, chunks of %d frames; on %s", src, dest, options.frames,
+        height, width, options.scale, options.cfa, chunk, on)
+    written = write_store(SpikeWrites(dest, meta, options.frames, chunk, None), bits,
+                          client=lambda: dask_client(workers=workers, scheduler=scheduler), overwrite=options.overwrite,
+                          resume=False, truth=truth, progress=progress, title=f"simulate {src}", keep_partial=False,
+                          flag="--overwrite")
+    return written["attrs"]
 
 
-@dataclass(frozen=True)
-class Scene:
-    """What the latent frames come from: a video-like source, or a still and its camera path."""
+# ---- the graph: a scene's spikes and truth ----
 
-    source: FrameSource
-    path: CameraPath | None  # None for a video, or a static still
-
-    @property
-    def is_still(self) -> bool:
-        return self.source.n_frames == 1
-
-
-def check_options(options: SimulateOptions, source: FrameSource) -> tuple[int, int]:
-    """Validate everything before any output exists; return the LR (height, width)."""
-    options.check()  # types first
-    options.sensor_model()  # alpha, theta, reset, noise
-    cfa = check_cfa(options.cfa)
-    if options.interp not in INTERPOLATIONS:
-        raise InputError(f"unknown interpolation {options.interp!r}: expected one of {', '.join(INTERPOLATIONS)}")
-    if options.scale not in TRUTH_SCALES:
-        raise InputError(f"scale must be one of {', '.join(map(str, TRUTH_SCALES))}, got {options.scale}")
-    check_number("--frames", options.frames, integer=True)
-    if options.frames < WINDOW:
-        raise InputError(f"--frames {options.frames} is too few: a reconstruction window needs {WINDOW}")
-    check_number("--frames", options.frames, at_most=MAX_FRAMES, why=MAX_FRAMES_WHY)
-    check_number("--truth-every", options.truth_every, at_least=1, integer=True)
-    truth_frames = len(range(WINDOW // 2, options.frames - WINDOW // 2, options.truth_every))
-    if truth_frames > MAX_TRUTH_FRAMES:  # output_centres is one list, truth_frames one chunk: both in memory
-        raise InputError(f"--frames {options.frames} with --truth-every {options.truth_every} gives {truth_frames:,} "
-                         f"truth frames, more than {MAX_TRUTH_FRAMES:,} (their frame indices are held in memory "
-                         f"and written as one chunk): raise --truth-every")
-    check_gain("the recorded gain θ/α (--threshold / --brightness)", options.threshold / options.brightness)
-    if options.motion is not None and options.motion not in MOTIONS:
-        raise InputError(f"unknown motion {options.motion!r}: expected one of {', '.join(MOTIONS)}")
-    if source.n_frames < 2 and options.motion is None:
-        raise InputError(f"{source.url} has {source.n_frames} frame: give --motion static|random to move a still image")
-    if options.motion is not None and source.n_frames != 1:
-        raise InputError("--motion applies to a single image; a video or folder brings its own motion")
-    check_number("--speed", options.speed, at_least=0)
-    check_number("--deform", options.deform, at_least=0)
-    if options.chunk_frames is not None:  # 0 must not mean "the default"
-        check_number("--chunk-frames", options.chunk_frames, at_least=1, integer=True)
-    multiple = 2 * options.scale
-    if source.height % multiple or source.width % multiple:
-        raise InputError(f"frame size {source.height}x{source.width} is not divisible by 2*scale = {multiple} "
-                         f"({cfa} Bayer cells of {options.scale}x{options.scale} HR pixels)")
-    return source.height // options.scale, source.width // options.scale
+def frames_array(scene, chunk_frames: int | None) -> da.Array:
+    """A scene (``pipeline.jobs.simulate_plan``) as a dask array of its HR frames (t, y, x, rgb), ``chunk_frames``
+    frames a block (default: about :data:`BLOCK_BYTES`)."""
+    frame_bytes = scene.dtype.itemsize * math.prod(scene.shape[1:])
+    chunk = min(chunk_frames or max(1, BLOCK_BYTES // frame_bytes), scene.shape[0])
+    return da.from_array(scene, chunks=(chunk, -1, -1, -1), asarray=False, fancy=False,
+                         meta=np.empty((0, 0, 0, 0), scene.dtype), name=f"frames-{tokenize(scene)}")
 
 
-def simulated_meta(options: SimulateOptions, height: int, width: int, source: str) -> SpikeMeta:
-    """What a simulated spike store records (its attributes): the LR size, the sensor's settings, how the scene
-    was made (``motion`` "video" for a video-like source) and ``source``."""
-    return SpikeMeta(height=height, width=width, cfa=options.cfa, fps=options.fps, source=source,
-                     reset=options.reset, gain=options.sensor_model().gain, threshold=options.threshold,
-                     extra={"brightness": options.brightness, "scale": options.scale, "seed": options.seed,
-                            "noise": options.noise, "interp": options.interp, "motion": options.motion or "video",
-                            "truth_every": options.truth_every, "simulated": True})
-
-
-# ---- tasks (run on workers; module-level so they pickle by reference) ----
-
-def _lr_frame(source: FrameSource, index: int, scale: int) -> np.ndarray:
-    return sensor.area_downsample(_hr_frame(source, index), scale)
-
-
-@functools.lru_cache(maxsize=2)
-def _hr_frame(source: FrameSource, index: int) -> np.ndarray:
-    """Source frame ``index`` as intensities, decoded once per worker process: a still is read by
-    every chunk and truth task, a video frame by its LR task and the truth frames beside it."""
-    frame = to_unit_rgb(source.read(index))
-    frame.flags.writeable = False  # shared between tasks
-    return frame
-
-
-def _increments(scene: Scene, pairs: dict | None, frames: range, options: SimulateOptions, dark) -> np.ndarray:
-    if scene.is_still:
-        image = _hr_frame(scene.source, 0)
-        if scene.path is None:  # static: one mosaic, repeated
-            mosaic = sensor.cfa_sample(sensor.area_downsample(image, options.scale), options.cfa)
-            mosaics = np.broadcast_to(mosaic, (len(frames), *mosaic.shape))
+def fired_spikes(scene: da.Array, options: SimulateOptions, height: int, width: int, made) -> da.Array:
+    """The graph: ``scene`` (t, s*H, s*W, c), whole frames per block -> spikes (t, H, W) bool, block k fired on from
+    the integrator state block k - 1 left (module docstring). ``made``: the scene ``lazy.open_frames`` made (else
+    None), whose blocks make their LR mosaics themselves, as the ``simulate`` job does: a video's from its pairs'
+    LR frames and motion, each made once (a task each, shared by the blocks between them)."""
+    token = tokenize(scene.name, options)
+    name = f"simulated-spikes-{token}"
+    model = options.sensor_model()
+    dark, thresholds, state = (f"{name}-dark", f"{name}-thresholds", f"{name}-initial-state")
+    layer = {dark: (sensor.dark_increments, model, height, width),
+             thresholds: (sensor.pixel_thresholds, model, height, width),
+             state: (sensor.initial_state, model, height, width)}
+    first_frame = 0
+    for k, n_frames in enumerate(scene.chunks[0]):
+        increments, fired = (f"{name}-increments", k), (f"{name}-fired", k)  # fired: _fired
+        if made is None:
+            layer[increments] = (_increments, (scene.name, k, 0, 0, 0), first_frame, options, dark)
         else:
-            mosaics = still_mosaics(image, scene.path, list(frames), options.scale, options.cfa)
-    else:
-        positions = [source_position(t, options.frames, scene.source.n_frames) for t in frames]
-        mosaics = video_mosaics(pairs, positions, scene.source.n_frames, options.cfa)
+            frames = range(first_frame, first_frame + n_frames)
+            pairs = [[i, *_pair_keys(layer, made, i, f"{name}-source")] for i in made.pairs(frames)]
+            layer[increments] = (_made_increments, made, pairs, frames, options, dark)
+        layer[fired] = (fire_chunk, increments, state, options.reset, thresholds)
+        state = (f"{name}-state", k)  # what block k + 1 fires on
+        layer[state] = (state_after, fired)
+        layer[(name, k, 0, 0)] = (unpacked_bits, (operator.attrgetter("packed"), fired), width)
+        first_frame += n_frames
+    graph = HighLevelGraph.from_collections(name, layer, dependencies=[] if made else [scene])
+    return da.Array(graph, name, chunks=(scene.chunks[0], (height,), (width,)), meta=np.empty((0, 0, 0), bool))
+
+
+def fired_key(spikes: da.Array, k: int) -> tuple[str, int]:
+    """The key of what block ``k`` of simulated ``spikes`` fired (``sensor.Fired``: its bits packed, the state)."""
+    return f"{spikes.name}-fired", k
+
+
+def _pair_keys(layer: dict, made, i: int, prefix: str) -> tuple:
+    """The keys of pair ``i``'s LR frames and motion at LR (a task each, added to ``layer`` once)."""
+    lr0, lr1, motion = (f"{prefix}-lr", i), (f"{prefix}-lr", i + 1), (f"{prefix}-motion", i)
+    for key, index in ((lr0, i), (lr1, i + 1)):
+        layer.setdefault(key, (made.lr_frame, index))
+    layer.setdefault(motion, (made.motion, lr0, lr1))
+    return lr0, lr1, motion
+
+
+def _made_increments(made, pairs: list, frames: range, options: SimulateOptions, dark: np.ndarray | None) -> np.ndarray:
+    """Task: the increments (n, H, W) int32 of spike frames ``frames`` of a scene ``lazy.open_frames`` made, from its
+    LR mosaics as the ``simulate`` job makes them; ``pairs``: [i, LR frame i, LR frame i + 1, their motion]."""
+    mosaics = made.mosaics(frames, options.scale, options.cfa, {i: tuple(pair) for i, *pair in pairs})
     return sensor.increments(options.sensor_model(), np.ascontiguousarray(mosaics), frames.start, dark=dark)
 
 
 def fire_chunk(increments: np.ndarray, state: np.ndarray, reset: str, thresholds) -> sensor.Fired:
-    """Task (the job's and ``pipeline.lazy.simulate``'s): a chunk's increments fired on from ``state``."""
+    """Task: a chunk's increments fired on from ``state``."""
     return sensor.fire(increments, state, reset=reset, thresholds=thresholds)
 
 
@@ -186,133 +156,266 @@ def state_after(fired: sensor.Fired) -> np.ndarray:
     return fired.state
 
 
-def _write_spikes(url: str, start: int, fired: sensor.Fired) -> tuple[int, int]:
+def _increments(frames: np.ndarray, first_frame: int, options: SimulateOptions, dark: np.ndarray | None) -> np.ndarray:
+    """Task: scene frames (n, s*H, s*W, c) of spike frames ``first_frame``.. -> their increments (n, H, W) int32,
+    through the job's stages: intensities, area downsampling, the colour filter, the sensor's gain and noise."""
+    check_intensities(frames, first_frame)
+    n_frames, hr_height, hr_width = frames.shape[:3]
+    mosaics = np.empty((n_frames, hr_height // options.scale, hr_width // options.scale), np.float32)
+    for i, frame in enumerate(frames):
+        mosaics[i] = sensor.cfa_sample(sensor.area_downsample(to_unit_rgb(frame), options.scale), options.cfa)
+    return sensor.increments(options.sensor_model(), mosaics, first_frame, dark=dark)
+
+
+def check_intensities(frames: np.ndarray, first_frame: int) -> None:
+    """Refuse, in one line, float scene frames (spike frames ``first_frame``..) that are not intensities in [0, 1]:
+    NaN, inf, negatives, or a scene of 0..255 given as floats (clipping would make it white)."""
+    if not np.issubdtype(frames.dtype, np.floating) or frames.size == 0:
+        return
+    ok = np.isfinite(frames) & (frames >= 0) & (frames <= 1)  # one pass: NaN compares false
+    if not ok.all():
+        bad = int(np.argmin(ok.reshape(len(frames), -1).all(1)))  # the first frame holding a value out of [0, 1]
+        values = frames[bad][~ok[bad]]
+        raise InputError(f"frames: scene frame {first_frame + bad} holds {values.flat[0]!r} (float frames are "
+                         f"intensities in [0, 1], never clipped: divide a 0..255 scene by 255, or give it as uint8)")
+
+
+@dataclasses.dataclass(frozen=True)
+class Truth:
+    """The ground truth a store of simulated spikes records beside them: pictures (HR ``size``) at spike frames
+    ``centres``, and a camera path's flow between them (``with_flow``), written by the tasks ``keys`` of ``graph``."""
+
+    centres: list[int]
+    size: tuple[int, int]
+    with_flow: bool
+    graph: dict
+    keys: list
+
+
+def made_truth(made, centres: list[int], url: str, cfa: str) -> Truth:
+    """The truth of a scene (``pipeline.jobs.simulate_plan``: a picture under camera motion, a video over the spike
+    frames) at ``centres``, written into the store at ``url`` as the job writes it: a task a picture (a video's pair
+    motion made once, upscaled), and the camera path's exact flow from each to the next."""
+    name = f"truth-{tokenize(made, url, centres)}"
+    graph, keys = {}, []
+    path = getattr(made, "path", None)
+    for k, frame in enumerate(centres):
+        motion = None
+        if getattr(made, "interp", None) == "flow":  # a video's: the HR motion of its pair, made once
+            i, w = made.pair(frame)
+            if 0 < w < 1:
+                motion = (f"{name}-hr-motion", i)
+                graph.setdefault(motion, (hr_pair_motion, made, _pair_keys(graph, made, i, name)[2]))
+        keys.append((name, k))
+        graph[keys[-1]] = (_write_made_truth, url, k, made, frame, cfa, motion)
+        if path is not None and k + 1 < len(centres):
+            keys.append((f"{name}-flow", k))
+            graph[keys[-1]] = (_write_flow, url, k, path, frame, centres[k + 1])
+    return Truth(centres, made.shape[1:3], path is not None, graph, keys)
+
+
+def _write_made_truth(url: str, k: int, made, frame: int, cfa: str, hr_motion) -> None:
+    """Task: truth picture ``k``, drawn from spike frame ``frame`` of a scene ``lazy.open_frames`` made."""
+    write_truth(url, k, truth_image(made.intensities(frame, hr_motion), cfa))
+
+
+def _write_flow(url: str, k: int, path, frame0: int, frame1: int) -> None:
+    """Task: the camera path's exact flow from truth picture ``k`` (spike frame ``frame0``) to the next."""
+    write_flow(url, k, path.flow(frame0, frame1))
+
+
+# ---- the store written ----
+
+class SpikesIncomplete(RuntimeError):
+    """Some :func:`to_spikes` tasks failed: the others are committed in the store, for ``resume=True``."""
+
+
+class SpikeWrites:
+    """Spikes of ``meta`` and ``n_frames`` frames cut into the tasks that write them into a store at ``url``: its
+    chunks of ``chunk`` frames, task ``i`` its frames ``[i * task_frames, (i + 1) * task_frames)``; ``resumed``: the
+    store to finish as the caller's checks opened it, before the claim, else None; ``capture``: the reader of a raw
+    capture the spikes are all the frames of (``lazy.open_capture``), whose tasks are ingest's."""
+
+    def __init__(self, url: str, meta: SpikeMeta, n_frames: int, chunk_frames: int | None, task_frames: int | None):
+        self.url, self.meta, self.n_frames = url, meta, n_frames
+        # as the caller gave them (None: the default, or the store's cut), at most the whole recording
+        chunk_frames, task_frames = (None if n is None else min(n, n_frames) for n in (chunk_frames, task_frames))
+        self.asked = (chunk_frames, task_frames)
+        self.resumed: SpikeStore | None = None
+        self.capture = None  # lazy.open_capture's reader, when the spikes are all a capture's frames as it made them
+        self.record: dict = {}  # then what the store records of the capture (ingest.capture_record)
+        self.cut(chunk_frames or chunk_frames_for(meta, n_frames), task_frames)
+
+    def cut(self, chunk: int, task_frames: int | None) -> None:
+        """Chunks of ``chunk`` frames, tasks of ``task_frames`` rounded up to whole chunks (None: one chunk)."""
+        self.chunk = chunk
+        frame_bytes = self.meta.height * packed_width(self.meta.width)
+        self.task_frames = task_frames_for(chunk, frame_bytes, task_frames or chunk)
+        self.n_tasks = -(-self.n_frames // self.task_frames)
+
+    def frames_of(self, index: int) -> int:
+        """How many frames task ``index`` writes (the last may hold fewer)."""
+        return min(self.task_frames, self.n_frames - index * self.task_frames)
+
+    def resumable(self, store: SpikeStore | None = None) -> np.ndarray:
+        """Cut as the unfinished store at ``url`` was (a cut the caller gives must be that one); refuse a store of
+        other attributes or frames; -> the spike counts of its tasks (-1: not committed). ``store``: the store at
+        ``url`` as the caller opened it, else opened now (under the claim: as it is then). Reads, never writes."""
+        if store is None:
+            store = open_spike_store(self.url, allow_incomplete=True)  # a video store, a folder, ...: refused by name
+        committed = store.group[COMMITTED] if COMMITTED in store.group else None
+        if not isinstance(committed, zarr.Array):
+            raise InputError(f"cannot resume {self.url}: it holds no record of its tasks (a store written by a job "
+                             f"that records none): write it again with overwrite=True")
+        was, now = store.meta.attrs(), self.meta.attrs()
+        if changed := [f"{k} {was.get(k)!r} -> {now.get(k)!r}" for k in sorted(was | now) if was.get(k) != now.get(k)]:
+            raise InputError(f"cannot resume {self.url}: it records other attributes ({', '.join(changed)}): give "
+                             f"the spikes it was written from, or write it again with overwrite=True")
+        if self.record:  # the capture it was written from, read as it was (what ingest --resume checks)
+            check_same_capture(self.url, self.capture.url, dict(committed.attrs), self.record, again="overwrite=True")
+        asked_chunk, asked_task = self.asked
+        recorded_task = committed.attrs.get("task_frames")
+        recorded_ok = isinstance(recorded_task, int) and not isinstance(recorded_task, bool) and recorded_task > 0
+        self.cut(store.spikes.chunks[0], asked_task or (recorded_task if recorded_ok else None))
+        if (store.n_frames != self.n_frames or asked_chunk not in (None, self.chunk) or not recorded_ok
+                or self.task_frames != recorded_task or committed.shape != (self.n_tasks,)):
+            raise InputError(f"cannot resume {self.url}: it holds {store.n_frames} frames in chunks of {self.chunk}, "
+                             f"{committed.shape[0]} tasks of {recorded_task} frames; these spikes: {self.n_frames} "
+                             f"frames{'' if asked_chunk is None else f', chunk_frames={asked_chunk}'}"
+                             f"{'' if asked_task is None else f', task_frames={asked_task}'}: give those, or write "
+                             f"it again with overwrite=True")
+        return committed[:].astype(np.int64)
+
+    def run(self, bits: da.Array, todo: list[int], advance, client) -> np.ndarray:
+        """Tasks ``todo`` of ``bits`` (t, y, x) bool on ``client`` (else Dask's own scheduler), ``advance(frames)`` as
+        each is written;
+        -> their spike counts. Raises :class:`SpikesIncomplete` if any fails (what the others committed stays)."""
+        name = f"to-spikes-{tokenize(bits.name, self.url, self.task_frames, todo)}"
+        if bits.chunks[0] == tuple(map(self.frames_of, range(self.n_tasks))) and fired_key(bits, 0) in bits.dask:
+            blocks = bits  # simulated, a block a task: each task writes the bits its block fired, packed as they are
+            layer = {(name, j): (_write_packed, (operator.attrgetter("packed"), fired_key(bits, index)), self.url,
+                                 index * self.task_frames, index) for j, index in enumerate(todo)}
+        else:
+            blocks = bits.rechunk((self.task_frames, -1, -1))
+            layer = {(name, j): (_write_task, (blocks.name, index, 0, 0), self.url, index * self.task_frames, index)
+                     for j, index in enumerate(todo)}
+        graph = HighLevelGraph.from_collections(name, layer, dependencies=[blocks])
+        frames = {(name, j): self.frames_of(index) for j, index in enumerate(todo)}
+        try:
+            return np.concatenate(computed(graph, frames, advance, client))
+        except Exception as error:
+            store = open_spike_store(self.url, allow_incomplete=True)
+            done = int((store.group[COMMITTED][:] >= 0).sum())
+            raise SpikesIncomplete(f"to_spikes {self.url}: {done} of {self.n_tasks} tasks committed, the others not "
+                                   f"({describe(error)}): fix the cause and call to_spikes again with "
+                                   f"resume=True") from error
+
+    def run_ingest(self, todo: list[int], client, advance) -> np.ndarray:
+        """Tasks ``todo`` of the capture (:attr:`capture`, ``lazy.open_capture``'s reader) as ``cscsr ingest`` runs
+        them (``pipeline.jobs.ingest``: each reads its frames by one byte range and writes them packed, so no unpacked
+        bits are made or moved), on ``client`` through its executor, else on dask's own scheduler; -> their spike
+        counts. Raises :class:`SpikesIncomplete` if any fails or finds the capture damaged."""
+        frames = self.capture
+        plan = IngestPlan(frames.url, recorded(self.url), frames.height, frames.width, frames.flip,
+                          frames.head_columns, None, frames.n_frames, self.task_frames, uuid.uuid4().hex, frames.layout)
+        if client is not None:
+            outcomes = {}
+            for outcome in run_tasks(client, todo, plan=plan):
+                outcomes[outcome.index] = outcome.spikes if outcome.error is None else outcome.error
+                if outcome.error is None:
+                    advance(self.frames_of(outcome.index))
+        else:
+            tasks = dict(ingest_task(plan, index) for index in todo)
+            try:
+                done = computed(tasks, {key: self.frames_of(index) for key, index in zip(tasks, todo)}, advance, None)
+            except Exception as error:  # noqa: BLE001 - every failure is said, as plan.run says it
+                done = [describe(error)] * len(todo)
+            outcomes = dict(zip(todo, done))
+        if failed := [why for why in outcomes.values() if isinstance(why, str)]:
+            committed = int((open_spike_store(self.url, allow_incomplete=True).group[COMMITTED][:] >= 0).sum())
+            raise SpikesIncomplete(f"to_spikes {self.url}: {committed} of {self.n_tasks} tasks committed, the others "
+                                   f"not ({failed[0]}): fix the cause and call to_spikes again with resume=True")
+        return np.array([outcomes[index] for index in todo], np.int64)
+
+
+def write_store(writes: SpikeWrites, bits: da.Array, *, client, overwrite: bool, resume: bool, truth: Truth | None,
+                progress: bool, title: str, keep_partial: bool, flag: str) -> dict:
+    """Write ``bits`` (t, y, x) bool, as ``writes`` cuts them, into a new spike store (``resume``: finish the one
+    there), then ``truth``, on ``client`` (else Dask's own scheduler; a function: the cluster it starts once the store
+    is claimed, closed before a failed store is removed); every check of the caller's made before. ``keep_partial``:
+    a store left unfinished stays, for a resume; ``flag``: how the caller says ``--overwrite``. -> ``attrs`` (the
+    store's final attributes), ``frames``, ``spikes``, ``tasks``, ``tasks_run``, ``tasks_skipped``. Raises
+    :class:`SpikesIncomplete` if a task fails."""
+    url, plan = writes.url, writes
+    with claimed(url), contextlib.ExitStack() as stack:  # one job per store, taken before the store is touched
+        if resume:
+            check_free(url)  # and no live lease (a job on a machine that shares no claim file with us)
+        stack.enter_context(new_output(url, overwrite=overwrite, kind=SPIKE_STORE, flag=flag, resume=resume,
+                                       keep_partial=keep_partial))
+        if callable(client):  # no task writes once a failed store is removed
+            client = stack.enter_context(client())
+        if resume:
+            counts = plan.resumable()  # again, under the claim
+            writer = SpikeStoreWriter.reopened(url)
+        else:
+            writer = SpikeStoreWriter(url, plan.meta, plan.n_frames, chunk_frames=plan.chunk)
+            writer.add_array(COMMITTED, (plan.n_tasks,), (1,), np.int64, ("task",),
+                             {"units": COMMITTED_UNITS, "task_frames": plan.task_frames, **plan.record},
+                             fill_value=-1)
+            counts = np.full(plan.n_tasks, -1, np.int64)
+            if truth is not None:
+                declare_truth(writer, truth.centres, truth.size, float(plan.meta.fps), with_flow=truth.with_flow)
+        todo = [index for index in range(plan.n_tasks) if counts[index] < 0]
+        if todo:
+            to_write = sum(plan.frames_of(index) for index in todo)
+            with held(url), progress_bar(title, to_write, enabled=progress) as advance:
+                counts[todo] = (plan.run(bits, todo, advance, client) if plan.capture is None
+                                else plan.run_ingest(todo, client, advance))
+        if truth is not None and writer.group.attrs.get("state") != "complete":
+            with held(url):
+                computed(truth.graph, dict.fromkeys(truth.keys, 0), lambda frames: None, client)
+        if writer.group.attrs.get("state") != "complete":
+            writer.finish(spike_count=int(counts.sum()))
+    return {"attrs": dict(writer.group.attrs), "frames": plan.n_frames, "spikes": int(counts.sum()),
+            "tasks": plan.n_tasks, "tasks_run": len(todo), "tasks_skipped": plan.n_tasks - len(todo)}
+
+
+def computed(graph, frames: dict, advance, client) -> list:
+    """The results of the tasks ``frames`` names (key -> frames it writes) of ``graph``, in that order, computed on
+    ``client`` (else dask's own scheduler), ``advance(frames)`` as each finishes; the first error raised. The graph
+    is handed over once, culled to what they need (a resume's tasks), its tasks' names kept (nothing fused)."""
+    keys = list(frames)
+    if isinstance(graph, HighLevelGraph):
+        graph = dict(graph.cull(set(keys)))
+    if client is not None:
+        from distributed import as_completed
+
+        futures = client.get(graph, keys, sync=False)
+        with released(futures):  # forgotten by the cluster even while an error holds them: a resume computes afresh
+            for future in as_completed(futures):
+                if future.status == "finished":
+                    advance(frames[future.key])
+            return client.gather(futures)
+
+    class Advance(Callback):  # dask's local schedulers call it as each task finishes, from their main loop
+        def _posttask(self, key, result, dsk, state, worker_id):
+            if key in frames:
+                advance(frames[key])
+
+    with Advance():  # dask's configured scheduler, else its default for arrays and delayed: threads
+        return list((get_scheduler() or dask.threaded.get)(graph, keys))
+
+
+def _write_task(bits: np.ndarray, url: str, start: int, index: int) -> np.ndarray:
+    """Task ``index``: pack frames ``[start, start + n)`` (n, y, x) bool, write their chunks of ``spikes``, then record
+    the task committed (its spike count); -> that count, shape (1,). Run again, it writes the same bytes."""
+    return _write_packed(pack_rows(bits), url, start, index)
+
+
+def _write_packed(packed: np.ndarray, url: str, start: int, index: int) -> np.ndarray:
+    """Task ``index``: :func:`_write_task` of frames packed (n, y, ceil(x / 8))."""
     hold_point()  # inert unless a fault test asks (pipeline.compute.hold)
-    write_region(url, SPIKES, start, fired.packed)
-    return fired.packed.shape[0], fired.spikes
-
-
-def _write_truth(url: str, index: int, scene: Scene, frame: int, options: SimulateOptions,
-                 hr_motion: PairMotion | None) -> None:
-    if scene.is_still:
-        image = _hr_frame(scene.source, 0)
-        rgb = image if scene.path is None else render(image, scene.path, frame)
-    else:
-        i, w = bracket(source_position(frame, options.frames, scene.source.n_frames), scene.source.n_frames)
-        frame0 = _hr_frame(scene.source, i)
-        frame1 = frame0 if w == 0 else _hr_frame(scene.source, i + 1)
-        rgb = between(frame0, frame1, w, hr_motion)
-    write_truth(url, index, truth_image(rgb, options.cfa))
-
-
-def _write_flow(url: str, index: int, path: CameraPath, frame0: int, frame1: int) -> None:
-    write_flow(url, index, path.flow(frame0, frame1))
-
-
-# ---- the graph ----
-
-class _SourcePairs:
-    """Futures of LR source frames and their pairs' motion (at LR for the spikes, at HR for the truth),
-    made once each and dropped when passed. A pair's HR motion (384 MB at 4000x4000) stays on the
-    worker that made it, and Dask runs the pair's truth frames there rather than move it."""
-
-    def __init__(self, client: Client, source: FrameSource, options: SimulateOptions):
-        self.client, self.source, self.options = client, source, options
-        self.frames, self.motions, self.hr_motions = {}, {}, {}
-
-    def frame(self, i: int):
-        if i not in self.frames:
-            self.frames[i] = self.client.submit(_lr_frame, self.source, i, self.options.scale)
-        return self.frames[i]
-
-    def motion(self, i: int):
-        if self.options.interp != "flow":
-            return None
-        if i not in self.motions:
-            self.motions[i] = self.client.submit(estimate_motion, self.frame(i), self.frame(i + 1))
-        return self.motions[i]
-
-    def hr_motion(self, i: int):
-        if self.options.interp != "flow":
-            return None
-        if i not in self.hr_motions:
-            self.hr_motions[i] = self.client.submit(upscale_motion, self.motion(i), self.options.scale)
-        return self.hr_motions[i]
-
-    def for_pairs(self, needed: tuple[int, ...]) -> dict:
-        for old in [i for i in self.frames if i < needed[0]]:
-            del self.frames[old]
-            self.motions.pop(old, None)
-            self.hr_motions.pop(old, None)
-        return {i: (self.frame(i), self.frame(i + 1), self.motion(i)) for i in needed}
-
-
-class _Tasks:
-    """A simulation's steps as Dask tasks: the sensor's fixed draws made once, the integrator's state
-    passed from chunk to chunk (a chain: the bytes do not depend on chunking or workers), a video's
-    frames and flows made once each."""
-
-    def __init__(self, client: Client, scene: Scene, options: SimulateOptions, dest: str, height: int, width: int):
-        model = options.sensor_model()
-        self.client, self.scene, self.options, self.dest = client, scene, options, dest
-        self.dark = client.submit(sensor.dark_increments, model, height, width)
-        self.thresholds = client.submit(sensor.pixel_thresholds, model, height, width)
-        self.state = client.submit(sensor.initial_state, model, height, width)
-        self.pairs = None if scene.is_still else _SourcePairs(client, scene.source, options)
-
-    def submit(self, step: Step):
-        """The future of the step's write: (frames, spikes) for a spikes chunk, None for truth or flow."""
-        submit, scene, options = self.client.submit, self.scene, self.options
-        if isinstance(step, SpikeChunk):
-            pairs = self.pairs and self.pairs.for_pairs(step.source_frames)
-            increments = submit(_increments, scene, pairs, step.frames, options, self.dark)
-            fired = submit(fire_chunk, increments, self.state, options.reset, self.thresholds)
-            self.state = submit(state_after, fired)
-            return submit(_write_spikes, self.dest, step.frames.start, fired)
-        if isinstance(step, TruthFrame):
-            motion = None
-            if self.pairs:  # a video: the HR motion of the pair the frame lies in, unless it is a source frame
-                _, w = bracket(source_position(step.frame, options.frames, scene.source.n_frames), scene.source.n_frames)
-                motion = self.pairs.hr_motion(step.source_frame) if w else None
-            return submit(_write_truth, self.dest, step.index, scene, step.frame, options, motion)
-        return submit(_write_flow, self.dest, step.index, scene.path, step.frame0, step.frame1)
-
-
-def simulate(src: str, dest: str, options: SimulateOptions = SimulateOptions(), *, workers: int | None = None,
-             scheduler: str | None = None, progress: bool = True) -> dict:
-    """Simulate ``options.frames`` spike frames from ``src`` into a new spike store at ``dest``."""
-    check_workers(workers, scheduler)
-    check_apart(dest, src)
-    check_in_memory((src, dest))  # read and written by the tasks, in worker processes
-    source = open_frame_source(src)
-    height, width = check_options(options, source)
-    path = None
-    if options.motion == "random":
-        path = CameraPath.random(options.frames, source.height, source.width, seed=options.seed,
-                                 speed=options.speed, deform=options.deform)
-    scene = Scene(source, path)
-    truth_at = output_centres(options.frames, WINDOW, options.truth_every)  # window centres with a full window
-    meta = simulated_meta(options, height, width, recorded(src))
-    chunk = options.chunk_frames or chunk_frames_for(meta, options.frames)
-    check_scheduler(scheduler)  # a named scheduler answers (within seconds) before DEST is claimed or replaced
-
-    with claimed(dest), new_output(dest, overwrite=options.overwrite, kind=SPIKE_STORE), \
-            dask_client(workers=workers, scheduler=scheduler) as client:
-        writer = SpikeStoreWriter(dest, meta, options.frames, chunk_frames=chunk)
-        hr = (options.scale * height, options.scale * width)
-        declare_truth(writer, truth_at, hr, options.fps, with_flow=path is not None)
-        steps = simulation_steps(options.frames, chunk, truth_at, None if scene.is_still else source.n_frames,
-                                 camera_moves=path is not None)
-        tasks = _Tasks(client, scene, options, dest, height, width)
-        logging.getLogger("cscsr.simulate").debug(  # cscsr --verbose
-            "%s -> %s: %d frames of %dx%d LR (x%d HR), cfa %s, chunks of %d frames, truth at %d frames; on the "
-            "cluster at %s", src, dest, options.frames, height, width, options.scale, options.cfa, chunk,
-            len(truth_at), client.scheduler.address)
-        spikes = 0
-        with held(dest), progress_bar(f"simulate {src}", options.frames, enabled=progress) as advance:
-            for _, future in submitted(client, steps, tasks.submit):
-                if (written := future.result()) is not None:  # a spikes chunk: (frames, spikes)
-                    advance(written[0])
-                    spikes += written[1]
-        writer.finish(spike_count=spikes)
-        return dict(writer.group.attrs)
+    write_region(url, SPIKES, start, packed)
+    count = np.array([count_spikes(packed)], np.int64)
+    write_region(url, COMMITTED, index, count)
+    return count

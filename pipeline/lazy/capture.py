@@ -30,10 +30,10 @@ from dask.base import tokenize
 
 from pipeline.jobs.ingest import (IngestOptions, capture_change, capture_meta, capture_record, cut_short,
                                   opened_capture)
-from pipeline.lazy.spikes import as_spikes, check_here, python_words, unpacked_bits, url_text
+from pipeline.lazy.spikes import as_spikes, check_here, python_words, url_text
 from pipeline.stores.captures import RANGED_KINDS
 from pipeline.stores.spike_store import chunk_frames_for
-from stages.capture.bits import packed_width
+from stages.capture.bits import packed_width, unpacked_bits
 from stages.errors import InputError
 from stages.numbers import check_number
 

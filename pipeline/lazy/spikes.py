@@ -29,7 +29,7 @@ from pipeline.compute.cluster import check_in_memory
 from pipeline.jobs.reconstruct_tasks import spike_array
 from pipeline.stores.storage import recorded
 from pipeline.stores.spike_store import SPIKES, open_spike_store, read_frames, store_identity
-from stages.capture.bits import packed_width, unpack_rows
+from stages.capture.bits import packed_width, unpacked_bits
 from stages.errors import InputError, InputTypeError
 
 DIMS = ("t", "y", "x")
@@ -229,8 +229,3 @@ class _PackedFrames:
         spikes = spike_array(self.url, self.identity)
         return read_frames(spikes, self.url, frames.start or 0, self.shape[0] if frames.stop is None else frames.stop,
                            tuple(rest))
-
-
-def unpacked_bits(packed: np.ndarray, width: int) -> np.ndarray:
-    """(n, h, ceil(w/8)) packed -> (n, h, w) bool."""
-    return unpack_rows(packed, width).view(bool)

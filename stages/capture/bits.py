@@ -23,6 +23,11 @@ def unpack_rows(packed: np.ndarray, width: int) -> np.ndarray:
     return np.unpackbits(packed, axis=-1, count=width, bitorder="little")
 
 
+def unpacked_bits(packed: np.ndarray, width: int) -> np.ndarray:
+    """(..., ceil(W/8)) packed -> (..., W) bool (True = fired)."""
+    return unpack_rows(packed, width).view(bool)
+
+
 def count_spikes(packed: np.ndarray) -> int:
     """Number of set bits (spikes) in a packed array (popcount on 64-bit words: ~20x faster)."""
     flat = np.ascontiguousarray(packed).reshape(-1)

@@ -1,0 +1,146 @@
+"""The ``simulate`` job as a front door to the lazy stages (#56): wall time and peak memory against a reference
+commit, side by side in one run, on a short and a 10x longer recording.
+
+What: ``cscsr simulate`` of a picture under random camera motion (``--noise realistic``, chunks of 20 frames) and of
+a 6-frame video interpolated by flow over as many spike frames, each from this tree and from a reference checkout
+(``git worktree``, default the commit before the simulate job became a front door), in a fresh interpreter per run
+on a fresh local cluster of 2 worker processes. Measured: the wall time of the job, and the high-water resident
+memory (``VmHWM``) of each worker and of the process that runs the job (client and scheduler). Every run's spikes
+and truth must equal the reference's, byte for byte.
+
+Goals: wall time <= 1.05x the reference's; the largest worker peak of the long run <= 1.25x the short run's (memory
+bounded by the chunks in flight, not by the recording's length).
+
+``python benchmarks/simulate_memory.py [--reference REV] [--repeats R] [--frames N]``
+"""
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+from _common import load_average, markdown_table, median, save_results
+
+ROOT = Path(__file__).resolve().parent.parent
+REFERENCE = "9b4a252"  # the last commit before the simulate job became a front door to the lazy stages
+GOAL_TIME, GOAL_MEMORY = 1.05, 1.25
+RUN = """
+import json, os, sys, time
+sys.path.insert(0, os.getcwd())
+from distributed import Client, LocalCluster
+from pipeline.jobs.simulate import SimulateOptions, simulate
+
+def high_water(pid=None):
+    for line in open(f"/proc/{pid or os.getpid()}/status"):
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) * 1024
+
+src, dest, frames, motion = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4] or None
+options = SimulateOptions(scale=4, frames=frames, motion=motion, noise="realistic", chunk_frames=20, truth_every=200)
+with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=":0") as cluster, Client(cluster) as client:
+    client.run(lambda: None)
+    start = time.perf_counter()
+    simulate(src, dest, options, scheduler=cluster.scheduler_address, progress=False)
+    seconds = time.perf_counter() - start
+    workers = sorted(client.run(high_water).values())
+print(json.dumps({"seconds": seconds, "workers": workers, "client": high_water()}))
+"""
+
+
+def sources(work: Path) -> dict[str, tuple[str, str]]:
+    """name -> (source, --motion): a 512x512 picture moved by the camera, a 6-frame 512x512 video."""
+    import cv2
+    import imageio.v3 as iio
+    import numpy as np
+    from skimage import data
+
+    picture = cv2.resize(data.astronaut(), (512, 512), interpolation=cv2.INTER_AREA)
+    iio.imwrite(work / "picture.png", picture)
+    folder = work / "video"
+    folder.mkdir()
+    for i in range(6):
+        iio.imwrite(folder / f"{i:02d}.png", np.roll(picture, (3 * i, 8 * i), axis=(0, 1)))
+    return {"picture, random motion": (str(work / "picture.png"), "random"), "6-frame video, flow": (str(folder), "")}
+
+
+def run(code: Path, source: str, motion: str, dest: Path, frames: int) -> dict:
+    done = subprocess.run([sys.executable, "-c", RUN, source, str(dest), str(frames), motion], cwd=code,
+                          capture_output=True, text=True)
+    if done.returncode:
+        raise SystemExit(f"simulate in {code} failed:\n{done.stderr[-3000:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def same_bytes(a: Path, b: Path) -> bool:
+    import numpy as np
+    import zarr
+
+    first, second = zarr.open_group(a, mode="r"), zarr.open_group(b, mode="r")
+    names = [name for name in ("spikes", "truth", "truth_frames", "flow") if name in first or name in second]
+    return all(name in first and name in second and np.array_equal(first[name][:], second[name][:]) for name in names)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--reference", default=REFERENCE)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--frames", type=int, default=400, help="the short run's spike frames (the long run: 10x)")
+    args = parser.parse_args()
+    work = Path(tempfile.mkdtemp(prefix="cscsr-simulate-memory-"))
+    reference = work / "reference"
+    subprocess.run(["git", "worktree", "add", "--detach", str(reference), args.reference], cwd=ROOT, check=True,
+                   capture_output=True)
+    try:
+        trees = {"this tree": ROOT, "reference": reference}
+        results = {}
+        for scene, (source, motion) in sources(work).items():
+            for frames in (args.frames, 10 * args.frames):
+                for repeat in range(args.repeats):
+                    order = list(trees.items()) if repeat % 2 else list(trees.items())[::-1]
+                    outs = {}
+                    for name, code in order:
+                        outs[name] = work / f"{name.replace(' ', '-')}.zarr"
+                        shutil.rmtree(outs[name], ignore_errors=True)
+                        result = run(code, source, motion, outs[name], frames)
+                        results.setdefault((scene, frames, name), []).append(result)
+                        print(f"{scene}, {frames} frames, {name}: {result['seconds']:.1f} s, workers "
+                              f"{[round(w / 2**20) for w in result['workers']]} MiB", file=sys.stderr, flush=True)
+                    if not same_bytes(outs["this tree"], outs["reference"]):
+                        raise SystemExit(f"{scene}, {frames} frames: the stores differ from the reference's")
+        rows, figures = [], {}
+        for scene in sources(work):
+            for frames in (args.frames, 10 * args.frames):
+                mine, ref = results[(scene, frames, "this tree")], results[(scene, frames, "reference")]
+                ratio = median([a["seconds"] / b["seconds"] for a, b in zip(mine, ref)])
+                peak = {name: median([max(r["workers"]) for r in runs]) / 2**20 for name, runs in
+                        (("this tree", mine), ("reference", ref))}
+                client = {name: median([r["client"] for r in runs]) / 2**20 for name, runs in
+                          (("this tree", mine), ("reference", ref))}
+                figures[f"{scene}, {frames}"] = {"time_ratio": ratio, "worker_peak_mib": peak,
+                                                  "client_peak_mib": client, "seconds": median([r["seconds"] for r in mine]),
+                                                  "reference_seconds": median([r["seconds"] for r in ref])}
+                rows.append([scene, frames, f"{median([r['seconds'] for r in mine]):.1f}",
+                             f"{median([r['seconds'] for r in ref]):.1f}", f"{ratio:.3f}",
+                             f"{peak['this tree']:.0f} / {peak['reference']:.0f}",
+                             f"{client['this tree']:.0f} / {client['reference']:.0f}"])
+        print(f"\n## simulate, 2 workers, median of {args.repeats} (reference {args.reference}); bytes identical\n")
+        print(markdown_table(["scene", "spike frames", "s", "reference s", "time ratio",
+                              "largest worker peak MiB (this / ref)", "client peak MiB (this / ref)"], rows))
+        for scene in sources(work):
+            short, long = figures[f"{scene}, {args.frames}"], figures[f"{scene}, {10 * args.frames}"]
+            growth = long["worker_peak_mib"]["this tree"] / short["worker_peak_mib"]["this tree"]
+            figures[scene] = {"worker_peak_growth_10x": growth}
+            print(f"{scene}: worker peak x{growth:.2f} for 10x the frames (goal <= {GOAL_MEMORY})")
+        print(f"\nLoad average {load_average()}.")
+        save_results("simulate_memory", {"reference": args.reference, "repeats": args.repeats, "figures": figures,
+                                         "runs": {" / ".join(map(str, key)): value for key, value in results.items()}})
+    finally:
+        subprocess.run(["git", "worktree", "remove", "--force", str(reference)], cwd=ROOT, capture_output=True)
+        shutil.rmtree(work, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
