@@ -96,7 +96,8 @@ def main() -> None:
     try:
         trees = {"this tree": ROOT, "reference": reference}
         results = {}
-        for scene, (source, motion) in sources(work).items():
+        scenes = sources(work)
+        for scene, (source, motion) in scenes.items():
             for frames in (args.frames, 10 * args.frames):
                 for repeat in range(args.repeats):
                     order = list(trees.items()) if repeat % 2 else list(trees.items())[::-1]
@@ -111,7 +112,7 @@ def main() -> None:
                     if not same_bytes(outs["this tree"], outs["reference"]):
                         raise SystemExit(f"{scene}, {frames} frames: the stores differ from the reference's")
         rows, figures = [], {}
-        for scene in sources(work):
+        for scene in scenes:
             for frames in (args.frames, 10 * args.frames):
                 mine, ref = results[(scene, frames, "this tree")], results[(scene, frames, "reference")]
                 ratio = median([a["seconds"] / b["seconds"] for a, b in zip(mine, ref)])
@@ -129,7 +130,7 @@ def main() -> None:
         print(f"\n## simulate, 2 workers, median of {args.repeats} (reference {args.reference}); bytes identical\n")
         print(markdown_table(["scene", "spike frames", "s", "reference s", "time ratio",
                               "largest worker peak MiB (this / ref)", "client peak MiB (this / ref)"], rows))
-        for scene in sources(work):
+        for scene in scenes:
             short, long = figures[f"{scene}, {args.frames}"], figures[f"{scene}, {10 * args.frames}"]
             growth = long["worker_peak_mib"]["this tree"] / short["worker_peak_mib"]["this tree"]
             figures[scene] = {"worker_peak_growth_10x": growth}

@@ -536,3 +536,23 @@ def test_a_video_over_more_spike_frames_is_interpolated_between_its_frames(tmp_p
         lazy.open_frames(tmp_path, frames=41, interp="cubic")
     with pytest.raises(InputError, match="motion= is for a picture"):
         lazy.open_frames(tmp_path, frames=41, motion="random")
+
+
+@pytest.mark.parametrize("on", ["client", "threads"])
+def test_to_spikes_writes_in_bounded_rounds_each_block_once_to_the_same_bytes(on, client, tmp_path, monkeypatch):
+    """Writes go to the scheduler a round at a time (``WRITES_AT_ONCE`` tasks), what later rounds need carried over
+    (the integrator's state, the sensor's draws: never more), each block fired once, the bytes of one round."""
+    writes = importlib.import_module("pipeline.jobs.simulate")
+    spikes = simulate(frames_array(scene(), 5), reset="subtract", noise="realistic", seed=2)  # 14 blocks
+    whole, rounded = str(tmp_path / "whole.zarr"), str(tmp_path / "rounds.zarr")
+    to_spikes(spikes, whole, chunk_frames=5)  # one round: 14 tasks of 5 frames
+    rounds, made = [], writes._rounds
+    monkeypatch.setattr(writes, "WRITES_AT_ONCE", 4)
+    monkeypatch.setattr(writes, "_rounds", lambda *args: [rounds.append(r) or r for r in made(*args)])
+    with dask.config.set(scheduler=client if on == "client" else "threads"):
+        to_spikes(spikes, rounded, chunk_frames=5)
+    assert [len(keys) for keys, *_ in rounds] == [4, 4, 4, 2]
+    fired = [key for _, graph, *_ in rounds for key in graph if "-fired" in str(key)]
+    assert len(fired) == len(set(fired)) == 14  # each block fired once, in the round that writes it
+    assert all(len(needed_later) <= 3 for *_, needed_later in rounds)  # the state, dark current, thresholds
+    assert store_files(rounded) == store_files(whole)

@@ -23,13 +23,14 @@ import logging
 import math
 import operator
 import uuid
+from typing import TYPE_CHECKING
 
-import dask.array as da
 import dask.threaded
 import numpy as np
 import zarr
 from dask.base import get_scheduler, tokenize
 from dask.callbacks import Callback
+from dask.core import get_deps
 from dask.highlevelgraph import HighLevelGraph
 
 from pipeline.compute.cluster import check_in_memory, check_scheduler, check_workers, dask_client
@@ -54,7 +55,11 @@ from stages.simulation import sensor
 from stages.simulation.intensities import to_unit_rgb
 from stages.simulation.latent import truth_image
 
+if TYPE_CHECKING:  # dask.array imports xarray, pandas and SciPy: never in the workers that run these tasks
+    import dask.array as da
+
 BLOCK_BYTES = 64 * 2**20  # scene frames a block unless chunk_frames says otherwise: about this many bytes, at least one
+WRITES_AT_ONCE = 32  # write tasks a round (computed): what a long recording keeps in flight, and in the scheduler
 
 
 def simulate(src: str, dest: str, options: SimulateOptions = SimulateOptions(), *, workers: int | None = None,
@@ -86,16 +91,18 @@ def simulate(src: str, dest: str, options: SimulateOptions = SimulateOptions(), 
 
 # ---- the graph: a scene's spikes and truth ----
 
-def frames_array(scene, chunk_frames: int | None) -> da.Array:
+def frames_array(scene, chunk_frames: int | None) -> "da.Array":
     """A scene (``pipeline.jobs.simulate_plan``) as a dask array of its HR frames (t, y, x, rgb), ``chunk_frames``
     frames a block (default: about :data:`BLOCK_BYTES`)."""
+    import dask.array as da
+
     frame_bytes = scene.dtype.itemsize * math.prod(scene.shape[1:])
     chunk = min(chunk_frames or max(1, BLOCK_BYTES // frame_bytes), scene.shape[0])
     return da.from_array(scene, chunks=(chunk, -1, -1, -1), asarray=False, fancy=False,
                          meta=np.empty((0, 0, 0, 0), scene.dtype), name=f"frames-{tokenize(scene)}")
 
 
-def fired_spikes(scene: da.Array, options: SimulateOptions, height: int, width: int, made) -> da.Array:
+def fired_spikes(scene: "da.Array", options: SimulateOptions, height: int, width: int, made) -> "da.Array":
     """The graph: ``scene`` (t, s*H, s*W, c), whole frames per block -> spikes (t, H, W) bool, block k fired on from
     the integrator state block k - 1 left (module docstring). ``made``: the scene ``lazy.open_frames`` made (else
     None), whose blocks make their LR mosaics themselves, as the ``simulate`` job does: a video's from its pairs'
@@ -122,10 +129,12 @@ def fired_spikes(scene: da.Array, options: SimulateOptions, height: int, width: 
         layer[(name, k, 0, 0)] = (unpacked_bits, (operator.attrgetter("packed"), fired), width)
         first_frame += n_frames
     graph = HighLevelGraph.from_collections(name, layer, dependencies=[] if made else [scene])
+    import dask.array as da
+
     return da.Array(graph, name, chunks=(scene.chunks[0], (height,), (width,)), meta=np.empty((0, 0, 0), bool))
 
 
-def fired_key(spikes: da.Array, k: int) -> tuple[str, int]:
+def fired_key(spikes: "da.Array", k: int) -> tuple[str, int]:
     """The key of what block ``k`` of simulated ``spikes`` fired (``sensor.Fired``: its bits packed, the state)."""
     return f"{spikes.name}-fired", k
 
@@ -286,7 +295,7 @@ class SpikeWrites:
                              f"it again with overwrite=True")
         return committed[:].astype(np.int64)
 
-    def run(self, bits: da.Array, todo: list[int], advance, client) -> np.ndarray:
+    def run(self, bits: "da.Array", todo: list[int], advance, client) -> np.ndarray:
         """Tasks ``todo`` of ``bits`` (t, y, x) bool on ``client`` (else Dask's own scheduler), ``advance(frames)`` as
         each is written;
         -> their spike counts. Raises :class:`SpikesIncomplete` if any fails (what the others committed stays)."""
@@ -302,7 +311,7 @@ class SpikeWrites:
         graph = HighLevelGraph.from_collections(name, layer, dependencies=[blocks])
         frames = {(name, j): self.frames_of(index) for j, index in enumerate(todo)}
         try:
-            return np.concatenate(computed(graph, frames, advance, client))
+            return np.concatenate(computed(graph, frames, advance, client, at_once=WRITES_AT_ONCE))
         except Exception as error:
             store = open_spike_store(self.url, allow_incomplete=True)
             done = int((store.group[COMMITTED][:] >= 0).sum())
@@ -338,7 +347,7 @@ class SpikeWrites:
         return np.array([outcomes[index] for index in todo], np.int64)
 
 
-def write_store(writes: SpikeWrites, bits: da.Array, *, client, overwrite: bool, resume: bool, truth: Truth | None,
+def write_store(writes: SpikeWrites, bits: "da.Array", *, client, overwrite: bool, resume: bool, truth: Truth | None,
                 progress: bool, title: str, keep_partial: bool, flag: str) -> dict:
     """Write ``bits`` (t, y, x) bool, as ``writes`` cuts them, into a new spike store (``resume``: finish the one
     there), then ``truth``, on ``client`` (else Dask's own scheduler; a function: the cluster it starts once the store
@@ -380,30 +389,73 @@ def write_store(writes: SpikeWrites, bits: da.Array, *, client, overwrite: bool,
             "tasks": plan.n_tasks, "tasks_run": len(todo), "tasks_skipped": plan.n_tasks - len(todo)}
 
 
-def computed(graph, frames: dict, advance, client) -> list:
+def computed(graph, frames: dict, advance, client, at_once: int | None = None) -> list:
     """The results of the tasks ``frames`` names (key -> frames it writes) of ``graph``, in that order, computed on
     ``client`` (else dask's own scheduler), ``advance(frames)`` as each finishes; the first error raised. The graph
-    is handed over once, culled to what they need (a resume's tasks), its tasks' names kept (nothing fused)."""
+    is handed over culled to what they need (a resume's tasks), its tasks' names kept (nothing fused); ``at_once``:
+    that many of them a round, what a round made that later rounds need (a chain's state, the sensor's draws, a
+    video's pair) kept for them, so that memory and the scheduler's graph stay bounded however many there are."""
     keys = list(frames)
     if isinstance(graph, HighLevelGraph):
         graph = dict(graph.cull(set(keys)))
-    if client is not None:
-        from distributed import as_completed
+    results, held = [], {}  # held: what earlier rounds made that later ones need (futures on a client, else values)
+    try:
+        for round_keys, round_graph, earlier, kept, needed_later in _rounds(graph, keys, at_once or len(keys) or 1):
+            round_graph = round_graph | {key: held[key] for key in earlier}  # what earlier rounds made
+            if client is not None:
+                from distributed import as_completed
 
-        futures = client.get(graph, keys, sync=False)
-        with released(futures):  # forgotten by the cluster even while an error holds them: a resume computes afresh
-            for future in as_completed(futures):
-                if future.status == "finished":
-                    advance(frames[future.key])
-            return client.gather(futures)
+                futures = client.get(round_graph, round_keys + kept, sync=False)
+                with released(futures[:len(round_keys)]):  # forgotten by the cluster even while an error holds
+                    for future in as_completed(futures[:len(round_keys)]):  # them: a resume computes afresh
+                        if future.status == "finished":
+                            advance(frames[future.key])
+                    results += client.gather(futures[:len(round_keys)])
+                made = futures[len(round_keys):]
+            else:
+                class Advance(Callback):  # dask's local schedulers call it as each task finishes, from their loop
+                    def _posttask(self, key, result, dsk, state, worker_id):
+                        if key in frames:
+                            advance(frames[key])
 
-    class Advance(Callback):  # dask's local schedulers call it as each task finishes, from their main loop
-        def _posttask(self, key, result, dsk, state, worker_id):
-            if key in frames:
-                advance(frames[key])
+                with Advance():  # dask's configured scheduler, else its default for arrays and delayed: threads
+                    values = (get_scheduler() or dask.threaded.get)(round_graph, round_keys + kept)
+                results += values[:len(round_keys)]
+                made = values[len(round_keys):]
+            held |= dict(zip(kept, made))
+            for key in [key for key in held if key not in needed_later]:
+                value = held.pop(key)
+                if client is not None:
+                    value.release()
+    finally:
+        if client is not None:
+            for future in held.values():
+                future.release()
+    return results
 
-    with Advance():  # dask's configured scheduler, else its default for arrays and delayed: threads
-        return list((get_scheduler() or dask.threaded.get)(graph, keys))
+
+def _rounds(graph: dict, keys: list, at_once: int):
+    """``keys`` of ``graph`` ``at_once`` a round, in order: per round its keys, its graph (what they need that no
+    earlier round made), the keys of earlier rounds it reads, the keys it makes that a later round reads, and every
+    key made so far that a later round reads."""
+    dependencies, dependents = get_deps(graph)
+    unread = {key: len(readers) for key, readers in dependents.items()}  # readers not yet made
+    made, open_keys = set(), set()
+    for start in range(0, len(keys), at_once):
+        round_keys = keys[start:start + at_once]
+        needed, stack = set(), list(round_keys)
+        while stack:
+            if (key := stack.pop()) not in needed and key not in made:
+                needed.add(key)
+                stack.extend(dependencies[key])
+        earlier = {dep for key in needed for dep in dependencies[key]} - needed
+        made |= needed
+        for key in needed:
+            for dep in dependencies[key]:
+                unread[dep] -= 1
+        open_keys = {key for key in open_keys | needed if unread[key]}
+        yield round_keys, {key: graph[key] for key in needed}, earlier, sorted(open_keys & needed, key=str), \
+            set(open_keys)
 
 
 def _write_task(bits: np.ndarray, url: str, start: int, index: int) -> np.ndarray:
