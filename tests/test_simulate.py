@@ -240,3 +240,18 @@ def test_a_video_s_lr_frames_and_pair_motions_are_one_task_each(tmp_path):
     assert sorted(names) == ["lr"] * 4 + ["motion"] * 3
     pairs = [[pair[0] for pair in task[2]] for key, task in graph.items() if "increments" in str(key)]
     assert sorted(pairs) == [[0, 1], [1, 2], [2]]
+
+
+def test_the_job_s_workers_never_import_dask_array(still, tmp_path):
+    """The job builds its graph in its own process; its workers run the tasks without ``dask.array`` (which imports
+    xarray, pandas and SciPy's extras: 50 MiB a worker), as before it was a front door to the lazy stages."""
+    import sys
+
+    from distributed import Client, LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, dashboard_address=":0") as cluster, Client(cluster) as client:
+        simulate(still, str(tmp_path / "s.zarr"), SimulateOptions(scale=2, frames=60, motion="random", chunk_frames=20),
+                 scheduler=cluster.scheduler_address, progress=False)
+        imported = client.run(lambda: sorted(name for name in ("dask.array", "xarray", "pandas") if name in sys.modules))
+    assert list(imported.values()) == [[]]
+    assert zarr.open_group(str(tmp_path / "s.zarr"), mode="r").attrs["state"] == "complete"  # it ran there

@@ -104,9 +104,12 @@ def frames_array(scene, chunk_frames: int | None) -> "da.Array":
 
 def fired_spikes(scene: "da.Array", options: SimulateOptions, height: int, width: int, made) -> "da.Array":
     """The graph: ``scene`` (t, s*H, s*W, c), whole frames per block -> spikes (t, H, W) bool, block k fired on from
-    the integrator state block k - 1 left (module docstring). ``made``: the scene ``lazy.open_frames`` made (else
-    None), whose blocks make their LR mosaics themselves, as the ``simulate`` job does: a video's from its pairs'
-    LR frames and motion, each made once (a task each, shared by the blocks between them)."""
+    the integrator state block k - 1 left (module docstring). ``made``: the job's scene ``scene`` reads
+    (``simulate_plan.open_scene``: a picture under camera motion, a video over the spike frames; else None), whose
+    blocks make their LR mosaics themselves, as the simulator always has: a video's from its pairs' LR frames and
+    motion, each made once (a task each, shared by the blocks between them)."""
+    import dask.array as da
+
     token = tokenize(scene.name, options)
     name = f"simulated-spikes-{token}"
     model = options.sensor_model()
@@ -116,7 +119,7 @@ def fired_spikes(scene: "da.Array", options: SimulateOptions, height: int, width
              state: (sensor.initial_state, model, height, width)}
     first_frame = 0
     for k, n_frames in enumerate(scene.chunks[0]):
-        increments, fired = (f"{name}-increments", k), (f"{name}-fired", k)  # fired: _fired
+        increments, fired = (f"{name}-increments", k), (f"{name}-fired", k)  # fired: fired_key
         if made is None:
             layer[increments] = (_increments, (scene.name, k, 0, 0, 0), first_frame, options, dark)
         else:
@@ -129,8 +132,6 @@ def fired_spikes(scene: "da.Array", options: SimulateOptions, height: int, width
         layer[(name, k, 0, 0)] = (unpacked_bits, (operator.attrgetter("packed"), fired), width)
         first_frame += n_frames
     graph = HighLevelGraph.from_collections(name, layer, dependencies=[] if made else [scene])
-    import dask.array as da
-
     return da.Array(graph, name, chunks=(scene.chunks[0], (height,), (width,)), meta=np.empty((0, 0, 0), bool))
 
 
@@ -149,7 +150,7 @@ def _pair_keys(layer: dict, made, i: int, prefix: str) -> tuple:
 
 
 def _made_increments(made, pairs: list, frames: range, options: SimulateOptions, dark: np.ndarray | None) -> np.ndarray:
-    """Task: the increments (n, H, W) int32 of spike frames ``frames`` of a scene ``lazy.open_frames`` made, from its
+    """Task: the increments (n, H, W) int32 of spike frames ``frames`` of the job's scene ``made``, from its
     LR mosaics as the ``simulate`` job makes them; ``pairs``: [i, LR frame i, LR frame i + 1, their motion]."""
     mosaics = made.mosaics(frames, options.scale, options.cfa, {i: tuple(pair) for i, *pair in pairs})
     return sensor.increments(options.sensor_model(), np.ascontiguousarray(mosaics), frames.start, dark=dark)
@@ -224,7 +225,7 @@ def made_truth(made, centres: list[int], url: str, cfa: str) -> Truth:
 
 
 def _write_made_truth(url: str, k: int, made, frame: int, cfa: str, hr_motion) -> None:
-    """Task: truth picture ``k``, drawn from spike frame ``frame`` of a scene ``lazy.open_frames`` made."""
+    """Task: truth picture ``k``, drawn from spike frame ``frame`` of the job's scene ``made``."""
     write_truth(url, k, truth_image(made.intensities(frame, hr_motion), cfa))
 
 

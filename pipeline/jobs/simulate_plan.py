@@ -137,17 +137,15 @@ def open_scene(url: str, *, frames: int | None, motion: str | None, seed: int, s
                              f"scene's length and how the camera moves, got frames={frames}, motion={motion!r}")
         path = CameraPath.random(frames, source.height, source.width, seed=seed, speed=speed, deform=deform) \
             if motion == "random" else None
-        scene = CameraFrames(source, frames, first.dtype.str, first.shape[-1], path, version)
-    elif motion is not None:
+        return CameraFrames(source, frames, first.dtype.str, first.shape[-1], path, version)
+    if motion is not None:
         raise InputError(f"motion= is for a picture; {url} is a {source.kind} with motion of its own")
-    elif frames is not None:
-        if source.n_frames < 2:
-            raise InputError(f"{url} has {source.n_frames} frame: give motion= ({' or '.join(MOTIONS)}) to move "
-                             f"a still picture")
-        scene = VideoFrames(source, frames, first.dtype.str, first.shape[-1], interp, scale, version)
-    else:
-        scene = SourceFrames(source, first.dtype.str, first.shape[-1], version)
-    return scene
+    if frames is None:
+        return SourceFrames(source, first.dtype.str, first.shape[-1], version)
+    if source.n_frames < 2:
+        raise InputError(f"{url} has {source.n_frames} frame: give motion= ({' or '.join(MOTIONS)}) to move a still "
+                         f"picture")
+    return VideoFrames(source, frames, first.dtype.str, first.shape[-1], interp, scale, version)
 
 
 def source_version(url: str):
