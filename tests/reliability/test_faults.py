@@ -114,7 +114,10 @@ def test_a_complete_store_holds_no_partial_writes(recording, client, tmp_path):
     assert not os.path.exists(debris) and chunk_files(out) == finished
 
 
-def test_a_worker_killed_mid_simulate(source, client, tmp_path):
+@pytest.mark.parametrize("written", [8, 35], ids=["first-round", "second-round"])
+def test_a_worker_killed_mid_simulate(source, client, tmp_path, written):
+    """Killed in the first round of writes, or in the second (40 chunks: 32 a round), which fires on the state the
+    first left (a future the lost worker may have held): the bytes of a clean run."""
     options = SimulateOptions(scale=4, frames=800, motion="random", chunk_frames=20, noise="realistic")
     clean = str(tmp_path / "clean.zarr")
     simulate(source, clean, options, workers=2, progress=False)
@@ -122,7 +125,7 @@ def test_a_worker_killed_mid_simulate(source, client, tmp_path):
     # simulate makes its own client: point it at this module's cluster, whose workers the test can kill
     thread, outcome = in_background(simulate, source, out, options, scheduler=client.scheduler.address,
                                     progress=False)
-    kill_a_worker_when(client, lambda: len(glob.glob(f"{out}/spikes/c/*/*/*")) >= 8)
+    kill_a_worker_when(client, lambda: len(glob.glob(f"{out}/spikes/c/*/*/*")) >= written)
     finished(thread, client, 300)
     assert "error" not in outcome, outcome.get("error")
     a, b = chunk_files(out), chunk_files(clean)
