@@ -27,8 +27,8 @@ import xarray as xr
 from dask.base import tokenize
 from dask.core import flatten
 
-from pipeline.jobs.simulate import (SpikesIncomplete, SpikeWrites, Truth, check_intensities,  # noqa: F401 - the 1st
-                                    fired_spikes, made_truth, write_store)  # is cscsr.lazy's
+from pipeline.jobs.simulate import SpikesIncomplete  # noqa: F401 - cscsr.lazy's: what a failed to_spikes raises
+from pipeline.jobs.simulate import SpikeWrites, Truth, check_intensities, fired_spikes, made_truth, write_store
 from pipeline.jobs.simulate_plan import MOTIONS, SimulateOptions, check_options, simulated_meta
 from pipeline.lazy.capture import capture_frames, check_unchanged
 from pipeline.lazy.frames import made_scene
@@ -59,13 +59,14 @@ def simulate(frames: xr.DataArray, *, scale: int = 4, cfa: str = "rggb", brightn
     """HR scene frames ``(t, s*H, s*W, rgb)`` (uint8, uint16 or float in [0, 1]; grey, RGB or RGBA) -> lazy spikes
     ``(t, H, W)`` bool, one spike frame per scene frame, chunked along ``t`` as ``frames`` is; nothing computed.
 
-    The bytes of ``cscsr simulate --interp linear`` on a video of as many frames as it simulates (spike frame ``t``
-    is then scene frame ``t``), or on a picture under ``--motion`` (``lazy.open_frames``), with the same options;
-    the attributes it records (``source`` and ``motion``: the frames' own attributes, else "" and "video").
-    Refuses, in one line and before any graph exists, what the job refuses (``pipeline.jobs.simulate.check_options``)
-    and frames of other dims or dtype; float frames must hold intensities in [0, 1] (a scene of 0..255 as floats,
-    NaN, inf or negatives are refused: before the graph for frames in memory, when their block is computed for
-    lazy ones, never clipped).
+    The job's graph, bytes and attributes (``source``, ``motion``, ``interp``: the frames' own attributes, else "",
+    "video" and "linear") for the scene ``lazy.open_frames`` makes of the job's source with the same options (a
+    picture under ``motion``, a video spread over ``frames`` spike frames: its LR mosaics made as the job makes
+    them); of other frames, spike frame ``t`` is scene frame ``t`` (``cscsr simulate --interp linear`` of a video of
+    as many frames). Refuses, in one line and before any graph exists, what the job refuses
+    (``pipeline.jobs.simulate_plan.check_options``) and frames of other dims or dtype; float frames must hold
+    intensities in [0, 1] (a scene of 0..255 as floats, NaN, inf or negatives are refused: before the graph for
+    frames in memory, when their block is computed for lazy ones, never clipped).
 
     ``reset`` defaults to ``zero``, the ``simulate`` job's default (``cscsr simulate``), so that the same options
     give the job's bytes; ``ingest`` records ``subtract`` by default because that is how the real camera resets.
