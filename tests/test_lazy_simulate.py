@@ -7,6 +7,7 @@ import importlib
 import os
 import re
 import shutil
+import time
 
 import dask
 import dask.array as da
@@ -556,3 +557,47 @@ def test_to_spikes_writes_in_bounded_rounds_each_block_once_to_the_same_bytes(on
     assert len(fired) == len(set(fired)) == 14  # each block fired once, in the round that writes it
     assert all(len(needed_later) <= 3 for *_, needed_later in rounds)  # the state, dark current, thresholds
     assert store_files(rounded) == store_files(whole)
+
+
+def _fails_while(flag: str, value: int) -> int:
+    if os.path.exists(flag):
+        raise OSError("transient")
+    return value
+
+
+def test_a_key_carried_between_rounds_that_failed_is_computed_afresh_on_the_same_client(client, tmp_path):
+    """A round's task that later rounds read, failed for a passing cause, is released with its round: the next call
+    on the same client computes it afresh instead of getting the old error back (a resume would otherwise fail)."""
+    import operator
+
+    from pipeline.jobs.simulate import computed
+
+    flag = tmp_path / "failing"
+    flag.touch()
+    graph = {"a": (_fails_while, str(flag), 1), "w0": (operator.add, "a", 0), "w1": (operator.add, "a", 1)}
+    with pytest.raises(OSError, match="transient") as failed:  # kept: its traceback holds the call's futures
+        computed(graph, {"w0": 1, "w1": 1}, lambda frames: None, client, at_once=1)  # "a": carried to round 2
+    flag.unlink()
+    deadline = time.monotonic() + 10  # releases reach the scheduler a moment later
+    while client.run_on_scheduler(lambda dask_scheduler: "a" in dask_scheduler.tasks):
+        assert time.monotonic() < deadline, "the failed key is still held by the cluster"
+        time.sleep(0.05)
+    assert computed(graph, {"w0": 1, "w1": 1}, lambda frames: None, client, at_once=1) == [1, 2]
+    assert failed.value.__traceback__ is not None  # the error was alive throughout
+
+
+def test_a_made_scene_is_known_by_its_data_and_its_blocks_not_by_its_attributes(tmp_path):
+    """Two chunkings of one scene are two graphs (one cluster never confuses their blocks); a scene whose attributes
+    were dropped is still the job's: its camera path's seed checked, its motion and source recorded."""
+    from cscsr import lazy
+
+    picture = tmp_path / "scene.png"
+    iio.imwrite(picture, scene(1, 32, 48)[0])
+    by_10, by_20 = (lazy.open_frames(picture, frames=60, motion="random", seed=3, chunk_frames=n) for n in (10, 20))
+    assert by_10.data.name != by_20.data.name
+    assert simulate(by_10, seed=3).data.name != simulate(by_20, seed=3).data.name
+    bare = xr.DataArray(by_10.data, dims=by_10.dims)  # its attributes gone
+    with pytest.raises(InputError, match=r"camera path of seed 3 .*simulate\(seed=4\)"):
+        simulate(bare, seed=4)
+    recorded = simulate(bare, seed=3).attrs
+    assert (recorded["motion"], recorded["source"]) == ("random", str(picture))

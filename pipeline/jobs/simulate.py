@@ -99,7 +99,7 @@ def frames_array(scene, chunk_frames: int | None) -> "da.Array":
     frame_bytes = scene.dtype.itemsize * math.prod(scene.shape[1:])
     chunk = min(chunk_frames or max(1, BLOCK_BYTES // frame_bytes), scene.shape[0])
     return da.from_array(scene, chunks=(chunk, -1, -1, -1), asarray=False, fancy=False,
-                         meta=np.empty((0, 0, 0, 0), scene.dtype), name=f"frames-{tokenize(scene)}")
+                         meta=np.empty((0, 0, 0, 0), scene.dtype), name=f"frames-{tokenize(scene, chunk)}")
 
 
 def fired_spikes(scene: "da.Array", options: SimulateOptions, height: int, width: int, made) -> "da.Array":
@@ -110,7 +110,7 @@ def fired_spikes(scene: "da.Array", options: SimulateOptions, height: int, width
     motion, each made once (a task each, shared by the blocks between them)."""
     import dask.array as da
 
-    token = tokenize(scene.name, options)
+    token = tokenize(scene.name, scene.chunks[0], options)  # blocks of other lengths are other keys
     name = f"simulated-spikes-{token}"
     model = options.sensor_model()
     dark, thresholds, state = (f"{name}-dark", f"{name}-thresholds", f"{name}-initial-state")
@@ -206,7 +206,7 @@ def made_truth(made, centres: list[int], url: str, cfa: str) -> Truth:
     """The truth of a scene (``pipeline.jobs.simulate_plan``: a picture under camera motion, a video over the spike
     frames) at ``centres``, written into the store at ``url`` as the job writes it: a task a picture (a video's pair
     motion made once, upscaled), and the camera path's exact flow from each to the next."""
-    name = f"truth-{tokenize(made, url, centres)}"
+    name = f"truth-{tokenize(made, url, centres, cfa)}"
     graph, keys = {}, []
     path = getattr(made, "path", None)
     for k, frame in enumerate(centres):
@@ -407,12 +407,12 @@ def computed(graph, frames: dict, advance, client, at_once: int | None = None) -
                 from distributed import as_completed
 
                 futures = client.get(round_graph, round_keys + kept, sync=False)
+                held |= dict(zip(kept, futures[len(round_keys):]))  # released below, whatever happens
                 with released(futures[:len(round_keys)]):  # forgotten by the cluster even while an error holds
                     for future in as_completed(futures[:len(round_keys)]):  # them: a resume computes afresh
                         if future.status == "finished":
                             advance(frames[future.key])
                     results += client.gather(futures[:len(round_keys)])
-                made = futures[len(round_keys):]
             else:
                 class Advance(Callback):  # dask's local schedulers call it as each task finishes, from their loop
                     def _posttask(self, key, result, dsk, state, worker_id):
@@ -422,8 +422,7 @@ def computed(graph, frames: dict, advance, client, at_once: int | None = None) -
                 with Advance():  # dask's configured scheduler, else its default for arrays and delayed: threads
                     values = (get_scheduler() or dask.threaded.get)(round_graph, round_keys + kept)
                 results += values[:len(round_keys)]
-                made = values[len(round_keys):]
-            held |= dict(zip(kept, made))
+                held |= dict(zip(kept, values[len(round_keys):]))
             for key in [key for key in held if key not in needed_later]:
                 value = held.pop(key)
                 if client is not None:

@@ -137,7 +137,7 @@ def open_scene(url: str, *, frames: int | None, motion: str | None, seed: int, s
                              f"scene's length and how the camera moves, got frames={frames}, motion={motion!r}")
         path = CameraPath.random(frames, source.height, source.width, seed=seed, speed=speed, deform=deform) \
             if motion == "random" else None
-        return CameraFrames(source, frames, first.dtype.str, first.shape[-1], path, version)
+        return CameraFrames(source, frames, first.dtype.str, first.shape[-1], path, seed, version)
     if motion is not None:
         raise InputError(f"motion= is for a picture; {url} is a {source.kind} with motion of its own")
     if frames is None:
@@ -186,6 +186,7 @@ class CameraFrames:
     dtype_str: str  # the picture's (static), float32 (rendered)
     colours: int
     path: CameraPath | None
+    seed: int  # what drew the path (CameraPath.random)
     version: object  # :func:`source_version`: only in the token
 
     ndim = 4

@@ -29,7 +29,7 @@ from dask.core import flatten
 
 from pipeline.jobs.simulate import SpikesIncomplete  # noqa: F401 - cscsr.lazy's: what a failed to_spikes raises
 from pipeline.jobs.simulate import SpikeWrites, Truth, check_intensities, fired_spikes, made_truth, write_store
-from pipeline.jobs.simulate_plan import MOTIONS, SimulateOptions, check_options, simulated_meta
+from pipeline.jobs.simulate_plan import CameraFrames, MOTIONS, SimulateOptions, check_options, simulated_meta
 from pipeline.lazy.capture import capture_frames, check_unchanged
 from pipeline.lazy.frames import made_scene
 from pipeline.lazy.spikes import (as_spikes, check_here, check_spikes, distributed_client, python_words, selection,
@@ -38,7 +38,7 @@ from pipeline.stores.frame_sources import FrameSource
 from pipeline.stores.ground_truth import has_truth, write_truth
 from pipeline.stores.outputs import SPIKE_STORE, check_existing
 from pipeline.stores.spike_store import SpikeMeta, SpikeStore, open_spike_store
-from pipeline.stores.storage import check_apart, exists
+from pipeline.stores.storage import check_apart, exists, recorded
 from stages.errors import InputError, InputTypeError
 from stages.numbers import check_flag, check_number
 from stages.reconstruction.methods import WINDOW, output_centres
@@ -75,15 +75,21 @@ def simulate(frames: xr.DataArray, *, scale: int = 4, cfa: str = "rggb", brightn
     """
     n_frames, hr_height, hr_width, _ = _checked_frames(frames).shape
     made = made_scene(frames.data)  # lazy.open_frames' scene of a picture or a video: made as the job makes it
-    interp = frames.attrs.get("interp", "linear") if made is not None else "linear"
+    if made is not None:  # what it is, from the scene itself (attributes can be dropped or changed)
+        path = getattr(made, "path", None)
+        motion = "random" if path is not None else "static" if isinstance(made, CameraFrames) else None
+        interp = getattr(made, "interp", frames.attrs.get("interp", "flow"))  # a picture's is only recorded
+        source = recorded(made.source.url)
+        camera = {"seed": made.seed, "frames": made.n_frames} if path is not None else {}
+    else:
+        interp, source, motion, camera = "linear", frames.attrs.get("source"), frames.attrs.get("motion"), frames.attrs
     options = SimulateOptions(scale=scale, cfa=cfa, brightness=brightness, threshold=threshold, frames=n_frames,
                               seed=seed, noise=noise, reset=reset, interp=interp, fps=fps, truth_every=truth_every)
     # the job's checks; of its source they read the frame count and size only
     with python_words():
         height, width = check_options(options, FrameSource("frames", "array", n_frames, hr_height, hr_width))
-    source, motion = frames.attrs.get("source"), frames.attrs.get("motion")
     if motion == "random":  # lazy.open_frames of a picture along a camera path: the job's scene, as recorded
-        _check_camera_path(frames.attrs, seed, n_frames)
+        _check_camera_path(camera, seed, n_frames)
     if getattr(made, "scale", scale) != scale:
         raise InputError(f"frames were interpolated by motion estimated at 1/{made.scale} of their size "
                          f"(open_frames(scale={made.scale})), but simulate(scale={scale}): give the same scale, as "
