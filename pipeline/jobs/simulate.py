@@ -74,7 +74,7 @@ def simulate(src: str, dest: str, options: SimulateOptions = SimulateOptions(), 
     chunk = options.chunk_frames or chunk_frames_for(meta, options.frames)
     check_existing(dest, overwrite=options.overwrite, kind=SPIKE_STORE, flag="--overwrite")
     check_scheduler(scheduler)  # a named scheduler answers (within seconds) before DEST is claimed or replaced
-    scene = open_scene(src, frames=options.frames, motion=options.motion, seed=options.seed, speed=options.speed,
+    scene = open_scene(source, frames=options.frames, motion=options.motion, seed=options.seed, speed=options.speed,
                        deform=options.deform, interp=options.interp, scale=options.scale)
     bits = fired_spikes(frames_array(scene, chunk), options, height, width, scene)
     truth = made_truth(scene, output_centres(options.frames, WINDOW, options.truth_every), dest, options.cfa)
@@ -298,8 +298,8 @@ class SpikeWrites:
 
     def run(self, bits: "da.Array", todo: list[int], advance, client) -> np.ndarray:
         """Tasks ``todo`` of ``bits`` (t, y, x) bool on ``client`` (else Dask's own scheduler), ``advance(frames)`` as
-        each is written;
-        -> their spike counts. Raises :class:`SpikesIncomplete` if any fails (what the others committed stays)."""
+        each is written; -> their spike counts. Raises :class:`SpikesIncomplete` if any fails (what the others
+        committed stays)."""
         name = f"to-spikes-{tokenize(bits.name, self.url, self.task_frames, todo)}"
         if bits.chunks[0] == tuple(map(self.frames_of, range(self.n_tasks))) and fired_key(bits, 0) in bits.dask:
             blocks = bits  # simulated, a block a task: each task writes the bits its block fired, packed as they are

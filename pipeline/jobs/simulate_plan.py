@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.stores.frame_sources import FrameSource, open_frame_source
+from pipeline.stores.frame_sources import FrameSource
 from pipeline.stores.spike_store import SpikeMeta
 from pipeline.stores.storage import resolve
 from stages.errors import InputError
@@ -122,13 +122,13 @@ def simulated_meta(options: SimulateOptions, height: int, width: int, source: st
 
 # ---- the scene ----
 
-def open_scene(url: str, *, frames: int | None, motion: str | None, seed: int, speed: float, deform: float,
-               interp: str, scale: int) -> "CameraFrames | VideoFrames | SourceFrames":
-    """The scene of the source at ``url`` (``lazy.open_frames`` says what each option means): a picture under
-    ``motion`` over ``frames`` frames, a video spread over ``frames`` spike frames, or (no ``frames``) a source's own
-    frames; its first frame read now (its dtype and colours are every frame's). One line, in Python words, for a
+def open_scene(source: FrameSource, *, frames: int | None, motion: str | None, seed: int, speed: float,
+               deform: float, interp: str, scale: int) -> "CameraFrames | VideoFrames | SourceFrames":
+    """The scene of ``source`` (as ``open_frame_source`` opened it; ``lazy.open_frames`` says what each option means):
+    a picture under ``motion`` over ``frames`` frames, a video spread over ``frames`` spike frames, or (no
+    ``frames``) a source's own frames; its first frame read now (its dtype and colours are every frame's). One line, in Python words, for a
     source or options that make no scene."""
-    source = open_frame_source(url)
+    url = source.url
     first = as_4d(source.read(0), source, 0, None)
     version = source_version(url)
     if source.n_frames == 1 and (source.kind == "image" or motion is not None):

@@ -16,6 +16,7 @@ from pipeline.jobs.simulate import frames_array
 from pipeline.jobs.simulate_plan import (MAX_FRAMES, MAX_FRAMES_WHY, TRUTH_SCALES, CameraFrames, VideoFrames,
                                          open_scene)
 from pipeline.lazy.spikes import check_here, python_words, url_text
+from pipeline.stores.frame_sources import open_frame_source
 from pipeline.stores.storage import recorded
 from stages.errors import InputError
 from stages.numbers import check_number, check_text
@@ -62,8 +63,8 @@ def open_frames(url, *, chunk_frames: int | None = None, frames: int | None = No
         if scale not in TRUTH_SCALES:
             raise InputError(f"scale must be one of {', '.join(map(str, TRUTH_SCALES))}, got {scale!r}")
         check_here([url])  # a memory:// source is this process's alone
-        scene = open_scene(url, frames=frames, motion=motion, seed=seed, speed=speed, deform=deform, interp=interp,
-                           scale=scale)
+        scene = open_scene(open_frame_source(url), frames=frames, motion=motion, seed=seed, speed=speed,
+                           deform=deform, interp=interp, scale=scale)
     data = frames_array(scene, chunk_frames)
     attrs = {"source": recorded(url), "motion": motion or "video"}
     if motion == "random":  # the path's: lazy.simulate records the job's options only for the job's scene
