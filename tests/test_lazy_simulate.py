@@ -317,7 +317,7 @@ def test_a_resume_needs_the_truth_it_was_begun_with_and_opens_the_store_once_a_p
     """A failed ``to_spikes(truth=)`` resumes only with the truth again, to the bytes of an uninterrupted one; the
     resume opens the store once for the checks before the claim (its cut and its truth) and once under the claim."""
     lazy_simulate = importlib.import_module("pipeline.lazy.simulate")  # pipeline.lazy.simulate is the function
-    writes = importlib.import_module("pipeline.jobs.simulate")  # the store's writes (the job's, resumed here)
+    writes = importlib.import_module("pipeline.stores.spike_writes")  # the store's writes (the job's, resumed here)
 
     frames, spikes, failing, flag = failing_at_frame_55(tmp_path)
     whole, resumed = str(tmp_path / "whole.zarr"), str(tmp_path / "resumed.zarr")
@@ -450,7 +450,7 @@ def test_progress_counts_each_frame_written_once_on_a_client_or_dask_s_own_sched
         bars.append({"description": description, "total": total, "advanced": [], "enabled": enabled})
         yield bars[-1]["advanced"].append
 
-    monkeypatch.setattr(importlib.import_module("pipeline.jobs.simulate"), "progress_bar", recorded)
+    monkeypatch.setattr(importlib.import_module("pipeline.stores.spike_writes"), "progress_bar", recorded)
     bits = (np.random.default_rng(4).random((50, 8, 16)) < 0.2).astype(np.uint8)
     write_dat(tmp_path / "c.dat", bits)
     frames, spikes, failing, flag = failing_at_frame_55(tmp_path)
@@ -543,13 +543,14 @@ def test_a_video_over_more_spike_frames_is_interpolated_between_its_frames(tmp_p
 def test_to_spikes_writes_in_bounded_rounds_each_block_once_to_the_same_bytes(on, client, tmp_path, monkeypatch):
     """Writes go to the scheduler a round at a time (``WRITES_AT_ONCE`` tasks), what later rounds need carried over
     (the integrator's state, the sensor's draws: never more), each block fired once, the bytes of one round."""
-    writes = importlib.import_module("pipeline.jobs.simulate")
+    writes, executor = (importlib.import_module(f"pipeline.{name}") for name in ("stores.spike_writes",
+                                                                                 "compute.executor"))
     spikes = simulate(frames_array(scene(), 5), reset="subtract", noise="realistic", seed=2)  # 14 blocks
     whole, rounded = str(tmp_path / "whole.zarr"), str(tmp_path / "rounds.zarr")
     to_spikes(spikes, whole, chunk_frames=5)  # one round: 14 tasks of 5 frames
-    rounds, made = [], writes._rounds
+    rounds, made = [], executor._rounds
     monkeypatch.setattr(writes, "WRITES_AT_ONCE", 4)
-    monkeypatch.setattr(writes, "_rounds", lambda *args: [rounds.append(r) or r for r in made(*args)])
+    monkeypatch.setattr(executor, "_rounds", lambda *args: [rounds.append(r) or r for r in made(*args)])
     with dask.config.set(scheduler=client if on == "client" else "threads"):
         to_spikes(spikes, rounded, chunk_frames=5)
     assert [len(keys) for keys, *_ in rounds] == [4, 4, 4, 2]
@@ -570,7 +571,7 @@ def test_a_key_carried_between_rounds_that_failed_is_computed_afresh_on_the_same
     on the same client computes it afresh instead of getting the old error back (a resume would otherwise fail)."""
     import operator
 
-    from pipeline.jobs.simulate import computed
+    from pipeline.compute.executor import computed
 
     flag = tmp_path / "failing"
     flag.touch()

@@ -276,3 +276,24 @@ def test_a_lost_worker_does_not_fail_the_ingest(tmp_path, small_chunks):
         job.join(120)
         assert not job.is_alive() and outcome["attrs"]["spike_count"] == int(bits.sum())
     assert store_files(store) == store_files(tmp_path / "one.zarr")
+
+
+def test_a_store_of_one_task_recorded_larger_than_its_capture_is_resumed(cli, tmp_path, small_chunks):
+    """A capture smaller than a task is one task; a store that records that task by the size asked (as ingest did
+    before its writes were ``lazy.to_spikes``'s: whole chunks, more frames than the capture) has the same cut, and
+    ``--resume`` finishes it to the spikes of an uninterrupted ingest."""
+    import zarr
+
+    capture(tmp_path / "c.dat", 100, 16, 16, flip=False, seed=5)
+    store, reference = str(tmp_path / "s.zarr"), str(tmp_path / "ref.zarr")
+    for url in (store, reference):
+        ingest(str(tmp_path / "c.dat"), url, IngestOptions(16, 16), progress=False)
+    group = zarr.open_group(store, mode="r+", use_consolidated=False)
+    chunk = group["spikes"].chunks[0]
+    assert group["committed"].shape == (1,) and group["committed"].attrs["task_frames"] < 100 + chunk
+    group["committed"].attrs["task_frames"] = 50 * chunk  # one task, as asked
+    group["committed"][:] = -1
+    group.attrs["state"] = "writing"
+    result = cli("-q", "ingest", tmp_path / "c.dat", store, "--height", 16, "--width", 16, "--resume")
+    assert result.exit_code == 0 and "(1 task run, 0 already committed)" in result.stdout, result.stderr
+    assert (zarr.open_array(store, path="spikes")[:] == zarr.open_array(reference, path="spikes")[:]).all()

@@ -87,7 +87,7 @@ def test_a_parallel_ingest_of_one_task_runs_in_this_process_and_says_so(dat, cli
     def no_cluster(*args, **kwargs):
         raise AssertionError("a local cluster was started for one task")
 
-    monkeypatch.setattr(pipeline.jobs.ingest, "_run_on_cluster", no_cluster)
+    monkeypatch.setattr(pipeline.jobs.ingest, "in_segments", no_cluster)  # what starts local clusters
     result = cli("ingest", dat, tmp_path / "s.zarr", "--height", SIDE, "--width", SIDE, "--workers", 2)
     assert result.exit_code == 0, result.stderr
     assert "(1 task run, 0 already committed)" in result.stdout

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pipeline.jobs import ingest as ingest_module
-from pipeline.stores import spike_store
+from pipeline.stores import spike_store, spike_writes
 from pipeline.stores.captures import open_capture
 from pipeline.jobs.ingest import IngestOptions, ingest
 from pipeline.stores.spike_store import open_spike_store
@@ -66,7 +66,7 @@ def test_interrupted_ingest_leaves_nothing(tmp_path, monkeypatch):
             raise KeyboardInterrupt
         return 0
 
-    monkeypatch.setattr(ingest_module, "count_spikes", fail_on_third)
+    monkeypatch.setattr(spike_writes, "count_spikes", fail_on_third)  # each task's count, once its frames are stored
     with pytest.raises(KeyboardInterrupt):
         ingest(str(tmp_path / "c.dat"), str(tmp_path / "s.zarr"), IngestOptions(8, 16), progress=False)
     assert calls == [20, 20, 20] and not (tmp_path / "s.zarr").exists()

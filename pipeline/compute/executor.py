@@ -25,6 +25,9 @@
   are as live as in one process. The child dies with its parent (``PR_SET_PDEATHSIG``), so a
   killed job leaves no segment writing behind it, and ``--resume`` finds the output as the last
   committed task left it.
+- **A graph in rounds.** ``computed`` runs the tasks a graph writes (a spike store's: ``lazy.to_spikes``, the
+  ``simulate`` job) a bounded number a round, on a client or on Dask's own scheduler, what later rounds read
+  (a chain's state) carried over: a graph of a long recording, held in bounded memory.
 """
 
 import contextlib
@@ -38,6 +41,12 @@ import sys
 from collections.abc import Callable, Iterable, Iterator
 from typing import TypeVar
 
+import dask
+import dask.threaded
+from dask.base import get_scheduler
+from dask.callbacks import Callback
+from dask.core import get_deps
+from dask.highlevelgraph import HighLevelGraph
 from distributed import Future, as_completed
 from distributed.scheduler import KilledWorker
 
@@ -274,3 +283,71 @@ def _die_with_parent() -> None:
             ctypes.CDLL(None).prctl(1, signal.SIGKILL)  # 1 = PR_SET_PDEATHSIG
         except (OSError, AttributeError):
             pass
+
+
+# ---- a graph in bounded rounds (lazy.to_spikes, the simulate and ingest jobs) ----
+
+def computed(graph, frames: dict, advance, client, at_once: int | None = None) -> list:
+    """The results of the tasks ``frames`` names (key -> frames it writes) of ``graph``, in that order, computed on
+    ``client`` (else dask's own scheduler), ``advance(frames)`` as each finishes; the first error raised. The graph
+    is handed over culled to what they need (a resume's tasks), its tasks' names kept (nothing fused); ``at_once``:
+    that many of them a round, what a round made that later rounds need (a chain's state, the sensor's draws, a
+    video's pair) kept for them, so that memory and the scheduler's graph stay bounded however many there are."""
+    keys = list(frames)
+    if isinstance(graph, HighLevelGraph):
+        graph = dict(graph.cull(set(keys)))
+    results, held = [], {}  # held: what earlier rounds made that later ones need (futures on a client, else values)
+    try:
+        for round_keys, round_graph, earlier, kept, needed_later in _rounds(graph, keys, at_once or len(keys) or 1):
+            round_graph = round_graph | {key: held[key] for key in earlier}  # what earlier rounds made
+            if client is not None:
+                futures = client.get(round_graph, round_keys + kept, sync=False)
+                held |= dict(zip(kept, futures[len(round_keys):]))  # released below, whatever happens
+                with released(futures[:len(round_keys)]):  # forgotten by the cluster even while an error holds
+                    for future in as_completed(futures[:len(round_keys)]):  # them: a resume computes afresh
+                        if future.status == "finished":
+                            advance(frames[future.key])
+                    results += client.gather(futures[:len(round_keys)])
+            else:
+                class Advance(Callback):  # dask's local schedulers call it as each task finishes, from their loop
+                    def _posttask(self, key, result, dsk, state, worker_id):
+                        if key in frames:
+                            advance(frames[key])
+
+                with Advance():  # dask's configured scheduler, else its default for arrays and delayed: threads
+                    values = (get_scheduler() or dask.threaded.get)(round_graph, round_keys + kept)
+                results += values[:len(round_keys)]
+                held |= dict(zip(kept, values[len(round_keys):]))
+            for key in [key for key in held if key not in needed_later]:
+                value = held.pop(key)
+                if client is not None:
+                    value.release()
+    finally:
+        if client is not None:
+            for future in held.values():
+                future.release()
+    return results
+
+
+def _rounds(graph: dict, keys: list, at_once: int):
+    """``keys`` of ``graph`` ``at_once`` a round, in order: per round its keys, its graph (what they need that no
+    earlier round made), the keys of earlier rounds it reads, the keys it makes that a later round reads, and every
+    key made so far that a later round reads."""
+    dependencies, dependents = get_deps(graph)
+    unread = {key: len(readers) for key, readers in dependents.items()}  # readers not yet made
+    made, open_keys = set(), set()
+    for start in range(0, len(keys), at_once):
+        round_keys = keys[start:start + at_once]
+        needed, stack = set(), list(round_keys)
+        while stack:
+            if (key := stack.pop()) not in needed and key not in made:
+                needed.add(key)
+                stack.extend(dependencies[key])
+        earlier = {dep for key in needed for dep in dependencies[key]} - needed
+        made |= needed
+        for key in needed:
+            for dep in dependencies[key]:
+                unread[dep] -= 1
+        open_keys = {key for key in open_keys | needed if unread[key]}
+        yield round_keys, {key: graph[key] for key in needed}, earlier, sorted(open_keys & needed, key=str), \
+            set(open_keys)

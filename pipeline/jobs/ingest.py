@@ -3,10 +3,10 @@
 **Tasks.** The capture is cut into tasks, runs of ``task_frames`` whole frames (a whole number of the
 store's chunks, about :data:`BLOCK_BYTES` of packed spikes; ``--task-frames``): task ``i`` is frames
 ``[i * task_frames, (i + 1) * task_frames)``. A task packs its frames, writes their chunks of ``spikes``
-(no two tasks share a chunk), then records itself committed: ``committed[i]`` = the spikes it counted
-(``pipeline.stores.spike_store``). The job writes the metadata first (``state: "writing"``, every task -1 in
-``committed``, whose attributes record the capture's fingerprint and the options), and finishes the store
-(spike count, identity, consolidated metadata, ``state: "complete"``) only once every task is committed.
+(no two tasks share a chunk), then records itself committed: ``committed[i]`` = the spikes it counted. The store
+is written as every spike store is (``pipeline.stores.spike_writes.write_store``: metadata first, ``committed``
+recording the capture's fingerprint and the options, finished once every task is committed), and as
+``lazy.to_spikes(lazy.open_capture(...))`` writes it: the job is that composition (:class:`CaptureWrites`).
 
 **Where.** Without ``--workers``, a scheduler (``--scheduler``, ``DASK_SCHEDULER_ADDRESS``) or a client the tasks
 run in this process, one stream read ahead of the writes: the reference, whose bytes every other way
@@ -27,6 +27,7 @@ what it committed for ``--resume``; a failed one-process ingest is removed, as b
 
 import contextlib
 import functools
+import json
 import logging
 import sys
 import time
@@ -37,22 +38,24 @@ from typing import NamedTuple
 
 import numpy as np
 import zarr
+from distributed import Client
 
 from pipeline.stores.captures import RANGED_KINDS, default_layout, open_capture
 from pipeline.compute.cluster import (check_in_memory, check_scheduler, check_workers, dashboard_link, dask_client,
                               scheduler_address)
 from pipeline.compute.estimate import hours_table
-from pipeline.compute.executor import failure, in_segments, submitted
+from pipeline.compute.executor import computed, failure, in_segments, submitted
 from pipeline.compute.hold import hold_point
-from pipeline.stores.lease import check_free, claimed, held
-from pipeline.stores.outputs import SPIKE_STORE, check_existing, new_output
-from pipeline.compute.progress import is_quiet, progress_bar
-from pipeline.stores.spike_store import (CODEC_LEVEL, COMMITTED, WRITE_CONFIG, SpikeMeta, SpikeStore, SpikeStoreWriter,
+from pipeline.stores.lease import check_free
+from pipeline.stores.outputs import SPIKE_STORE, check_existing
+from pipeline.compute.progress import is_quiet
+from pipeline.stores.spike_store import (CODEC_LEVEL, COMMITTED, WRITE_CONFIG, SpikeMeta, SpikeStore,
                                   chunk_frames_for, ingest_task_arrays, open_spike_store)
+from pipeline.stores.spike_writes import COMMITTED_UNITS, SpikesIncomplete, SpikeWrites, write_packed, write_store
 from pipeline.stores.storage import check_apart, exists, recorded, remove
 from stages.capture.bits import count_spikes, packed_width
 from stages.reconstruction.cfa import check_cfa, flip_vertically
-from stages.errors import InputError
+from stages.errors import InputError, describe
 from stages.numbers import as_float, check_flag, check_number, check_text
 from stages.prefetch import prefetched
 from stages.capture.resets import check_reset
@@ -60,7 +63,6 @@ from stages.capture.sps100 import CaptureDamaged, check_layout
 
 BLOCK_BYTES = 64 * 2**20  # packed bytes per task (and per block read): bounds memory, amortises I/O
 SEGMENT_TASKS = 10_000  # tasks per segment of a local cluster (a terabyte is ~16,000 tasks)
-COMMITTED_UNITS = "spikes in the task's frames, written once they are stored; -1 = not committed"
 log = logging.getLogger("cscsr.ingest")  # DEBUG lines (cscsr --verbose): the job's plan, each task's outcome
 
 
@@ -326,7 +328,8 @@ def run_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *,
     In this process unless ``client``, ``workers`` or ``scheduler`` is given (then on Dask, as the other
     jobs: the client, else the named scheduler or ``DASK_SCHEDULER_ADDRESS``, else a local cluster of
     ``workers``). ``options.cfa`` is the pattern as recorded by the sensor; with ``flip`` the store
-    records the pattern of the upright image it holds.
+    records the pattern of the upright image it holds. The store is written as ``lazy.to_spikes`` writes
+    ``lazy.open_capture``'s spikes (``pipeline.stores.spike_writes.write_store`` of :class:`CaptureWrites`).
     """
     check_workers(workers, scheduler)
     check_text("--scheduler", scheduler, optional=True)
@@ -339,65 +342,164 @@ def run_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *,
     if parallel and client is None:
         check_scheduler(scheduler)  # a named scheduler answers (within seconds) before DEST is claimed or replaced
     plan = job.plan
+    writes = CaptureWrites(dest, job.meta, plan.n_frames, job.chunk, plan.task_frames,
+                           capture_frames_of(plan, job.capture, job.record), cli=True,
+                           stream=None if parallel else job.capture)
     with contextlib.ExitStack() as stack:
         if parallel and client is None and scheduler_address(scheduler):  # a long-lived cluster: connect once
             client = stack.enter_context(dask_client(scheduler=scheduler))
-        stack.enter_context(claimed(dest))  # one job per store, taken atomically before DEST is touched
-        if options.resume:
-            check_free(dest)  # and no live lease (a job on a machine that shares no claim file with us)
-        stack.enter_context(new_output(dest, overwrite=options.overwrite, kind=SPIKE_STORE,
-                                       flag="--resume or --overwrite", resume=options.resume, keep_partial=parallel))
-        if not options.resume:
-            stack.enter_context(_removed_if_damaged(dest))  # a damaged capture leaves nothing: --resume cannot help
-        if options.resume:
-            counts = _check_resumable(dest, src, job)  # again, under the claim
-            writer = SpikeStoreWriter.reopened(dest)
-            complete = writer.group.attrs.get("state") == "complete"
-        else:
-            writer = SpikeStoreWriter(dest, job.meta, plan.n_frames, chunk_frames=job.chunk)
-            writer.add_array(COMMITTED, (plan.n_tasks,), (1,), np.int64, ("task",), job.record, fill_value=-1)
-            counts, complete = np.full(plan.n_tasks, -1, np.int64), False
-        todo = [index for index in range(plan.n_tasks) if counts[index] < 0]
+        elif parallel and client is None:
+            client = LocalClusters(workers, show_dashboard=progress)
+        if isinstance(client, Client) and progress and not is_quiet() and (link := dashboard_link(client)):
+            print(f"dashboard: {link}", file=sys.stderr)  # never mixed with results on stdout
         log.debug("%s -> %s: %d frames of %dx%d, cfa %s; %d tasks of %d frames, %d committed already; %s", src, dest,
                   plan.n_frames, job.meta.height, job.meta.width, job.meta.cfa, plan.n_tasks, plan.task_frames,
-                  plan.n_tasks - len(todo), "in this process, one stream" if not parallel else
-                  f"on the cluster at {client.scheduler.address}" if client is not None else
+                  int((job.counts >= 0).sum()), "in this process, one stream" if not parallel else
+                  f"on the cluster at {client.scheduler.address}" if isinstance(client, Client) else
                   f"on local clusters of {workers or 'a worker per core'} workers, {SEGMENT_TASKS} tasks each")
-        if todo:
-            damaged = {}
-            with held(dest), progress_bar(f"ingest {src}", plan.n_frames, enabled=progress) as advance:
-                advance(plan.n_frames - sum(plan.frames(i)[1] - plan.frames(i)[0] for i in todo))
-                if parallel:
-                    failed, damaged = _run_on_cluster(plan, todo, counts, advance, client=client, workers=workers,
-                                                      progress=progress)
-                else:
-                    failed = _run_here(job.capture, writer, plan, counts, advance)
-            if damaged:  # the first in the capture: the tasks after a dropped packet are all out of sequence
-                raise CaptureDamaged(damaged[min(damaged)])
-            if failed:
-                raise IngestIncomplete(dest, plan, failed)
-        if not complete:
-            writer.finish(spike_count=int(counts.sum()))
+        written = write_store(writes, None, client=client, overwrite=options.overwrite, resume=options.resume,
+                              truth=None, progress=progress, title=f"ingest {src}", keep_partial=parallel,
+                              flag="--resume or --overwrite")
     if unread := job.capture.unread_bytes:  # checked with the last frames (captures.RawCapture._packed): cut short
         log.warning("%s", cut_short(src, unread, plan.n_frames))
-    return {"attrs": dict(writer.group.attrs), "frames": plan.n_frames, "tasks": plan.n_tasks,
-            "tasks_run": len(todo), "tasks_skipped": plan.n_tasks - len(todo)}
+    return {name: written[name] for name in ("attrs", "frames", "tasks", "tasks_run", "tasks_skipped")}
 
 
-def _run_here(capture, writer: SpikeStoreWriter, plan: IngestPlan, counts: np.ndarray, advance) -> dict:
-    """The tasks not committed, in this process: one stream of blocks read ahead of the writes."""
-    committed = writer.group[COMMITTED]
-    skip = {plan.frames(index)[0] for index in range(plan.n_tasks) if counts[index] >= 0}
-    for start, packed in prefetched(capture.blocks(plan.task_frames, skip)):
-        hold_point()  # inert unless a fault test asks (pipeline.compute.hold)
-        writer.write(start, packed)
-        index = start // plan.task_frames
-        counts[index] = count_spikes(packed)
-        committed[index] = counts[index]
-        log.debug("task %d (frames %d-%d): %d spikes, committed", index, start, start + packed.shape[0] - 1,
-                  counts[index])
-        advance(packed.shape[0])
-    return {}
+@dataclass(frozen=True)
+class LocalClusters:
+    """Where a parallel ingest with neither client nor scheduler runs its tasks: local clusters of ``workers``,
+    :data:`SEGMENT_TASKS` tasks each (``pipeline.compute.executor.in_segments``)."""
+
+    workers: int | None
+    show_dashboard: bool
+
+
+@dataclass(frozen=True)
+class CaptureFrames:
+    """A capture's packed frames as tasks read them, a block at a time, each one byte-range read through ingest's
+    reader, opened once per process (:func:`opened_frames`); a few fields, pickled into every task. ``lazy.open_capture``
+    reads its blocks through it (``da.from_array``)."""
+
+    url: str
+    height: int | None  # as given (None: the capture's own)
+    width: int | None
+    flip: bool
+    head_columns: int
+    layout: str | None
+    n_frames: int
+    rows: int  # the frames' height
+    packed_columns: int  # bytes a packed row
+    record: str  # what a store written from it records of the capture (capture_record), as JSON
+    key: str | None = None  # a .npz's array
+
+    ndim = 3
+    dtype = np.dtype(np.uint8)
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return self.n_frames, self.rows, self.packed_columns
+
+    def __getitem__(self, key: tuple[slice, slice, slice]) -> np.ndarray:
+        frames, *rest = key
+        start, stop, _ = frames.indices(self.n_frames)
+        return opened_frames(self).read(start, stop)[(slice(None), *rest)]
+
+
+def capture_frames_of(plan: IngestPlan, capture, record: dict) -> CaptureFrames:
+    """The frames of the capture ``plan`` ingests, opened as ``capture``, with ``record`` (its ``committed`` record)."""
+    return CaptureFrames(plan.src, plan.height, plan.width, plan.flip, plan.head_columns, plan.layout, plan.n_frames,
+                         capture.height, packed_width(capture.width), json.dumps(record), plan.key)
+
+
+@functools.lru_cache(maxsize=8)
+def opened_frames(frames: CaptureFrames):
+    """The capture's reader, opened once per process; refused if the capture changed since the graph was built."""
+    options = IngestOptions(frames.height, frames.width, flip=frames.flip, head_columns=frames.head_columns,
+                            key=frames.key, layout=frames.layout)
+    capture = opened_capture(frames.url, options)
+    if capture.n_frames != frames.n_frames:
+        raise InputError(f"{frames.url} changed since it was opened: {capture.n_frames} frames, not "
+                         f"{frames.n_frames}: open it again")
+    return capture
+
+
+class CaptureWrites(SpikeWrites):
+    """A raw capture's frames (``capture``) written into a spike store as ``cscsr ingest`` writes them: each task
+    reads its frames packed by one byte range and writes them as they are (:func:`ingest_task`: no unpacked bits
+    made or moved), on a client through the job's executor, on :class:`LocalClusters` in segments, in this process
+    as one stream read ahead of the writes (``stream``: the opened reader, the one-process job's, which reads a
+    ``.npz`` too), else on Dask's own scheduler. The store records the capture (its fingerprint, how it was read),
+    a resume compares it (:func:`check_same_capture`), and a capture found damaged removes a new store (the damage
+    stays: a resume cannot help). ``cli``: errors in the command line's words."""
+
+    def __init__(self, url: str, meta: SpikeMeta, n_frames: int, chunk_frames: int | None, task_frames: int | None,
+                 capture: CaptureFrames, *, cli: bool = False, stream=None):
+        super().__init__(url, meta, n_frames, chunk_frames, task_frames)
+        self.capture, self.stream, self.cli = capture, stream, cli
+        self.record = {k: v for k, v in json.loads(capture.record).items() if k not in ("units", "task_frames")}
+        if cli:
+            self.again = "--overwrite"
+
+    def check_same(self, store: SpikeStore, found: dict) -> None:
+        """The capture it was written from, read as it was (its other attributes follow from those)."""
+        check_same_capture(self.url, self.capture.url, found, self.record, again=self.again)
+
+    def guarded(self) -> contextlib.AbstractContextManager:
+        return _removed_if_damaged(self.url)
+
+    def run(self, bits, todo: list[int], advance, client) -> np.ndarray:
+        frames = self.capture
+        plan = IngestPlan(frames.url, recorded(self.url), frames.height, frames.width, frames.flip,
+                          frames.head_columns, frames.key, frames.n_frames, self.task_frames, uuid.uuid4().hex,
+                          frames.layout)
+        if client is None and self.stream is not None:
+            return self._streamed(todo, advance)
+        if isinstance(client, LocalClusters):
+            outcomes = in_segments(functools.partial(run_tasks, plan=plan), todo, SEGMENT_TASKS,
+                                   workers=client.workers, show_dashboard=client.show_dashboard)
+        elif client is not None:
+            outcomes = run_tasks(client, todo, plan=plan)
+        else:
+            outcomes, advance = self._threaded(plan, todo, advance), lambda frames: None  # advanced as they ran
+        counts, failed, damaged = {}, {}, {}
+        for outcome in outcomes:
+            start, stop = plan.frames(outcome.index)
+            log.debug("task %d (frames %d-%d): %s", outcome.index, start, stop - 1, f"failed: {outcome.error}"
+                      if outcome.error is not None else f"{outcome.spikes} spikes, committed")
+            if outcome.error is not None:
+                (damaged if outcome.damaged else failed)[outcome.index] = outcome.error
+                continue
+            counts[outcome.index] = outcome.spikes
+            advance(stop - start)
+        if damaged:  # the first in the capture: the tasks after a dropped packet are all out of sequence
+            raise CaptureDamaged(damaged[min(damaged)])
+        if failed:
+            raise IngestIncomplete(self.url, plan, failed) if self.cli else self.incomplete(failed[min(failed)])
+        return np.array([counts[index] for index in todo], np.int64)
+
+    def _streamed(self, todo: list[int], advance) -> np.ndarray:
+        """Tasks ``todo`` in this process: one stream of blocks read ahead of the writes."""
+        skip = {index * self.task_frames for index in range(self.n_tasks)} - {index * self.task_frames
+                                                                             for index in todo}
+        counts = []
+        for start, packed in prefetched(self.stream.blocks(self.task_frames, skip)):
+            index = start // self.task_frames
+            counts.append(int(write_packed(packed, self.url, start, index)[0]))
+            log.debug("task %d (frames %d-%d): %d spikes, committed", index, start, start + packed.shape[0] - 1,
+                      counts[-1])
+            advance(packed.shape[0])
+        return np.array(counts, np.int64)
+
+    def _threaded(self, plan: IngestPlan, todo: list[int], advance) -> list["Outcome"]:
+        """Tasks ``todo`` on Dask's own scheduler (``lazy.to_spikes`` without a client), ``advance(frames)`` as each
+        finishes."""
+        tasks = dict(ingest_task(plan, index) for index in todo)
+        try:
+            done = computed(tasks, {key: self.frames_of(index) for key, index in zip(tasks, todo)}, advance, None)
+        except Exception as error:  # noqa: BLE001 - every failure is said, as on a cluster
+            return [Outcome(index, None, describe(error)) for index in todo]
+        return [Outcome(index, None, count, damaged=True) if isinstance(count, str) else Outcome(index, count, None)
+                for index, count in zip(todo, done)]
 
 
 @contextlib.contextmanager
@@ -419,31 +521,6 @@ class Outcome(NamedTuple):
     spikes: int | None
     error: str | None
     damaged: bool = False
-
-
-def _run_on_cluster(plan: IngestPlan, todo: list[int], counts: np.ndarray, advance, *, client, workers: int | None,
-                    progress: bool) -> tuple[dict[int, str], dict[int, str]]:
-    """The tasks ``todo`` on ``client`` (else in segments, each on a fresh local cluster of ``workers``); their
-    counts into ``counts``; -> ({task: error} of those that failed, {task: error} of those that found the
-    capture damaged)."""
-    work = functools.partial(run_tasks, plan=plan)
-    if client is not None:
-        if progress and not is_quiet() and (link := dashboard_link(client)):
-            print(f"dashboard: {link}", file=sys.stderr)  # never mixed with results on stdout
-        outcomes = work(client, todo)
-    else:
-        outcomes = in_segments(work, todo, SEGMENT_TASKS, workers=workers, show_dashboard=progress)
-    failed, damaged = {}, {}
-    for outcome in outcomes:
-        start, stop = plan.frames(outcome.index)
-        log.debug("task %d (frames %d-%d): %s", outcome.index, start, stop - 1, f"failed: {outcome.error}"
-                  if outcome.error is not None else f"{outcome.spikes} spikes, committed")
-        if outcome.error is not None:
-            (damaged if outcome.damaged else failed)[outcome.index] = outcome.error
-            continue
-        counts[outcome.index] = outcome.spikes
-        advance(stop - start)
-    return failed, damaged
 
 
 def run_tasks(client, tasks: Iterable[int], *, plan: IngestPlan) -> Iterator[Outcome]:
@@ -499,7 +576,7 @@ def _ingest_task(plan: IngestPlan, index: int) -> int | str:
     return count
 
 
-class IngestIncomplete(RuntimeError):
+class IngestIncomplete(SpikesIncomplete):
     """Some tasks failed: which frames are missing and why; the rest is committed in the store."""
 
     def __init__(self, dest: str, plan: IngestPlan, failed: dict[int, str]):

@@ -17,19 +17,17 @@ byte range with ingest's reader (``RawCapture.read``, ``ArrayCapture.read``), wh
 when the block is computed, naming the byte offset (``stages.capture.sps100.CaptureDamaged``).
 """
 
-import functools
 import json
 import logging
 import weakref
-from dataclasses import dataclass
 
 import dask.array as da
 import numpy as np
 import xarray as xr
 from dask.base import tokenize
 
-from pipeline.jobs.ingest import (IngestOptions, capture_change, capture_meta, capture_record, cut_short,
-                                  opened_capture)
+from pipeline.jobs.ingest import (CaptureFrames, IngestOptions, capture_change, capture_meta, capture_record,
+                                  cut_short, opened_capture, opened_frames)
 from pipeline.lazy.spikes import as_spikes, check_here, python_words, url_text
 from pipeline.stores.captures import RANGED_KINDS
 from pipeline.stores.spike_store import chunk_frames_for
@@ -69,8 +67,8 @@ def open_capture(path, *, height: int | None = None, width: int | None = None, l
             capture.read(n_frames - 1, n_frames)
     if capture.unread_bytes:
         log.warning("%s", cut_short(path, capture.unread_bytes, n_frames))
-    frames = _CaptureFrames(path, options.height, options.width, flip, head_columns, layout, n_frames,
-                            capture.height, packed_width(capture.width), json.dumps(record))
+    frames = CaptureFrames(path, options.height, options.width, flip, head_columns, layout, n_frames,
+                           capture.height, packed_width(capture.width), json.dumps(record))
     chunk = min(chunk_frames or chunk_frames_for(meta, n_frames), n_frames)
     token = tokenize(frames, capture.fs.size(capture.path), capture.fs.ukey(capture.path))
     packed = da.from_array(frames, chunks=(chunk, -1, -1), asarray=False, fancy=False,
@@ -82,60 +80,19 @@ def open_capture(path, *, height: int | None = None, width: int | None = None, l
     return as_spikes(bits, {**meta.attrs(), "frames": n_frames})
 
 
-def capture_frames(data: da.Array) -> "_CaptureFrames | None":
+def capture_frames(data: da.Array) -> "CaptureFrames | None":
     """The capture ``data`` are all the frames of, as :func:`open_capture` made them (a selection, a function or a
     rechunk since makes a new array): then ``to_spikes`` runs ``cscsr ingest``'s own tasks, each reading its frames
     packed by one byte range and writing them as they are. Else None."""
     return _READS.get(data.name)
 
 
-def check_unchanged(frames: "_CaptureFrames") -> None:
+def check_unchanged(frames: CaptureFrames) -> None:
     """Refuse, in one line, a capture whose bytes are not those :func:`open_capture` fingerprinted (its size, a
     SHA-256 of its ends: two range reads): another recording written under the same name since."""
-    if why := capture_change(json.loads(frames.record)["capture"], _opened(frames).fingerprint()):
+    if why := capture_change(json.loads(frames.record)["capture"], opened_frames(frames).fingerprint()):
         raise InputError(f"{frames.url} changed since lazy.open_capture opened it ({why}): open it again")
 
 
-_READS: "weakref.WeakValueDictionary[str, _CaptureFrames]" = weakref.WeakValueDictionary()  # kept while a graph
+_READS: "weakref.WeakValueDictionary[str, CaptureFrames]" = weakref.WeakValueDictionary()  # kept while a graph
 # holds the capture's reader
-
-
-@dataclass(frozen=True)
-class _CaptureFrames:
-    """A capture's packed frames as dask reads them, a block at a time (``da.from_array``): each block one byte-range
-    read through ingest's reader, opened once per process (:func:`_opened`). Pickled as its few fields."""
-
-    url: str
-    height: int | None  # as given (None: the capture's own)
-    width: int | None
-    flip: bool
-    head_columns: int
-    layout: str | None
-    n_frames: int
-    rows: int  # the frames' height
-    packed_columns: int  # bytes a packed row
-    record: str  # what a store written from it records of the capture (ingest.capture_record), as JSON
-
-    ndim = 3
-    dtype = np.dtype(np.uint8)
-
-    @property
-    def shape(self) -> tuple[int, int, int]:
-        return self.n_frames, self.rows, self.packed_columns
-
-    def __getitem__(self, key: tuple[slice, slice, slice]) -> np.ndarray:
-        frames, *rest = key
-        start, stop, _ = frames.indices(self.n_frames)
-        return _opened(self).read(start, stop)[(slice(None), *rest)]
-
-
-@functools.lru_cache(maxsize=8)
-def _opened(frames: _CaptureFrames):
-    """The capture's reader, opened once per process; refused if the capture changed since the graph was built."""
-    options = IngestOptions(frames.height, frames.width, flip=frames.flip, head_columns=frames.head_columns,
-                            layout=frames.layout)
-    capture = opened_capture(frames.url, options)
-    if capture.n_frames != frames.n_frames:
-        raise InputError(f"{frames.url} changed since lazy.open_capture opened it: {capture.n_frames} frames, not "
-                         f"{frames.n_frames}: open it again")
-    return capture

@@ -18,7 +18,6 @@ active, else Dask's default).
 """
 
 import dataclasses
-import json
 
 import dask
 import dask.array as da
@@ -27,8 +26,8 @@ import xarray as xr
 from dask.base import tokenize
 from dask.core import flatten
 
-from pipeline.jobs.simulate import SpikesIncomplete  # noqa: F401 - cscsr.lazy's: what a failed to_spikes raises
-from pipeline.jobs.simulate import SpikeWrites, Truth, check_intensities, fired_spikes, made_truth, write_store
+from pipeline.jobs.ingest import CaptureWrites
+from pipeline.jobs.simulate import check_intensities, fired_spikes, made_truth
 from pipeline.jobs.simulate_plan import CameraFrames, MOTIONS, SimulateOptions, check_options, simulated_meta
 from pipeline.lazy.capture import capture_frames, check_unchanged
 from pipeline.lazy.frames import made_scene
@@ -38,6 +37,8 @@ from pipeline.stores.frame_sources import FrameSource
 from pipeline.stores.ground_truth import has_truth, write_truth
 from pipeline.stores.outputs import SPIKE_STORE, check_existing
 from pipeline.stores.spike_store import SpikeMeta, SpikeStore, open_spike_store
+from pipeline.stores.spike_writes import SpikesIncomplete  # noqa: F401 - cscsr.lazy's: what a failed to_spikes raises
+from pipeline.stores.spike_writes import SpikeWrites, Truth, write_store
 from pipeline.stores.storage import check_apart, exists, recorded
 from stages.errors import InputError, InputTypeError
 from stages.numbers import check_flag, check_number
@@ -205,10 +206,11 @@ def _checked_writes(spikes, url, chunk_frames, task_frames, overwrite, resume) -
         raise InputError(f"cannot resume: {url} does not exist")
     if not resume:
         check_existing(url, overwrite=overwrite, kind=SPIKE_STORE, flag=RESUME_FLAG)
-    plan = SpikeWrites(url, meta, n_frames, chunk_frames, task_frames)
     if (frames := capture_frames(spikes.data)) is not None:  # written by ingest's tasks, recorded as it records
         check_unchanged(frames)  # the capture as it is now is the one its record describes
-        plan.capture, plan.record = frames, json.loads(frames.record)
+        plan = CaptureWrites(url, meta, n_frames, chunk_frames, task_frames, frames)
+    else:
+        plan = SpikeWrites(url, meta, n_frames, chunk_frames, task_frames)
     if resume:  # opened once for the checks before the claim: its cut here, its truth by _checked_truth
         plan.resumed = open_spike_store(url, allow_incomplete=True)
         plan.resumable(plan.resumed)
