@@ -51,7 +51,7 @@ from pipeline.stores.outputs import SPIKE_STORE, check_existing
 from pipeline.compute.progress import is_quiet
 from pipeline.stores.spike_store import (CODEC_LEVEL, COMMITTED, WRITE_CONFIG, SpikeMeta, SpikeStore,
                                   chunk_frames_for, ingest_task_arrays, open_spike_store)
-from pipeline.stores.spike_writes import COMMITTED_UNITS, SpikesIncomplete, SpikeWrites, write_packed, write_store
+from pipeline.stores.spike_writes import SpikesIncomplete, SpikeWrites, write_packed, write_store
 from pipeline.stores.storage import check_apart, exists, recorded, remove
 from stages.capture.bits import count_spikes, packed_width
 from stages.reconstruction.cfa import check_cfa, flip_vertically
@@ -130,17 +130,14 @@ class IngestPlan:
     """What every task needs, a few hundred bytes travelling in each task: the capture as workers open it
     (absolute, or a URL), the store, and the cut into tasks."""
 
-    src: str
+    capture: "CaptureFrames"
     dest: str
-    height: int | None
-    width: int | None
-    flip: bool
-    head_columns: int
-    key: str | None
-    n_frames: int
     task_frames: int
-    run: str  # this job's id: workers open the capture and the store once per job
-    layout: str | None = None  # as IngestOptions.layout
+    run: str  # this run's id: workers open the capture and the store once per run
+
+    @property
+    def n_frames(self) -> int:
+        return self.capture.n_frames
 
     @property
     def n_tasks(self) -> int:
@@ -151,20 +148,14 @@ class IngestPlan:
         start = index * self.task_frames
         return start, min(start + self.task_frames, self.n_frames)
 
-    def open_capture(self):
-        return open_capture(self.src, height=self.height, width=self.width, flip=self.flip,
-                            head_columns=self.head_columns, key=self.key, layout=self.layout)
-
 
 @dataclass
 class _Job:
     """An ingest checked and cut into tasks, before anything is written."""
 
-    capture: object
-    meta: SpikeMeta
-    chunk: int
+    capture: object  # the reader, opened
+    writes: "CaptureWrites"
     plan: IngestPlan
-    record: dict  # the attributes of ``committed``: what --resume compares
     counts: np.ndarray  # the spike counts of its tasks, -1: not committed (of the store to resume, when checked)
 
 
@@ -193,18 +184,18 @@ def _prepare(src: str, dest: str, options: IngestOptions, *, parallel: bool, cli
     sensor_cfa, meta = capture_meta(src, options, capture)
     chunk = chunk_frames_for(meta, capture.n_frames)
     resumed = _resumed(dest) if options.resume else None
-    found = resumed[1] if resumed else {}
     asked = options.task_frames
-    if asked is None and isinstance(found.get("task_frames"), int) and found["task_frames"] > 0:
-        asked = found["task_frames"]  # resumed as it was cut
-    task_frames = task_frames_for(chunk, capture.height * packed_width(capture.width), asked)
-    record = {"units": COMMITTED_UNITS, "task_frames": task_frames, **capture_record(src, options, capture, sensor_cfa)}
-    plan = IngestPlan(recorded(src), recorded(dest), options.height, options.width, options.flip, options.head_columns,
-                      options.key, capture.n_frames, task_frames, uuid.uuid4().hex, options.layout)
-    job = _Job(capture, meta, chunk, plan, record, np.full(plan.n_tasks, -1, np.int64))
-    if options.resume:
-        job.counts = _check_resumable(dest, src, job, resumed)
-    return job
+    if asked is None and resumed is not None and isinstance(found := resumed.group[COMMITTED].attrs.get("task_frames"),
+                                                            int) and found > 0:
+        asked = found  # resumed as it was cut
+    record = capture_record(src, options, capture, sensor_cfa)
+    frames = CaptureFrames(recorded(src), options.height, options.width, options.flip, options.head_columns,
+                           options.layout, capture.n_frames, capture.height, packed_width(capture.width),
+                           json.dumps(record), options.key)
+    writes = CaptureWrites(dest, meta, capture.n_frames, chunk,
+                           task_frames_for(chunk, capture.height * packed_width(capture.width), asked), frames, cli=True)
+    counts = writes.resumable(resumed) if resumed is not None else np.full(writes.n_tasks, -1, np.int64)
+    return _Job(capture, writes, writes.plan(), counts)
 
 
 def opened_capture(src: str, options: IngestOptions):
@@ -275,28 +266,13 @@ def cut_short(src: str, unread: int, n_frames: int) -> str:
             f"sequence): not read")
 
 
-def _resumed(dest: str) -> tuple[SpikeStore, dict]:
-    """The store to resume and the attributes of its ``committed`` record; refuses a store that has none."""
+def _resumed(dest: str) -> SpikeStore:
+    """The store to resume; refuses a store that holds no record of ingest tasks."""
     store = open_spike_store(dest, allow_incomplete=True)  # a video store, a folder, ...: refused by name
     if COMMITTED not in store.group or not isinstance(store.group[COMMITTED], zarr.Array):
         raise InputError(f"cannot resume {dest}: it holds no record of ingest tasks (a simulated store, or one "
                          f"ingested by cscsr before resumable ingest): ingest it again with --overwrite")
-    return store, dict(store.group[COMMITTED].attrs)
-
-
-def _check_resumable(dest: str, src: str, job: _Job, resumed: tuple[SpikeStore, dict] | None = None) -> np.ndarray:
-    """Refuse to resume ``dest`` (``resumed``: as :func:`_resumed` opened it, else opened now) from another
-    capture, with other options or another cut into tasks; -> the spike counts of its tasks (-1: not
-    committed). Reads, never writes."""
-    store, found = resumed or _resumed(dest)
-    check_same_capture(dest, src, found, job.record, task_frames=job.plan.task_frames)
-    committed = store.group[COMMITTED]
-    if (store.n_frames != job.plan.n_frames or store.spikes.chunks[0] != job.chunk
-            or committed.shape != (job.plan.n_tasks,)):
-        raise InputError(f"cannot resume {dest}: its arrays do not match the capture ({store.n_frames} frames in "
-                         f"chunks of {store.spikes.chunks[0]}, {committed.shape[0]} tasks): start again with "
-                         f"--overwrite")
-    return committed[:].astype(np.int64)
+    return store
 
 
 def on_dask(client, workers: int | None, scheduler: str | None) -> bool:
@@ -341,10 +317,8 @@ def run_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *,
                  "its start-up)", src, job.plan.n_frames)
     if parallel and client is None:
         check_scheduler(scheduler)  # a named scheduler answers (within seconds) before DEST is claimed or replaced
-    plan = job.plan
-    writes = CaptureWrites(dest, job.meta, plan.n_frames, job.chunk, plan.task_frames,
-                           capture_frames_of(plan, job.capture, job.record), cli=True,
-                           stream=None if parallel else job.capture)
+    plan, writes, meta = job.plan, job.writes, job.writes.meta
+    writes.stream = None if parallel else job.capture  # in this process: one stream (a .npz too)
     with contextlib.ExitStack() as stack:
         if parallel and client is None and scheduler_address(scheduler):  # a long-lived cluster: connect once
             client = stack.enter_context(dask_client(scheduler=scheduler))
@@ -353,7 +327,7 @@ def run_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *,
         if isinstance(client, Client) and progress and not is_quiet() and (link := dashboard_link(client)):
             print(f"dashboard: {link}", file=sys.stderr)  # never mixed with results on stdout
         log.debug("%s -> %s: %d frames of %dx%d, cfa %s; %d tasks of %d frames, %d committed already; %s", src, dest,
-                  plan.n_frames, job.meta.height, job.meta.width, job.meta.cfa, plan.n_tasks, plan.task_frames,
+                  plan.n_frames, meta.height, meta.width, meta.cfa, plan.n_tasks, plan.task_frames,
                   int((job.counts >= 0).sum()), "in this process, one stream" if not parallel else
                   f"on the cluster at {client.scheduler.address}" if isinstance(client, Client) else
                   f"on local clusters of {workers or 'a worker per core'} workers, {SEGMENT_TASKS} tasks each")
@@ -405,12 +379,6 @@ class CaptureFrames:
         return opened_frames(self).read(start, stop)[(slice(None), *rest)]
 
 
-def capture_frames_of(plan: IngestPlan, capture, record: dict) -> CaptureFrames:
-    """The frames of the capture ``plan`` ingests, opened as ``capture``, with ``record`` (its ``committed`` record)."""
-    return CaptureFrames(plan.src, plan.height, plan.width, plan.flip, plan.head_columns, plan.layout, plan.n_frames,
-                         capture.height, packed_width(capture.width), json.dumps(record), plan.key)
-
-
 @functools.lru_cache(maxsize=8)
 def opened_frames(frames: CaptureFrames):
     """The capture's reader, opened once per process; refused if the capture changed since the graph was built."""
@@ -441,17 +409,23 @@ class CaptureWrites(SpikeWrites):
             self.again = "--overwrite"
 
     def check_same(self, store: SpikeStore, found: dict) -> None:
-        """The capture it was written from, read as it was (its other attributes follow from those)."""
-        check_same_capture(self.url, self.capture.url, found, self.record, again=self.again)
+        """The capture it was written from, read as it was (its other attributes follow from those), and, for the
+        job, cut as it was (one task of the whole capture, however large, is one cut)."""
+        task_frames, recorded_task = self.task_frames if self.cli else None, found.get("task_frames")
+        if isinstance(recorded_task, int) and task_frames is not None and self.n_frames <= min(recorded_task,
+                                                                                                task_frames):
+            task_frames = recorded_task
+        check_same_capture(self.url, self.capture.url, found, self.record, task_frames=task_frames, again=self.again)
+
+    def plan(self) -> IngestPlan:
+        """What each of its tasks carries (:func:`ingest_task`), for one run."""
+        return IngestPlan(self.capture, recorded(self.url), self.task_frames, uuid.uuid4().hex)
 
     def guarded(self) -> contextlib.AbstractContextManager:
         return _removed_if_damaged(self.url)
 
     def run(self, bits, todo: list[int], advance, client) -> np.ndarray:
-        frames = self.capture
-        plan = IngestPlan(frames.url, recorded(self.url), frames.height, frames.width, frames.flip,
-                          frames.head_columns, frames.key, frames.n_frames, self.task_frames, uuid.uuid4().hex,
-                          frames.layout)
+        plan = self.plan()
         if client is None and self.stream is not None:
             return self._streamed(todo, advance)
         if isinstance(client, LocalClusters):
@@ -542,11 +516,8 @@ def run_tasks(client, tasks: Iterable[int], *, plan: IngestPlan) -> Iterator[Out
 
 @functools.lru_cache(maxsize=4)
 def _opened(plan: IngestPlan):
-    """The capture and the store's arrays, opened once per worker process and job."""
-    capture = plan.open_capture()
-    if capture.n_frames != plan.n_frames:
-        raise InputError(f"{plan.src} changed since the ingest started: {capture.n_frames} frames, not {plan.n_frames}")
-    return (capture, *ingest_task_arrays(plan.dest))
+    """The capture and the store's arrays, opened once per worker process and run."""
+    return (opened_frames(plan.capture), *ingest_task_arrays(plan.dest))
 
 
 def ingest_task(plan: IngestPlan, index: int):
@@ -606,7 +577,7 @@ def plan_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *
         check_free(dest)
     else:  # what new_output would refuse, refused now
         check_existing(dest, overwrite=options.overwrite, kind=SPIKE_STORE, flag="--resume or --overwrite")
-    plan, meta, counts = job.plan, job.meta, job.counts
+    plan, meta, counts, chunk = job.plan, job.writes.meta, job.counts, job.writes.chunk
     seconds, stored, measured = _measure(job)
     todo = int((counts < 0).sum())
     task_frames = min(plan.task_frames, plan.n_frames)  # a task holds no more frames than the capture has
@@ -620,8 +591,8 @@ def plan_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *
     return {
         "source": str(src), "store": str(dest), "runs_on": where, "resume": options.resume,
         "frames": plan.n_frames, "height": meta.height, "width": meta.width,
-        "capture_bytes": job.record["capture"]["bytes"],
-        "chunk_frames": job.chunk, "chunks": -(-plan.n_frames // job.chunk),
+        "capture_bytes": job.writes.record["capture"]["bytes"],
+        "chunk_frames": chunk, "chunks": -(-plan.n_frames // chunk),
         "task_frames": task_frames, "tasks": plan.n_tasks, "tasks_committed": plan.n_tasks - todo,
         "tasks_to_run": todo,
         "store_bytes_estimate": int(round(estimate)), "bits_per_pixel_estimate": 8 * estimate / pixels,
@@ -638,7 +609,7 @@ def _measure(job: _Job) -> tuple[float, int, int]:
 
     def write(packed: np.ndarray) -> int:
         memory = zarr.storage.MemoryStore()
-        array = zarr.create_array(memory, shape=packed.shape, chunks=(job.chunk, *packed.shape[1:]), dtype=np.uint8,
+        array = zarr.create_array(memory, shape=packed.shape, chunks=(job.writes.chunk, *packed.shape[1:]), dtype=np.uint8,
                                   fill_value=0, compressors=zarr.codecs.ZstdCodec(level=CODEC_LEVEL),
                                   config={"write_empty_chunks": True})
         with zarr.config.set(WRITE_CONFIG):
@@ -652,7 +623,7 @@ def _measure(job: _Job) -> tuple[float, int, int]:
     else:
         packed = next(iter(capture.blocks(plan.task_frames)))[1]
     read = time.perf_counter() - began
-    write(packed[: min(len(packed), job.chunk)])  # warm-up: the codec and Zarr's threads
+    write(packed[: min(len(packed), job.writes.chunk)])  # warm-up: the codec and Zarr's threads
     began = time.perf_counter()
     stored = write(packed)
     return read + time.perf_counter() - began, stored, packed.shape[0]
