@@ -168,7 +168,7 @@ def task_frames_for(chunk: int, frame_bytes: int, asked: int | None = None) -> i
 
 def _prepare(src: str, dest: str, options: IngestOptions, *, parallel: bool, client) -> _Job:
     """Every check of an ingest that writes nothing: the options, the places, the capture, whether it can be
-    read in parallel, and for ``--resume`` the store to finish (:func:`_check_resumable`)."""
+    read in parallel, and for ``--resume`` the store to finish (``SpikeWrites.resumable``); reads, never writes."""
     options.check()
     check_apart(dest, src)
     if options.resume and not exists(dest):
@@ -404,14 +404,14 @@ class CaptureWrites(SpikeWrites):
                  capture: CaptureFrames, *, cli: bool = False, stream=None):
         super().__init__(url, meta, n_frames, chunk_frames, task_frames)
         self.capture, self.stream, self.cli = capture, stream, cli
-        self.record = {k: v for k, v in json.loads(capture.record).items() if k not in ("units", "task_frames")}
+        self.record = json.loads(capture.record)
         if cli:
             self.again = "--overwrite"
 
     def check_same(self, store: SpikeStore, found: dict) -> None:
-        """The capture it was written from, read as it was (its other attributes follow from those), and, for the
-        job, cut as it was (one task of the whole capture, however large, is one cut)."""
-        task_frames, recorded_task = self.task_frames if self.cli else None, found.get("task_frames")
+        """The capture it was written from, read as it was (its other attributes follow from those), and cut as it
+        was if a cut is asked (one task of the whole capture, however large, is one cut)."""
+        task_frames, recorded_task = self.task_frames if self.asked[1] else None, found.get("task_frames")
         if isinstance(recorded_task, int) and task_frames is not None and self.n_frames <= min(recorded_task,
                                                                                                 task_frames):
             task_frames = recorded_task
