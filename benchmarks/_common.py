@@ -3,11 +3,15 @@
 Not a benchmark itself (``run_all.py`` skips files whose name starts with ``_``).
 """
 
+import contextlib
 import json
 import os
 import platform
+import shutil
 import statistics
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -17,6 +21,35 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 median = statistics.median
+HIGH_WATER = """
+def high_water(pid=None):
+    for line in open(f"/proc/{pid or os.getpid()}/status"):
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) * 1024
+"""  # source for a benchmark's child interpreter (it imports os): a process's peak resident memory, in bytes
+
+
+def run_child(code: Path, script: str, *args) -> dict:
+    """``script`` in a fresh interpreter in the tree ``code`` (this one, or a :func:`reference_checkout`), given
+    ``args``; -> the JSON of its last line of output. A failure stops the benchmark, its error shown."""
+    done = subprocess.run([sys.executable, "-c", script, *map(str, args)], cwd=code, capture_output=True, text=True)
+    if done.returncode:
+        raise SystemExit(f"a run in {code} failed:\n{done.stderr[-3000:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+@contextlib.contextmanager
+def reference_checkout(rev: str, prefix: str):
+    """(a scratch folder, a checkout of commit ``rev`` in it: ``git worktree``), both removed afterwards."""
+    work = Path(tempfile.mkdtemp(prefix=prefix))
+    reference = work / "reference"
+    subprocess.run(["git", "worktree", "add", "--detach", str(reference), rev], cwd=ROOT, check=True,
+                   capture_output=True)
+    try:
+        yield work, reference
+    finally:
+        subprocess.run(["git", "worktree", "remove", "--force", str(reference)], cwd=ROOT, capture_output=True)
+        shutil.rmtree(work, ignore_errors=True)
 
 
 def timed(fn, repeats: int) -> tuple[float, object]:

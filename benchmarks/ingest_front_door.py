@@ -15,27 +15,21 @@ Goals: wall time <= 1.05x the reference's; peak memory <= 1.1x.
 """
 
 import argparse
-import json
 import shutil
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-from _common import ROOT, load_average, markdown_table, median, save_results, write_integrate_and_fire
+from _common import (HIGH_WATER, ROOT, load_average, markdown_table, median, reference_checkout, run_child, save_results,
+                     write_integrate_and_fire)
 
 REFERENCE = "eaa410d"  # the last commit before the ingest job wrote its store as lazy.to_spikes does
 GOAL_TIME, GOAL_MEMORY = 1.05, 1.1
-RUN = """
+RUN = f"""
 import json, os, sys, time
 sys.path.insert(0, os.getcwd())
 from pipeline.jobs.ingest import IngestOptions, ingest
-
-def high_water(pid=None):
-    for line in open(f"/proc/{pid or os.getpid()}/status"):
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) * 1024
-
+{HIGH_WATER}
 src, dest, way = sys.argv[1], sys.argv[2], sys.argv[3]
 options = IngestOptions(1000, 1000, cfa="rggb")
 if way == "one process":
@@ -50,7 +44,7 @@ else:
         ingest(src, dest, options, progress=False, client=client)
         seconds = time.perf_counter() - start
         workers = sorted(client.run(high_water).values())
-print(json.dumps({"seconds": seconds, "workers": workers, "process": high_water()}))
+print(json.dumps({{"seconds": seconds, "workers": workers, "process": high_water()}}))
 """
 WAYS = ("one process", "2 workers")
 
@@ -71,14 +65,6 @@ def capture(frames: int) -> Path:
     return path
 
 
-def run(code: Path, src: Path, dest: Path, way: str) -> dict:
-    done = subprocess.run([sys.executable, "-c", RUN, str(src), str(dest), way], cwd=code, capture_output=True,
-                          text=True)
-    if done.returncode:
-        raise SystemExit(f"ingest in {code} failed:\n{done.stderr[-3000:]}")
-    return json.loads(done.stdout.strip().splitlines()[-1])
-
-
 def same_bytes(a: Path, b: Path) -> bool:
     import numpy as np
     import zarr
@@ -95,11 +81,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=4000, help="frames of the capture (125,000 bytes each)")
     args = parser.parse_args()
     src = capture(args.frames)
-    work = Path(tempfile.mkdtemp(prefix="cscsr-ingest-front-door-"))
-    reference = work / "reference"
-    subprocess.run(["git", "worktree", "add", "--detach", str(reference), args.reference], cwd=ROOT, check=True,
-                   capture_output=True)
-    try:
+    with reference_checkout(args.reference, "cscsr-ingest-front-door-") as (work, reference):
         trees = {"this tree": ROOT, "reference": reference}
         results = {}
         for way in WAYS:
@@ -109,7 +91,7 @@ def main() -> None:
                 for name, code in order:
                     outs[name] = work / f"{name.replace(' ', '-')}.zarr"
                     shutil.rmtree(outs[name], ignore_errors=True)
-                    result = run(code, src, outs[name], way)
+                    result = run_child(code, RUN, src, outs[name], way)
                     results.setdefault((way, name), []).append(result)
                     print(f"{way}, {name}: {result['seconds']:.2f} s, process {result['process'] / 2**20:.0f} MiB, "
                           f"workers {[round(w / 2**20) for w in result['workers']]} MiB", file=sys.stderr, flush=True)
@@ -134,9 +116,6 @@ def main() -> None:
         save_results("ingest_front_door", {"reference": args.reference, "repeats": args.repeats,
                                            "frames": args.frames, "figures": figures,
                                            "runs": {" / ".join(key): value for key, value in results.items()}})
-    finally:
-        subprocess.run(["git", "worktree", "remove", "--force", str(reference)], cwd=ROOT, capture_output=True)
-        shutil.rmtree(work, ignore_errors=True)
 
 
 if __name__ == "__main__":

@@ -15,29 +15,21 @@ bounded by the chunks in flight, not by the recording's length).
 """
 
 import argparse
-import json
 import shutil
-import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
-from _common import load_average, markdown_table, median, save_results
+from _common import HIGH_WATER, load_average, markdown_table, median, reference_checkout, run_child, save_results
 
 ROOT = Path(__file__).resolve().parent.parent
 REFERENCE = "9b4a252"  # the last commit before the simulate job became a front door to the lazy stages
 GOAL_TIME, GOAL_MEMORY = 1.05, 1.25
-RUN = """
+RUN = f"""
 import json, os, sys, time
 sys.path.insert(0, os.getcwd())
 from distributed import Client, LocalCluster
 from pipeline.jobs.simulate import SimulateOptions, simulate
-
-def high_water(pid=None):
-    for line in open(f"/proc/{pid or os.getpid()}/status"):
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) * 1024
-
+{HIGH_WATER}
 src, dest, frames, motion = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4] or None
 options = SimulateOptions(scale=4, frames=frames, motion=motion, noise="realistic", chunk_frames=20, truth_every=200)
 with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=":0") as cluster, Client(cluster) as client:
@@ -46,7 +38,7 @@ with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=":0") as 
     simulate(src, dest, options, scheduler=cluster.scheduler_address, progress=False)
     seconds = time.perf_counter() - start
     workers = sorted(client.run(high_water).values())
-print(json.dumps({"seconds": seconds, "workers": workers, "client": high_water()}))
+print(json.dumps({{"seconds": seconds, "workers": workers, "client": high_water()}}))
 """
 
 
@@ -66,14 +58,6 @@ def sources(work: Path) -> dict[str, tuple[str, str]]:
     return {"picture, random motion": (str(work / "picture.png"), "random"), "6-frame video, flow": (str(folder), "")}
 
 
-def run(code: Path, source: str, motion: str, dest: Path, frames: int) -> dict:
-    done = subprocess.run([sys.executable, "-c", RUN, source, str(dest), str(frames), motion], cwd=code,
-                          capture_output=True, text=True)
-    if done.returncode:
-        raise SystemExit(f"simulate in {code} failed:\n{done.stderr[-3000:]}")
-    return json.loads(done.stdout.strip().splitlines()[-1])
-
-
 def same_bytes(a: Path, b: Path) -> bool:
     import numpy as np
     import zarr
@@ -89,11 +73,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--frames", type=int, default=400, help="the short run's spike frames (the long run: 10x)")
     args = parser.parse_args()
-    work = Path(tempfile.mkdtemp(prefix="cscsr-simulate-memory-"))
-    reference = work / "reference"
-    subprocess.run(["git", "worktree", "add", "--detach", str(reference), args.reference], cwd=ROOT, check=True,
-                   capture_output=True)
-    try:
+    with reference_checkout(args.reference, "cscsr-simulate-memory-") as (work, reference):
         trees = {"this tree": ROOT, "reference": reference}
         results = {}
         scenes = sources(work)
@@ -105,7 +85,7 @@ def main() -> None:
                     for name, code in order:
                         outs[name] = work / f"{name.replace(' ', '-')}.zarr"
                         shutil.rmtree(outs[name], ignore_errors=True)
-                        result = run(code, source, motion, outs[name], frames)
+                        result = run_child(code, RUN, source, outs[name], frames, motion)
                         results.setdefault((scene, frames, name), []).append(result)
                         print(f"{scene}, {frames} frames, {name}: {result['seconds']:.1f} s, workers "
                               f"{[round(w / 2**20) for w in result['workers']]} MiB", file=sys.stderr, flush=True)
@@ -138,9 +118,6 @@ def main() -> None:
         print(f"\nLoad average {load_average()}.")
         save_results("simulate_memory", {"reference": args.reference, "repeats": args.repeats, "figures": figures,
                                          "runs": {" / ".join(map(str, key)): value for key, value in results.items()}})
-    finally:
-        subprocess.run(["git", "worktree", "remove", "--force", str(reference)], cwd=ROOT, capture_output=True)
-        shutil.rmtree(work, ignore_errors=True)
 
 
 if __name__ == "__main__":
