@@ -38,6 +38,7 @@ import multiprocessing
 import queue
 import signal
 import sys
+import weakref
 from collections.abc import Callable, Iterable, Iterator
 from typing import TypeVar
 
@@ -245,12 +246,26 @@ def _on_a_local_cluster(run, items: list, workers: int | None, show_dashboard: b
                         preload: tuple[str, ...] = ()) -> Iterator:
     """A segment in the process that calls: ``run(client, items)`` on a local cluster of ``workers`` started for it,
     its workers forked from a server that imported ``preload`` (and the dashboard link, if ``show_dashboard``)."""
-    from pipeline.compute.cluster import dashboard_link, dask_client
+    from pipeline.compute.cluster import dask_client
 
     with dask_client(workers=workers, preload=preload) as client:
-        if show_dashboard and (link := dashboard_link(client)):
-            print(f"dashboard: {link}", file=sys.stderr)
+        if show_dashboard:
+            show_dashboard_once(client)
         yield from run(client, items)
+
+
+_DASHBOARDS_SHOWN: "weakref.WeakSet" = weakref.WeakSet()  # the clients whose dashboard link is printed already
+
+
+def show_dashboard_once(client) -> None:
+    """Print ``client``'s dashboard link on standard error (never mixed with results on stdout), once per client:
+    jobs that share a client (the demo's, evaluate's methods) do not repeat it."""
+    from pipeline.compute.cluster import dashboard_link
+
+    if client not in _DASHBOARDS_SHOWN:
+        _DASHBOARDS_SHOWN.add(client)
+        if link := dashboard_link(client):
+            print(f"dashboard: {link}", file=sys.stderr)
 
 
 def _segment(run, items, workers, show_dashboard, messages, verbose=False, preload=()) -> None:

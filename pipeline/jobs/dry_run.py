@@ -148,11 +148,7 @@ def _writable(folder: str) -> bool:
 
 
 TRIAL_WORKERS = 64  # the most workers a dry run measures on
-
-
 SAMPLE_SECONDS = 3.0  # about how long a dry run keeps them busy after a task each to warm them
-
-
 MOST_TASKS = 100  # a worker, in that time (tasks of milliseconds)
 
 
@@ -177,52 +173,45 @@ def _measured(client, plan: Plan, part: Part, blocks: TileBlocks, hr_size: tuple
         raise InputError("the cluster has no worker that would run this job's tasks: add workers, then plan again")
     of, able = len(able), able[:TRIAL_WORKERS]
     with _scratch(client, able) as url:
-        return _measured_into(client, url, able, of, plan, part, blocks, hr_size, resources, seconds)
+        shared = not url.startswith("memory://")  # one store that every worker reaches, else one in each worker process
+        # workers that share a process (a client's in-process workers) share its memory: the store made once there
+        owners = list({process: address for address, process in client.run(_process, workers=able).items()}.values())
+        trial = dataclasses.replace(plan, out=url, run=uuid.uuid4().hex)
+        layout = {"centres": part.centres, "hr_size": hr_size, **blocks.layout}
+        groups = _from_the_middle(blocks)
 
+        def submit(unit, where: list[str] = able):
+            return client.submit(_sampled, blocks, *unit, trial.out, trial.run, pure=False, workers=where,
+                                 allow_other_workers=False, resources=resources)
 
-def _measured_into(client, url: str, able: list[str], of: int, plan: Plan, part: Part, blocks: TileBlocks,
-                   hr_size: tuple[int, int], resources: dict | None, seconds: float) -> dict:
-    """:func:`_measured` on the workers ``able`` (of ``of``), its tasks writing into the store at ``url``."""
-    shared = not url.startswith("memory://")  # one store that every worker reaches, else one in each worker process
-    # workers that share a process (a client's in-process workers) share its memory: the store made once there
-    owners = list({process: address for address, process in client.run(_process, workers=able).items()}.values())
-    trial = dataclasses.replace(plan, out=url, run=uuid.uuid4().hex)
-    layout = {"centres": part.centres, "hr_size": hr_size, "tiles": (len(blocks.grid), len(blocks.grid[0])),
-              "tile_hr": (blocks.hr_tiles[0][0], blocks.hr_tiles[1][0])}
-    groups = _from_the_middle(blocks)
+        most = _most_sampled(sum(1 for _ in blocks.units()), len(able))
 
-    def submit(unit, where: list[str] = able):
-        return client.submit(_sampled, blocks, *unit, trial.out, trial.run, pure=False, workers=where,
-                             allow_other_workers=False, resources=resources)
+        def sample() -> Iterator:  # for about ``seconds``, and 3 tasks a worker at least
+            for n, group in enumerate(groups):
+                if n >= most or (n >= 3 * len(able) and n % len(able) == 0 and time.perf_counter() - began >= seconds):
+                    return
+                yield group
 
-    most = _most_sampled(sum(1 for _ in blocks.units()), len(able))
-
-    def sample() -> Iterator:  # for about ``seconds``, and 3 tasks a worker at least
-        for n, group in enumerate(groups):
-            if n >= most or (n >= 3 * len(able) and n % len(able) == 0 and time.perf_counter() - began >= seconds):
-                return
-            yield group
-
-    if shared:
-        _trial_store(url, trial.attrs(), layout)
-    else:
-        client.run(_trial_store, url, trial.attrs(), layout, workers=owners)
-    try:
-        client.gather([submit(group, [address]) for address, group in zip(able, groups)])  # warm
-        began, finished, results = time.perf_counter(), [], []
-        for _, future in submitted(client, sample(), submit):  # as the job submits them: a bounded window
-            results.append(future.result())
-            finished.append(time.perf_counter())
-    finally:
-        client.run(_trial_store, url, None, None, shared, workers=owners)
         if shared:
-            _trial_store(url)
-    # until the last workers go idle: the time of the task that leaves one task a worker to finish
-    counted = max(1, len(finished) - len(able) + 1)
-    seconds = finished[counted - 1] - began
-    return {"workers": len(able), "of": of, "tasks": len(results), "seconds": seconds,
-            "seconds_per_task": seconds * len(able) / counted, "bytes": sum(r["bytes"] for r in results),
-            "hr_pixels": sum(r["hr_pixels"] for r in results)}
+            _trial_store(url, trial.attrs(), layout)
+        else:
+            client.run(_trial_store, url, trial.attrs(), layout, workers=owners)
+        try:
+            client.gather([submit(group, [address]) for address, group in zip(able, groups)])  # warm
+            began, finished, results = time.perf_counter(), [], []
+            for _, future in submitted(client, sample(), submit):  # as the job submits them: a bounded window
+                results.append(future.result())
+                finished.append(time.perf_counter())
+        finally:
+            client.run(_trial_store, url, None, None, shared, workers=owners)
+            if shared:
+                _trial_store(url)
+        # until the last workers go idle: the time of the task that leaves one task a worker to finish
+        counted = max(1, len(finished) - len(able) + 1)
+        seconds = finished[counted - 1] - began
+        return {"workers": len(able), "of": of, "tasks": len(results), "seconds": seconds,
+                "seconds_per_task": seconds * len(able) / counted, "bytes": sum(r["bytes"] for r in results),
+                "hr_pixels": sum(r["hr_pixels"] for r in results)}
 
 
 def _measured_here(client, items, *, job: tuple, seconds: float) -> Iterator[dict]:

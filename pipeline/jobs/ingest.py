@@ -29,7 +29,6 @@ import contextlib
 import functools
 import json
 import logging
-import sys
 import time
 import uuid
 from collections.abc import Iterable, Iterator
@@ -41,10 +40,10 @@ import zarr
 from distributed import Client
 
 from pipeline.stores.captures import RANGED_KINDS, default_layout, open_capture
-from pipeline.compute.cluster import (check_in_memory, check_scheduler, check_workers, dashboard_link, dask_client,
+from pipeline.compute.cluster import (check_in_memory, check_scheduler, check_workers, dask_client,
                               scheduler_address)
 from pipeline.compute.estimate import hours_table
-from pipeline.compute.executor import computed, failure, in_segments, submitted
+from pipeline.compute.executor import computed, failure, in_segments, show_dashboard_once, submitted
 from pipeline.compute.hold import hold_point
 from pipeline.stores.lease import check_free
 from pipeline.stores.outputs import SPIKE_STORE, check_existing
@@ -324,8 +323,8 @@ def run_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *,
             client = stack.enter_context(dask_client(scheduler=scheduler))
         elif parallel and client is None:
             client = LocalClusters(workers, show_dashboard=progress)
-        if isinstance(client, Client) and progress and not is_quiet() and (link := dashboard_link(client)):
-            print(f"dashboard: {link}", file=sys.stderr)  # never mixed with results on stdout
+        if isinstance(client, Client) and progress and not is_quiet():
+            show_dashboard_once(client)
         log.debug("%s -> %s: %d frames of %dx%d, cfa %s; %d tasks of %d frames, %d committed already; %s", src, dest,
                   plan.n_frames, meta.height, meta.width, meta.cfa, plan.n_tasks, plan.task_frames,
                   int((job.counts >= 0).sum()), "in this process, one stream" if not parallel else

@@ -37,9 +37,7 @@ import contextlib
 import dataclasses
 import functools
 import logging
-import sys
 import uuid
-import weakref
 from collections.abc import Iterable
 
 import numpy as np
@@ -49,12 +47,11 @@ from pipeline.compute.cluster import (
     check_in_memory,
     check_scheduler,
     check_workers,
-    dashboard_link,
     dask_client,
     scheduler_address,
     visible_gpus,
 )
-from pipeline.compute.executor import in_segments, result_of
+from pipeline.compute.executor import in_segments, result_of, show_dashboard_once
 from pipeline.compute.progress import is_quiet, progress_bar
 from pipeline.compute.worker_start import NETWORK_PRELOAD
 from pipeline.jobs.dry_run import plan_job
@@ -86,26 +83,9 @@ from pipeline.stores.storage import check_apart, exists, recorded, remove_partia
 from pipeline.stores.video_store import VIDEO, committed_mask, create_video_store, open_video_store
 from stages.errors import InputError
 from stages.reconstruction.methods import NETWORKS, Reconstructor, output_centres
-from stages.reconstruction.tiles import Tile, device_tile, tile_grid
+from stages.reconstruction.tiles import device_tile, tile_grid
 
 log = logging.getLogger("cscsr.reconstruct")  # DEBUG lines (cscsr --verbose): the job's plan, each task's outcome
-_DASHBOARDS_SHOWN: "weakref.WeakSet" = weakref.WeakSet()  # the clients whose dashboard link is printed already
-
-
-def _show_dashboard_once(client) -> None:
-    """Print ``client``'s dashboard link on standard error (never mixed with results on stdout), once per client:
-    jobs that share a client (the demo's, evaluate's methods) do not repeat it."""
-    if client in _DASHBOARDS_SHOWN:
-        return
-    _DASHBOARDS_SHOWN.add(client)
-    if link := dashboard_link(client):
-        print(f"dashboard: {link}", file=sys.stderr)
-
-
-def check_options(options: ReconstructOptions, n_frames: int) -> None:
-    options.check()
-    if options.window > n_frames:
-        raise InputError(f"--window {options.window} is longer than the recording ({n_frames} frames)")
 
 
 def network_options(options: ReconstructOptions) -> tuple[str | None, str | None]:
@@ -117,7 +97,9 @@ def checked_method(store: SpikeStore, options: ReconstructOptions) -> tuple[int,
     """Every check of a job on ``store`` that needs no output: the options against the recording, the
     scale (``--scale``, else the store's, else 4) and the method, its weights loaded (on the CPU: this
     process only checks them; without ``--weights``, those for CPU workers and the recording's CFA). -> (scale, method)."""
-    check_options(options, store.n_frames)
+    options.check()
+    if options.window > store.n_frames:
+        raise InputError(f"--window {options.window} is longer than the recording ({store.n_frames} frames)")
     scale = options.scale if options.scale is not None else int(store.attrs.get("scale", 4))
     weights = options.weights or (default_weights(False, store.meta.cfa) if options.method in NETWORKS else None)
     method = reconstructor(options.method, weights, *network_options(options), device="cpu")  # loads and checks them
@@ -247,13 +229,17 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
                     **made_from(store, method.weights_sha256),  # what --resume checks beside the paths
                     start=part.start, stop=part.stop, region=part.region)
         hr_size = ((y1 - y0) * scale, (x1 - x0) * scale)
-        blocks = planned_blocks(plan, method, centres, part.first, grid, where.gpus)
+        spec = MethodSpec(plan.method, plan.weights, plan.precision, plan.backend, plan.weights_sha256,
+                          bool(plan.fast_gpu))  # the job's blocks: the lazy graph's for the same options
+        blocks = cut(spec, plan.spikes, plan.source_identity, centres, part.first, plan.every, plan.window, grid,
+                     method.batch, plan.cfa, plan.reset, plan.scale, plan.gpu_batch, plan.gain,
+                     where.gpus and plan.method in NETWORKS)
         if dry_run:
             done = (_check_resumable(plan, open_video_store(out), centres) if options.resume
                     else np.zeros((len(centres), len(grid), len(grid[0])), bool))
             return plan_job(plan, part, blocks, done, hr_size, where, client=client, workers=workers,
                             store=store_url, segment_tasks=options.segment_tasks)
-        done = _prepare_output(plan, options.resume, centres, grid, hr_size, fps=meta.fps / options.every)
+        done = _prepare_output(plan, options.resume, centres, blocks, hr_size, fps=meta.fps / options.every)
         work = functools.partial(run_blocks, blocks=blocks, out=plan.out, run=plan.run)
         log.debug("%s -> %s: %s%s, %d output frames x %d tiles of %d LR pixels (x%d), gain %.4g; %d of %d tiles "
                   "committed already; on %s", store_url, out, options.method,
@@ -264,7 +250,7 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
         with held(out), progress_bar(f"reconstruct {options.method}", len(centres), enabled=progress) as advance:
             if client:
                 if progress and not is_quiet():
-                    _show_dashboard_once(client)
+                    show_dashboard_once(client)
                 outcomes = work(client, blocks.units(done))
             else:  # our own local cluster: a fresh one per segment keeps memory bounded
                 outcomes = in_segments(work, blocks.units(done), options.segment_tasks, workers=workers,
@@ -295,27 +281,14 @@ class JobIncomplete(RuntimeError):
     def __init__(self, out: str, failed: dict[int, str], n_frames: int, again: str = "--resume"):
         frames = sorted(failed)
         shown = ", ".join(map(str, frames[:20])) + (", ..." if len(frames) > 20 else "")
-        first = failed[frames[0]]
         causes = {why.split("): ", 1)[-1] if why.startswith("tile (") else why for why in failed.values()}
-        if len(causes) == 1 and len(frames) > 1:  # one cause (a full disk): named once, not per tile
-            first = f"each: {causes.pop()}"
-        else:
-            first = f"frame {frames[0]}: {first}"
+        first = (f"each: {causes.pop()}" if len(causes) == 1 and len(frames) > 1  # one cause (a full disk): once
+                 else f"frame {frames[0]}: {failed[frames[0]]}")
         rest = (f"the other frames are committed in {out}" if len(frames) < n_frames
                 else f"what was written is kept in {out}")
         super().__init__(f"{len(frames)} of {n_frames} output frames failed (frames {shown}; {first}); {rest}: "
                          f"fix the cause and run again with {again}")
         self.failed = failed
-
-
-def planned_blocks(plan: Plan, method: Reconstructor, centres: list[int], first: int, grid: list[list[Tile]],
-                   gpus: bool) -> TileBlocks:
-    """The job's blocks (:func:`pipeline.jobs.reconstruct_tasks.cut`): the lazy graph's (``lazy.reconstruct``) for the
-    same options."""
-    spec = MethodSpec(plan.method, plan.weights, plan.precision, plan.backend, plan.weights_sha256,
-                      bool(plan.fast_gpu))
-    return cut(spec, plan.spikes, plan.source_identity, centres, first, plan.every, plan.window, grid, method.batch,
-               plan.cfa, plan.reset, plan.scale, plan.gpu_batch, plan.gain, gpus and plan.method in NETWORKS)
 
 
 def _tally(outcomes: Iterable[Outcome], done: np.ndarray, advance) -> dict[int, str]:
@@ -338,17 +311,13 @@ def _tally(outcomes: Iterable[Outcome], done: np.ndarray, advance) -> dict[int, 
     return failed
 
 
-def _prepare_output(plan: Plan, resume: bool, centres: list[int], grid: list[list[Tile]], hr_size: tuple[int, int],
-                    fps: float | None = None):
+def _prepare_output(plan: Plan, resume: bool, centres: list[int], blocks: TileBlocks, hr_size: tuple[int, int],
+                    fps: float):
     """Create the output (metadata first), or check a resumed one matches; return the commit mask."""
-    tiles = (len(grid), len(grid[0]))
-    first = grid[0][0]
-    tile_hr = ((first.y1 - first.y0) * plan.scale, (first.x1 - first.x0) * plan.scale)
     if resume:
         return _check_resumable(plan, open_video_store(plan.out, writable=True), centres, adopt=True)
-    create_video_store(plan.out, centres=centres, hr_size=hr_size, tile_hr=tile_hr, tiles=tiles,
-                       attrs=plan.attrs(), fps=fps)
-    return np.zeros((len(centres), *tiles), bool)
+    create_video_store(plan.out, centres=centres, hr_size=hr_size, **blocks.layout, attrs=plan.attrs(), fps=fps)
+    return np.zeros((len(centres), *blocks.layout["tiles"]), bool)
 
 
 def _check_resumable(plan: Plan, group, centres: list[int], *, adopt: bool = False) -> np.ndarray:

@@ -150,12 +150,16 @@ class TileBlocks:
         return (tuple((row[0].y1 - row[0].y0) * self.scale for row in self.grid),
                 tuple((t.x1 - t.x0) * self.scale for t in self.grid[0]))
 
+    @property
+    def layout(self) -> dict:
+        """The video store's tiles: ``tiles`` (rows, columns) and ``tile_hr`` (the first tile's HR size)."""
+        rows, columns = self.hr_tiles
+        return {"tiles": (len(rows), len(columns)), "tile_hr": (rows[0], columns[0])}
+
     def units(self, done: np.ndarray | None = None) -> Iterator[tuple[int, int]]:
         """(block along time, pass) of every unit still to run: any of its frames' tiles not committed (``done``,
         (frames, tile rows, tile columns)); generated as consumed."""
-        for b in range(len(self.frames)):
-            if not self.frames[b]:
-                continue
+        for b in range(len(self.frames)):  # never empty (an empty part is refused before)
             for k, tiles in enumerate(self.passes):
                 if done is None or not all(done[self.starts[b] : self.starts[b + 1], ty, tx].all() for ty, tx in tiles):
                     yield b, k
@@ -212,12 +216,6 @@ class TileBlocks:
         places = tuple(((ty, tx), self.corner(ty, tx), (self.frames[b], rows[ty], columns[tx], 3)) for ty, tx in tiles)
         return key, Task(key, write_blocks, self.read(b, k), url, run, self.starts[b], places)
 
-    def layered(self, key: tuple, task):
-        """The task :meth:`written` gives as a high-level graph: one layer, annotated (:attr:`annotations`)."""
-        from dask.highlevelgraph import HighLevelGraph, MaterializedLayer
-
-        return HighLevelGraph({key[0]: MaterializedLayer({key: task}, annotations=self.annotations)}, {key[0]: set()})
-
 
 def cut(spec: MethodSpec, url: str, identity: str, centres: list[int], first: int, every: int, window: int,
         grid: list[list[Tile]], batch: int, cfa: str, reset: str, scale: int, most: int, gain: float | tuple,
@@ -252,11 +250,15 @@ def run_blocks(client, units: Iterable[tuple[int, int]], *, blocks: TileBlocks, 
     ``out``, each unit's task (:meth:`TileBlocks.written`) made as the window moves; yield the outcome of each of its
     tiles as it finishes. The ``reconstruct`` job and ``lazy.to_video`` of a reconstruction read from a store run
     their blocks here."""
+    from dask.highlevelgraph import HighLevelGraph, MaterializedLayer
+
     from pipeline.compute.executor import failure, submitted
 
     def submit(unit):  # everything a task needs travels in it (scattered data dies with the workers holding it)
-        key, task = blocks.written(*unit, out, run)
-        return client.get(blocks.layered(key, task), [key], sync=False)[0]
+        key, task = blocks.written(*unit, out, run)  # one layer, annotated (a share of a GPU worker)
+        graph = HighLevelGraph({key[0]: MaterializedLayer({key: task}, annotations=blocks.annotations)},
+                               {key[0]: set()})
+        return client.get(graph, [key], sync=False)[0]
 
     for (b, k), future in submitted(client, units, submit, idempotent=True):
         error = failure(future)  # the task raised, or the cluster failed it: report it, go on with the others
@@ -282,16 +284,6 @@ def cropped(images: list[np.ndarray], crop: tuple[slice, slice]) -> np.ndarray:
     for n, image in enumerate(images):
         out[n] = image[ys, xs]
     return out
-
-
-def write_task(key: tuple, block: tuple, url: str, run: str, first: int, tile: tuple[int, int],
-               corner: tuple[int, int], shape: tuple[int, ...]):
-    """The task that writes the HR block under key ``block`` (output frames from ``first``, tile ``tile`` at HR
-    ``corner``, of ``shape``) into the video store at ``url`` and commits it, as ``key``: ``to_video``'s write of
-    any ``hr``."""
-    from dask._task_spec import Task, TaskRef
-
-    return Task(key, write_block, TaskRef(block), url, run, first, tile, corner, shape)
 
 
 def write_blocks(blocks: tuple[np.ndarray, ...], url: str, run: str, first: int, places: tuple) -> int:

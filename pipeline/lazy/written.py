@@ -19,7 +19,7 @@ from dask.base import tokenize
 from dask.delayed import Delayed
 
 from pipeline.compute.progress import progress_bar
-from pipeline.jobs.reconstruct_tasks import TileBlocks, run_blocks, write_task
+from pipeline.jobs.reconstruct_tasks import TileBlocks, run_blocks, write_block
 from pipeline.lazy.spikes import (check_coordinates, check_here, check_times, distributed_client, run_of,
                                   url_text)
 from pipeline.lazy.video import VIDEO_DIMS, tile_blocks
@@ -277,9 +277,10 @@ def _resumable(url: str, attrs: dict, n: int, tiles: tuple[int, int], graph: str
 
 
 def _written(data: da.Array, url: str, run: str) -> da.Array:
-    """A task per block of ``data`` (t, y, x, rgb) uint8 (the job's: ``reconstruct_tasks.write_task``): check it
+    """A task per block of ``data`` (t, y, x, rgb) uint8 (the job's: ``reconstruct_tasks.write_block``): check it
     against its chunk, write its frames' chunks of its tile into the video store at ``url``, commit them
     -> (blocks along t, tile rows, tile columns, 1) int64, the frames each wrote."""
+    from dask._task_spec import Task, TaskRef
     from dask.highlevelgraph import HighLevelGraph
 
     name, starts = f"write-{run}", np.cumsum((0, *data.chunks[0]))
@@ -289,8 +290,8 @@ def _written(data: da.Array, url: str, run: str) -> da.Array:
         for ty, rows in enumerate(data.chunks[1]):
             for tx, columns in enumerate(data.chunks[2]):
                 key = (name, b, ty, tx, 0)
-                layer[key] = write_task(key, (data.name, b, ty, tx, 0), url, run, int(starts[b]), (ty, tx),
-                                        (ty * tile_hr[0], tx * tile_hr[1]), (frames, rows, columns, 3))
+                layer[key] = Task(key, write_block, TaskRef((data.name, b, ty, tx, 0)), url, run, int(starts[b]),
+                                  (ty, tx), (ty * tile_hr[0], tx * tile_hr[1]), (frames, rows, columns, 3))
     return da.Array(HighLevelGraph.from_collections(name, layer, dependencies=[data]), name,
                     tuple((1,) * len(c) for c in data.chunks), meta=np.empty((0, 0, 0, 0), np.int64))
 
