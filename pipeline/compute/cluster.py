@@ -4,7 +4,7 @@ Workers are processes with one task thread each; the numerical libraries inside 
 (numba, OpenCV, torch) get ``cores // workers`` threads so that a 2-core laptop with two
 workers is not oversubscribed. An address comes from ``--scheduler`` or
 ``DASK_SCHEDULER_ADDRESS`` or Dask's ``scheduler-address`` setting; an unreachable one is a one-line error within seconds.
-Workers started with ``--resources GPU=1`` are GPU workers (:func:`gpu_workers`).
+Workers started with ``--resources GPU=1`` are GPU workers (``pipeline.jobs.reconstruct.placement`` finds them).
 
 Several GPUs per machine: one worker per GPU, each pinned to its device (``CUDA_VISIBLE_DEVICES``) and advertising
 ``GPU=1``, with :data:`GPU_TASKS_IN_FLIGHT` threads; the rest are 1-thread CPU workers that see no GPU. This is
@@ -480,12 +480,6 @@ class _QuietWorkerLogs(WorkerPlugin):
             log.addFilter(QuietExpectedErrors())
         if threading.current_thread() is threading.main_thread():  # a worker process's event loop: its main thread
             signal.signal(signal.SIGINT, lambda signum, frame: None)  # Python's: processes it starts get the default
-
-
-def gpu_workers(client: Client) -> int:
-    """How many of the cluster's workers advertise the ``GPU`` resource (``dask worker --resources GPU=1``)."""
-    workers = client.scheduler_info()["workers"].values()
-    return sum(1 for worker in workers if (worker.get("resources") or {}).get(GPU, 0) >= 1)
 
 
 def dashboard_link(client: Client) -> str | None:
