@@ -171,6 +171,24 @@ def test_ingest_and_to_spikes_of_open_capture_each_finish_the_other_s_store_and_
     assert store_files(begun_by_ingest) == store_files(reference)
 
 
+def test_a_resume_takes_the_store_s_chunks_and_checks_its_cut_in_the_callers_words(cli, tmp_path, small_chunks):
+    """``to_spikes(resume=True, task_frames=8)`` of a store written in chunks of 4 (not the default 5) resumes: its
+    cut is the store's (8 frames, two chunks), not 8 rounded to the default chunks; ``cscsr ingest --resume`` of it
+    refuses the other cut in the command line's words (it has no ``--chunk-frames``)."""
+    write_dat(tmp_path / "c.dat", (np.random.default_rng(5).random((100, 16, 16)) < 0.2).astype(np.uint8))
+    whole, resumed = tmp_path / "whole.zarr", tmp_path / "resumed.zarr"
+    for url in (whole, resumed):
+        lazy.to_spikes(lazy.open_capture(tmp_path / "c.dat", height=16, width=16), url, chunk_frames=4, task_frames=8)
+    cut_short_of_tasks(resumed, 1)
+    result = cli("ingest", tmp_path / "c.dat", resumed, "--height", 16, "--width", 16, "--resume")
+    assert result.exit_code == 1 and "its arrays do not match the capture (100 frames in chunks of 4, 13 tasks): " \
+        "start again with --overwrite" in result.stderr and "chunk_frames" not in result.stderr, result.stderr
+    done = lazy.to_spikes(lazy.open_capture(tmp_path / "c.dat", height=16, width=16), resumed, task_frames=8,
+                          resume=True)
+    assert (done["tasks_run"], done["tasks_skipped"]) == (12, 1)
+    assert store_files(resumed) == store_files(whole)
+
+
 def test_an_sps100_capture_cut_short_is_what_ingest_stores(tmp_path, monkeypatch, caplog):
     monkeypatch.setattr(spike_store, "TARGET_CHUNK_BYTES", 2 * 1000 * 125)  # 2 frames a chunk
     tail = 64 * 700 + 32

@@ -193,6 +193,7 @@ def _prepare(src: str, dest: str, options: IngestOptions, *, parallel: bool, cli
                            json.dumps(record), options.key)
     writes = CaptureWrites(dest, meta, capture.n_frames, chunk,
                            task_frames_for(chunk, capture.height * packed_width(capture.width), asked), frames, cli=True)
+    writes.given_task = options.task_frames
     counts = writes.resumable(resumed) if resumed is not None else np.full(writes.n_tasks, -1, np.int64)
     return _Job(capture, writes, writes.plan(), counts)
 
@@ -318,13 +319,12 @@ def run_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *,
         check_scheduler(scheduler)  # a named scheduler answers (within seconds) before DEST is claimed or replaced
     plan, writes, meta = job.plan, job.writes, job.writes.meta
     writes.stream = None if parallel else job.capture  # in this process: one stream (a .npz too)
+    writes.dashboard = progress and not is_quiet()
     with contextlib.ExitStack() as stack:
         if parallel and client is None and scheduler_address(scheduler):  # a long-lived cluster: connect once
             client = stack.enter_context(dask_client(scheduler=scheduler))
         elif parallel and client is None:
             client = LocalClusters(workers, show_dashboard=progress)
-        if isinstance(client, Client) and progress and not is_quiet():
-            show_dashboard_once(client)
         log.debug("%s -> %s: %d frames of %dx%d, cfa %s; %d tasks of %d frames, %d committed already; %s", src, dest,
                   plan.n_frames, meta.height, meta.width, meta.cfa, plan.n_tasks, plan.task_frames,
                   int((job.counts >= 0).sum()), "in this process, one stream" if not parallel else
@@ -403,18 +403,27 @@ class CaptureWrites(SpikeWrites):
                  capture: CaptureFrames, *, cli: bool = False, stream=None):
         super().__init__(url, meta, n_frames, chunk_frames, task_frames)
         self.capture, self.stream, self.cli = capture, stream, cli
+        self.dashboard = False  # the job's: print the client's dashboard link when its tasks go there
+        self.given_task = None  # the job's --task-frames, if given
         self.record = json.loads(capture.record)
         if cli:
             self.again = "--overwrite"
 
     def check_same(self, store: SpikeStore, found: dict) -> None:
-        """The capture it was written from, read as it was (its other attributes follow from those), and cut as it
-        was if a cut is asked (one task of the whole capture, however large, is one cut)."""
-        task_frames, recorded_task = self.task_frames if self.asked[1] else None, found.get("task_frames")
+        """The capture it was written from, read as it was (its other attributes, but where it lies, follow from
+        those), and cut as ``--task-frames`` asks, if it does (one task of the whole capture, however large, is one
+        cut); the rest of the cut is :meth:`resumable`'s to check, with the store's chunks."""
+        task_frames, recorded_task = self.task_frames if self.given_task else None, found.get("task_frames")
         if isinstance(recorded_task, int) and task_frames is not None and self.n_frames <= min(recorded_task,
                                                                                                 task_frames):
             task_frames = recorded_task
         check_same_capture(self.url, self.capture.url, found, self.record, task_frames=task_frames, again=self.again)
+
+    def cut_refused(self, store: SpikeStore, tasks: int, recorded_task) -> str:
+        if not self.cli:
+            return super().cut_refused(store, tasks, recorded_task)
+        return (f"cannot resume {self.url}: its arrays do not match the capture ({store.n_frames} frames in chunks "
+                f"of {store.spikes.chunks[0]}, {tasks} tasks): start again with --overwrite")
 
     def plan(self) -> IngestPlan:
         """What each of its tasks carries (:func:`ingest_task`), for one run."""
@@ -427,6 +436,8 @@ class CaptureWrites(SpikeWrites):
         plan = self.plan()
         if client is None and self.stream is not None:
             return self._streamed(todo, advance)
+        if isinstance(client, Client) and self.dashboard:
+            show_dashboard_once(client)
         if isinstance(client, LocalClusters):
             outcomes = in_segments(functools.partial(run_tasks, plan=plan), todo, SEGMENT_TASKS,
                                    workers=client.workers, show_dashboard=client.show_dashboard)

@@ -111,12 +111,17 @@ class SpikeWrites:
         self.cut(store.spikes.chunks[0], asked_task or (recorded_task if recorded_ok else None))
         if (store.n_frames != self.n_frames or asked_chunk not in (None, self.chunk) or not recorded_ok
                 or self.task_frames != recorded_task or committed.shape != (self.n_tasks,)):
-            raise InputError(f"cannot resume {self.url}: it holds {store.n_frames} frames in chunks of {self.chunk}, "
-                             f"{committed.shape[0]} tasks of {recorded_task} frames; these spikes: {self.n_frames} "
-                             f"frames{'' if asked_chunk is None else f', chunk_frames={asked_chunk}'}"
-                             f"{'' if asked_task is None else f', task_frames={asked_task}'}: give those, or write "
-                             f"it again with {self.again}")
+            raise InputError(self.cut_refused(store, committed.shape[0], recorded_task))
         return committed[:].astype(np.int64)
+
+    def cut_refused(self, store: SpikeStore, tasks: int, recorded_task) -> str:
+        """Why ``store`` (of ``tasks`` tasks of ``recorded_task`` frames) is not resumed with these spikes' cut."""
+        asked_chunk, asked_task = self.asked
+        return (f"cannot resume {self.url}: it holds {store.n_frames} frames in chunks of {store.spikes.chunks[0]}, "
+                f"{tasks} tasks of {recorded_task} frames; these spikes: {self.n_frames} frames"
+                f"{'' if asked_chunk is None else f', chunk_frames={asked_chunk}'}"
+                f"{'' if asked_task is None else f', task_frames={asked_task}'}: give those, or write it again with "
+                f"{self.again}")
 
     def check_same(self, store: SpikeStore, found: dict) -> None:
         """Refuse to resume ``store`` (``found``: its ``committed`` attributes) with spikes of other attributes."""
