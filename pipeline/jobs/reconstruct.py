@@ -100,14 +100,32 @@ def checked_method(store: SpikeStore, options: ReconstructOptions) -> tuple[int,
     options.check()
     if options.window > store.n_frames:
         raise InputError(f"--window {options.window} is longer than the recording ({store.n_frames} frames)")
-    scale = options.scale if options.scale is not None else int(store.attrs.get("scale", 4))
-    weights = options.weights or (default_weights(False, store.meta.cfa) if options.method in NETWORKS else None)
-    method = reconstructor(options.method, weights, *network_options(options), device="cpu")  # loads and checks them
-    if options.method in NETWORKS:  # the network's check names the recording beside its weights
-        method.check(options.window, scale, store.meta.cfa, f"the recording {store.url}")
-    else:
-        method.check(options.window, scale, store.meta.cfa)
+    if options.method in NETWORKS and not options.weights:
+        options = dataclasses.replace(options, weights=default_weights(False, store.meta.cfa))
+    return _built_method(options, store.attrs.get("scale"), store.meta.cfa, f"the recording {store.url}")
+
+
+def _built_method(options: ReconstructOptions, stored_scale, cfa: str, recording: str | None = None):
+    """(the scale: ``--scale``, else the recording's ``stored_scale``, else 4; the method, built on the CPU (its
+    weights loaded and checked: this process only checks them) and checked against the window, scale and ``cfa``;
+    a network's check names ``recording`` beside its weights)."""
+    scale = options.scale if options.scale is not None else int(stored_scale or 4)
+    method = reconstructor(options.method, options.weights, *network_options(options), device="cpu")
+    named = (recording,) if recording and options.method in NETWORKS else ()
+    method.check(options.window, scale, cfa, *named)
     return scale, method
+
+
+def prepared(options: ReconstructOptions, client, cfa: str, stored_scale, lr_shape: tuple[int, int],
+             found: dict, recording: str | None = None) -> tuple[ReconstructOptions, Placement, int, Reconstructor]:
+    """Where the method runs (:func:`placement`: ``client``'s GPU workers, else this machine's), the options placed
+    (:func:`placed`: the weights) and sized (:func:`sized`: the tile, the windows a pass) for it and for the part's
+    ``lr_shape``, and the method built and checked (:func:`_built_method`) -> (options, placement, scale, method).
+    ``found``: what a resumed output records. The job and ``lazy.reconstruct`` prepare their method here."""
+    where = placement(options, client)
+    options = placed(options, where, found, cfa)
+    scale, method = _built_method(options, stored_scale, cfa, recording)
+    return sized(options, where, method, lr_shape, found), where, scale, method
 
 
 def placement(options: ReconstructOptions, client) -> Placement:
@@ -197,12 +215,10 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
     with contextlib.ExitStack() as stack:
         if client is None and scheduler_address(scheduler):  # a long-lived cluster: connect once, before any output
             client = stack.enter_context(dask_client(scheduler=scheduler))
-        where = placement(options, client)
-        found = _recorded_attrs(out) if options.resume else {}
-        options = placed(options, where, found, meta.cfa)
-        scale, method = checked_method(store, options)  # the weights by where the network runs
         y0, y1, x0, x1 = part.region
-        options = sized(options, where, method, (y1 - y0, x1 - x0), found)
+        options, where, scale, method = prepared(  # the weights by where the network runs
+            options, client, meta.cfa, store.attrs.get("scale"), (y1 - y0, x1 - x0),
+            _recorded_attrs(out) if options.resume else {}, f"the recording {store.url}")
         precision, backend = network_options(options)
         centres = part.centres
         grid = tile_grid(meta.height, meta.width, options.tile, method.halo, part.region)

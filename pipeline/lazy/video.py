@@ -101,16 +101,12 @@ def reconstruct(win: xr.DataArray, *, method: str = "cscsr", weights: str | None
                                  scale=scale, tile=tile, weights=weights, precision=precision, backend=backend)
     with python_words():
         options.check()
-    from pipeline.jobs.reconstruct import network_options, placed, placement, reconstructor, sized
+    from pipeline.jobs.reconstruct import network_options, prepared
 
-    where = placement(options, distributed_client(win.data))
-    options = placed(options, where, {}, win.attrs["cfa"])  # the weights by where it runs and the CFA
-    precision_, backend_ = network_options(options)
-    built = reconstructor(options.method, options.weights, precision_, backend_, device="cpu")  # checks the weights
-    scale = options.scale if options.scale is not None else int(win.attrs.get("scale", 4))
-    built.check(options.window, scale, win.attrs["cfa"])
     y0, y1, x0, x1 = win.attrs["region"]
-    options = sized(options, where, built, (y1 - y0, x1 - x0), {})
+    options, where, scale, built = prepared(options, distributed_client(win.data), win.attrs["cfa"],
+                                            win.attrs.get("scale"), (y1 - y0, x1 - x0), {})
+    precision_, backend_ = network_options(options)
     spec = MethodSpec(options.method, built.weights, precision_, backend_, built.weights_sha256,
                    bool(options.fast_gpu and where.gpus) if options.method in NETWORKS else False)
     gpu = where.gpus and options.method in NETWORKS
