@@ -80,7 +80,7 @@ from pipeline.stores.lease import check_free, claimed, held
 from pipeline.stores.outputs import VIDEO_STORE, check_existing, new_output
 from pipeline.stores.spike_store import SpikeStore, open_spike_store, store_identity
 from pipeline.stores.storage import check_apart, exists, recorded, remove_partial_writes
-from pipeline.stores.video_store import VIDEO, committed_mask, create_video_store, open_video_store
+from pipeline.stores.video_store import create_video_store, open_video_store, resumed_mask
 from stages.errors import InputError
 from stages.reconstruction.methods import NETWORKS, Reconstructor, output_centres
 from stages.reconstruction.tiles import device_tile, tile_grid
@@ -251,7 +251,7 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
                      method.batch, plan.cfa, plan.reset, plan.scale, plan.gpu_batch, plan.gain,
                      where.gpus and plan.method in NETWORKS)
         if dry_run:
-            done = (_check_resumable(plan, open_video_store(out), centres) if options.resume
+            done = (_check_resumable(plan, open_video_store(out), centres, blocks) if options.resume
                     else np.zeros((len(centres), len(grid), len(grid[0])), bool))
             return plan_job(plan, part, blocks, done, hr_size, where, client=client, workers=workers,
                             store=store_url, segment_tasks=options.segment_tasks)
@@ -331,12 +331,12 @@ def _prepare_output(plan: Plan, resume: bool, centres: list[int], blocks: TileBl
                     fps: float):
     """Create the output (metadata first), or check a resumed one matches; return the commit mask."""
     if resume:
-        return _check_resumable(plan, open_video_store(plan.out, writable=True), centres, adopt=True)
+        return _check_resumable(plan, open_video_store(plan.out, writable=True), centres, blocks, adopt=True)
     create_video_store(plan.out, centres=centres, hr_size=hr_size, **blocks.layout, attrs=plan.attrs(), fps=fps)
     return np.zeros((len(centres), *blocks.layout["tiles"]), bool)
 
 
-def _check_resumable(plan: Plan, group, centres: list[int], *, adopt: bool = False) -> np.ndarray:
+def _check_resumable(plan: Plan, group, centres: list[int], blocks: TileBlocks, *, adopt: bool = False) -> np.ndarray:
     """Refuse to resume ``group`` (the output) with ``plan`` unless it was made from the same data with the same
     parameters (the part of the recording included); -> its commit mask. ``adopt``: an output from before the
     record of what it was made from gets it now (a dry run leaves it as it is)."""
@@ -353,10 +353,7 @@ def _check_resumable(plan: Plan, group, centres: list[int], *, adopt: bool = Fal
     found = {k: group.attrs.get(k, before.get(k)) for k in expected}
     if isinstance(found["source"], str):  # stores from before sources were absolute: as seen from here
         found["source"] = recorded(found["source"])
-    changed = [k for k in expected if found[k] != expected[k]]
-    if changed or group[VIDEO].shape[0] != len(centres):
-        what = ", ".join(f"{k} {found[k]!r} -> {expected[k]!r}" for k in changed) or "frame count"
-        raise InputError(f"cannot resume {plan.out}: it was made with other parameters ({what})")
+    done = resumed_mask(group, plan.out, expected, found, (len(centres), *blocks.layout["tiles"]))
     if adopted and adopt:
         group.attrs.update(adopted)
-    return committed_mask(group)
+    return done

@@ -27,7 +27,7 @@ from pipeline.lazy.windows import _output_part
 from pipeline.stores.lease import claimed, held
 from pipeline.stores.outputs import VIDEO_STORE, new_output
 from pipeline.stores.storage import check_place, consolidate, exists, remove_partial_writes
-from pipeline.stores.video_store import (COMMITTED, committed_mask, create_video_store, lost_frames,
+from pipeline.stores.video_store import (COMMITTED, create_video_store, lost_frames, resumed_mask,
                                          open_video_store)
 from stages.errors import InputError, InputTypeError
 from stages.numbers import check_flag
@@ -265,15 +265,12 @@ def _resumable(url: str, attrs: dict, n: int, tiles: tuple[int, int], graph: str
     """The commit mask of the store to resume, refused unless it was made with the same attributes and layout, by
     the same graph (where it records one: a job's store records none, its attributes say all)."""
     group = open_video_store(url, writable=True)
-    changed = [k for k, v in attrs.items() if k != "fps" and group.attrs.get(k) != v]
-    if changed or group[COMMITTED].shape != (n, *tiles):
-        what = ", ".join(f"{k} {group.attrs.get(k)!r} -> {attrs[k]!r}" for k in changed) or "layout"
-        raise InputError(f"cannot resume {url}: it was made with other parameters ({what})")
+    done = resumed_mask(group, url, {k: v for k, v in attrs.items() if k != "fps"}, dict(group.attrs), (n, *tiles))
     if group[COMMITTED].attrs.get("graph", graph) != graph:
         raise InputError(f"cannot resume {url}: hr is not the graph that wrote it (a function, a selection or an "
                          f"input changed; or a function holds something Dask cannot hash): write it again with "
                          f"overwrite=True")
-    return committed_mask(group)
+    return done
 
 
 def _written(data: da.Array, url: str, run: str) -> da.Array:

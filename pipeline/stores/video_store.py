@@ -241,6 +241,17 @@ def committed_mask(group: zarr.Group) -> np.ndarray:
     return group[COMMITTED][:].astype(bool)
 
 
+def resumed_mask(group: zarr.Group, url: str, expected: dict, found: dict, shape: tuple[int, int, int]) -> np.ndarray:
+    """The commit mask of the video store ``group`` at ``url`` to resume, refused in one line unless what it records
+    (``found``, as the caller reads it) is ``expected`` and its ``committed`` is of ``shape`` (output frames, tile
+    rows, tile columns): the ``reconstruct`` job's and ``lazy.to_video``'s check."""
+    changed = [k for k in expected if found.get(k) != expected[k]]
+    if changed or group[COMMITTED].shape != shape:
+        what = ", ".join(f"{k} {found.get(k)!r} -> {expected[k]!r}" for k in changed) or "layout"
+        raise InputError(f"cannot resume {url}: it was made with other parameters ({what})")
+    return committed_mask(group)
+
+
 SHOWN = 4  # ranges of lost frames named in full
 
 
