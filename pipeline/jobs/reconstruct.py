@@ -66,11 +66,13 @@ from pipeline.jobs.reconstruct_plan import (
     job_part,
     made_from,
 )
-from pipeline.jobs.reconstruct_tasks import (
+from pipeline.jobs.reconstruct_tasks import (  # noqa: F401 - JobIncomplete: what a failed job raises
+    JobIncomplete,
     MethodSpec,
     Outcome,
     TileBlocks,
     cut,
+    finish_video,
     gain_key,
     reconstructor,
     run_blocks,
@@ -79,7 +81,7 @@ from pipeline.jobs.reconstruct_tasks import (
 from pipeline.stores.lease import check_free, claimed, held
 from pipeline.stores.outputs import VIDEO_STORE, check_existing, new_output
 from pipeline.stores.spike_store import SpikeStore, open_spike_store, store_identity
-from pipeline.stores.storage import check_apart, exists, recorded, remove_partial_writes
+from pipeline.stores.storage import check_apart, exists, recorded
 from pipeline.stores.video_store import create_video_store, open_video_store, resumed_mask
 from stages.errors import InputError
 from stages.reconstruction.methods import NETWORKS, Reconstructor, output_centres
@@ -273,10 +275,7 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
                                        show_dashboard=progress,
                                        preload=NETWORK_PRELOAD if options.method in NETWORKS else ())
             failed = _tally(outcomes, done, advance)
-        if failed:
-            raise JobIncomplete(out, failed, len(centres))
-        remove_partial_writes(out)  # a worker killed mid-write leaves its temporary file
-        open_video_store(out, writable=True).attrs["state"] = "complete"  # still under the claim
+        finish_video(out, failed, len(centres))  # still under the claim
     skipped = int(done.sum())
     return {"frames": len(centres), "tasks_run": done.size - skipped, "tasks_skipped": skipped}
 
@@ -289,22 +288,6 @@ def _check_output(out: str, options: ReconstructOptions) -> None:
         check_free(out)
     else:
         check_existing(out, overwrite=options.overwrite, kind=VIDEO_STORE, flag="--resume or --overwrite")
-
-
-class JobIncomplete(RuntimeError):
-    """Some tasks raised: which output frames are missing and why; the rest is committed."""
-
-    def __init__(self, out: str, failed: dict[int, str], n_frames: int, again: str = "--resume"):
-        frames = sorted(failed)
-        shown = ", ".join(map(str, frames[:20])) + (", ..." if len(frames) > 20 else "")
-        causes = {why.split("): ", 1)[-1] if why.startswith("tile (") else why for why in failed.values()}
-        first = (f"each: {causes.pop()}" if len(causes) == 1 and len(frames) > 1  # one cause (a full disk): once
-                 else f"frame {frames[0]}: {failed[frames[0]]}")
-        rest = (f"the other frames are committed in {out}" if len(frames) < n_frames
-                else f"what was written is kept in {out}")
-        super().__init__(f"{len(frames)} of {n_frames} output frames failed (frames {shown}; {first}); {rest}: "
-                         f"fix the cause and run again with {again}")
-        self.failed = failed
 
 
 def _tally(outcomes: Iterable[Outcome], done: np.ndarray, advance) -> dict[int, str]:

@@ -25,7 +25,8 @@ import numpy as np
 
 from pipeline.compute.hold import hold_point
 from pipeline.stores.spike_store import open_spike_store, read_frames, store_identity
-from pipeline.stores.video_store import TileWriter
+from pipeline.stores.storage import remove_partial_writes
+from pipeline.stores.video_store import TileWriter, open_video_store
 from stages.capture.bits import pack_rows, unpack_rows
 from stages.errors import InputError
 from stages.reconstruction.colour import auto_gain
@@ -284,6 +285,32 @@ def cropped(images: list[np.ndarray], crop: tuple[slice, slice]) -> np.ndarray:
     for n, image in enumerate(images):
         out[n] = image[ys, xs]
     return out
+
+
+class JobIncomplete(RuntimeError):
+    """Some tasks raised: which output frames are missing and why; the rest is committed."""
+
+    def __init__(self, out: str, failed: dict[int, str], n_frames: int, again: str = "--resume"):
+        frames = sorted(failed)
+        shown = ", ".join(map(str, frames[:20])) + (", ..." if len(frames) > 20 else "")
+        causes = {why.split("): ", 1)[-1] if why.startswith("tile (") else why for why in failed.values()}
+        first = (f"each: {causes.pop()}" if len(causes) == 1 and len(frames) > 1  # one cause (a full disk): once
+                 else f"frame {frames[0]}: {failed[frames[0]]}")
+        rest = (f"the other frames are committed in {out}" if len(frames) < n_frames
+                else f"what was written is kept in {out}")
+        super().__init__(f"{len(frames)} of {n_frames} output frames failed (frames {shown}; {first}); {rest}: "
+                         f"fix the cause and run again with {again}")
+        self.failed = failed
+
+
+def finish_video(url: str, failed: dict[int, str], n_frames: int, again: str = "--resume") -> None:
+    """Complete the video store at ``url`` (``state`` its last write; a worker killed mid-write leaves a temporary
+    file: removed), unless tiles of output frames ``failed`` ({frame: why}): then :class:`JobIncomplete` names them,
+    the rest committed for a resume (``again``). The job's end and ``lazy.to_video``'s."""
+    if failed:
+        raise JobIncomplete(url, failed, n_frames, again)
+    remove_partial_writes(url)
+    open_video_store(url, writable=True).attrs["state"] = "complete"
 
 
 def write_blocks(blocks: tuple[np.ndarray, ...], url: str, run: str, first: int, places: tuple) -> int:

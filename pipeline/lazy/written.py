@@ -19,14 +19,14 @@ from dask.base import tokenize
 from dask.delayed import Delayed
 
 from pipeline.compute.progress import progress_bar
-from pipeline.jobs.reconstruct_tasks import TileBlocks, run_blocks, write_block
+from pipeline.jobs.reconstruct_tasks import TileBlocks, finish_video, run_blocks, write_block
 from pipeline.lazy.spikes import (check_coordinates, check_here, check_times, distributed_client, run_of,
                                   url_text)
 from pipeline.lazy.video import VIDEO_DIMS, tile_blocks
 from pipeline.lazy.windows import _output_part
 from pipeline.stores.lease import claimed, held
 from pipeline.stores.outputs import VIDEO_STORE, new_output
-from pipeline.stores.storage import check_place, consolidate, exists, remove_partial_writes
+from pipeline.stores.storage import check_place, consolidate, exists
 from pipeline.stores.video_store import (COMMITTED, create_video_store, lost_frames, resumed_mask,
                                          open_video_store)
 from stages.errors import InputError, InputTypeError
@@ -132,12 +132,7 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
                 finished_units += unit_of.get((b, ty, tx), 0) if error is None else 0  # as the bar: written ones
                 if piped and (finished % BLOCKS_AT_ONCE == 0 or finished == len(blocks)):
                     print(f"to_video {url}: {finished_units} of {to_run} tasks", file=sys.stderr, flush=True)
-        if failed:
-            from pipeline.jobs.reconstruct import JobIncomplete
-
-            raise JobIncomplete(url, failed, n, again="to_video(..., resume=True)")
-        remove_partial_writes(url)
-        open_video_store(url, writable=True).attrs["state"] = "complete"
+        finish_video(url, failed, n, again="to_video(..., resume=True)")
     return {"frames": n, "tasks_run": to_run, "tasks_skipped": total - to_run}
 
 
