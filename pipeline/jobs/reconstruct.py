@@ -73,7 +73,7 @@ from pipeline.jobs.reconstruct_tasks import (  # noqa: F401 - JobIncomplete: wha
     TileBlocks,
     cut,
     finish_video,
-    gain_key,
+    gain_task,
     reconstructor,
     run_blocks,
     store_gain,
@@ -84,7 +84,7 @@ from pipeline.stores.spike_store import SpikeStore, open_spike_store, store_iden
 from pipeline.stores.storage import check_apart, exists, recorded
 from pipeline.stores.video_store import create_video_store, open_video_store, resumed_mask
 from stages.errors import InputError
-from stages.reconstruction.methods import NETWORKS, Reconstructor, output_centres
+from stages.reconstruction.methods import NETWORKS, Reconstructor
 from stages.reconstruction.tiles import device_tile, tile_grid
 
 log = logging.getLogger("cscsr.reconstruct")  # DEBUG lines (cscsr --verbose): the job's plan, each task's outcome
@@ -236,10 +236,9 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
                                            flag="--resume or --overwrite", resume=options.resume, keep_partial=True))
         gain = options.gain or meta.gain
         if gain is None:  # one window: on the cluster if there is one, else here (not worth a cluster of its own)
-            whole = output_centres(store.n_frames, options.window, options.every)  # the same gain for any part
-            args = (recorded(store_url), store_identity(store), meta.width, whole[len(whole) // 2], options.window,
-                    meta.reset)
-            gain = result_of(client, store_gain, args, gain_key(*args)) if client else store_gain(*args)
+            key, args = gain_task(recorded(store_url), store_identity(store), store.n_frames, meta.width,
+                                  options.window, options.every, meta.reset)  # the same gain for any part
+            gain = result_of(client, store_gain, args, key) if client else store_gain(*args)
         # the spike store as workers find it, whatever their working directory (and as the output records it)
         plan = Plan(recorded(store_url), out, options.method, method.weights, options.window, options.every, float(gain),
                     scale, meta.cfa, meta.reset, options.tile, uuid.uuid4().hex, precision, options.gpu_batch, backend,

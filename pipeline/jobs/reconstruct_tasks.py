@@ -30,7 +30,7 @@ from pipeline.stores.video_store import TileWriter, open_video_store
 from stages.capture.bits import pack_rows, unpack_rows
 from stages.errors import InputError
 from stages.reconstruction.colour import auto_gain
-from stages.reconstruction.methods import NETWORKS, Reconstructor, Window, classic
+from stages.reconstruction.methods import NETWORKS, Reconstructor, Window, classic, output_centres
 from stages.reconstruction.tfp import tfp_rate
 from stages.reconstruction.tiles import Tile
 
@@ -371,17 +371,21 @@ def tile_windows(spikes, url: str, centres, half: int, tile: Tile, cfa: str, res
     return windows
 
 
-def gain_key(url: str, identity: str, width: int, centre: int, window: int, reset: str) -> tuple[str]:
-    """The key of the task that gives a recording's automatic exposure (:func:`store_gain`, the same arguments)."""
+def gain_task(url: str, identity: str, n_frames: int, width: int, window: int, every: int,
+              reset: str) -> tuple[tuple[str], tuple]:
+    """(key, arguments of :func:`store_gain`) of the task that gives the automatic exposure of the recording at
+    ``url`` (``n_frames`` frames ``width`` pixels wide): the job's rule, the middle window of the whole recording's
+    output frames, so every part of it is exposed alike. The job and ``lazy.windows`` make it here."""
     from dask.base import tokenize
 
-    return (f"auto-gain-{tokenize(url, identity, width, centre, window, reset)}",)
+    whole = output_centres(n_frames, window, every)
+    args = (url, identity, width, whole[len(whole) // 2], window, reset)
+    return (f"auto-gain-{tokenize(*args)}",), args
 
 
 def store_gain(url: str, identity: str, width: int, centre: int, window: int, reset: str) -> np.ndarray:
     """Task: the automatic exposure of the window around spike frame ``centre``, whole frame (``width`` pixels),
-    read from the store -> 0-d float64 (the job's rule: the whole recording's middle window, so every part of it is
-    exposed alike)."""
+    read from the store -> 0-d float64 (:func:`gain_task`)."""
     half = window // 2
     packed = read_frames(spike_array(url, identity), url, centre - half, centre + half + 1)
     return np.asarray(auto_gain(tfp_rate(packed, width, reset)), np.float64)

@@ -15,7 +15,7 @@ from dask.base import tokenize
 from dask.utils import key_split
 
 from pipeline.jobs.reconstruct_plan import ReconstructOptions, job_part
-from pipeline.jobs.reconstruct_tasks import WINDOW_BLOCKS, gain_key, store_gain
+from pipeline.jobs.reconstruct_tasks import WINDOW_BLOCKS, gain_task, store_gain
 from pipeline.lazy.spikes import (check_coordinates, check_spikes, check_times, open_spikes, python_words, run_of,
                                   selection)
 from stages.capture.bits import pack_rows
@@ -206,9 +206,8 @@ def _store_gain(store: xr.DataArray, length: int, every: int) -> da.Array:
     from dask._task_spec import Task
 
     frames, _, width = store.shape
-    whole = output_centres(frames, length, every)
-    args = (store.attrs["store"], store.attrs["identity"], width, whole[len(whole) // 2], length, store.attrs["reset"])
-    key = gain_key(*args)
+    key, args = gain_task(store.attrs["store"], store.attrs["identity"], frames, width, length, every,
+                          store.attrs["reset"])
     return da.Array({key: Task(key, store_gain, *args)}, key[0], chunks=(), dtype=np.float64,
                     meta=np.empty((), np.float64))
 
