@@ -38,6 +38,31 @@ def run_child(code: Path, script: str, *args) -> dict:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
+def side_by_side(trees: dict[str, Path], repeats: int, work: Path, what: str, script: str, *args) -> dict:
+    """``script`` (:func:`run_child`, given ``args`` then a fresh output path under ``work``) in each of ``trees``
+    (name -> checkout: "this tree" and "reference"), ``repeats`` times, which runs first alternating, each run's
+    figures on standard error; the arrays the outputs share (a reference may lack a newer one) must be equal,
+    repetition by repetition (else it stops, naming ``what``) -> name -> its runs' results."""
+    import numpy as np
+    import zarr
+
+    results = {name: [] for name in trees}
+    for repeat in range(repeats):
+        outs = {}
+        for name, code in (list(trees.items()) if repeat % 2 else list(trees.items())[::-1]):
+            outs[name] = work / f"{name.replace(' ', '-')}.zarr"
+            shutil.rmtree(outs[name], ignore_errors=True)
+            results[name].append(run_child(code, script, *args, outs[name]))
+            shown = {k: round(v, 2) if isinstance(v, float) else v for k, v in results[name][-1].items()}
+            print(f"{what}, {name}: {shown}", file=sys.stderr, flush=True)
+        groups = [zarr.open_group(out, mode="r") for out in outs.values()]
+        names = set.intersection(*({name for name, _ in group.arrays()} for group in groups))
+        if "spikes" not in names and "video" not in names or not all(
+                np.array_equal(group[name][:], groups[0][name][:]) for group in groups for name in names):
+            raise SystemExit(f"{what}: the outputs differ from the reference's")
+    return results
+
+
 @contextlib.contextmanager
 def reference_checkout(rev: str, prefix: str):
     """(a scratch folder, a checkout of commit ``rev`` in it: ``git worktree``), both removed afterwards."""

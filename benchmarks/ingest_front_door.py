@@ -15,13 +15,11 @@ Goals: wall time <= 1.05x the reference's; peak memory <= 1.1x.
 """
 
 import argparse
-import shutil
-import sys
 import tempfile
 from pathlib import Path
 
-from _common import (HIGH_WATER, ROOT, load_average, markdown_table, median, reference_checkout, run_child, save_results,
-                     write_integrate_and_fire)
+from _common import (HIGH_WATER, ROOT, load_average, markdown_table, median, reference_checkout, save_results,
+                     side_by_side, write_integrate_and_fire)
 
 REFERENCE = "eaa410d"  # the last commit before the ingest job wrote its store as lazy.to_spikes does
 GOAL_TIME, GOAL_MEMORY = 1.05, 1.1
@@ -30,7 +28,7 @@ import json, os, sys, time
 sys.path.insert(0, os.getcwd())
 from pipeline.jobs.ingest import IngestOptions, ingest
 {HIGH_WATER}
-src, dest, way = sys.argv[1], sys.argv[2], sys.argv[3]
+src, way, dest = sys.argv[1:4]
 options = IngestOptions(1000, 1000, cfa="rggb")
 if way == "one process":
     start = time.perf_counter()
@@ -65,15 +63,6 @@ def capture(frames: int) -> Path:
     return path
 
 
-def same_bytes(a: Path, b: Path) -> bool:
-    import numpy as np
-    import zarr
-
-    first, second = zarr.open_group(a, mode="r"), zarr.open_group(b, mode="r")
-    return all(np.array_equal(first[name][:], second[name][:]) for name in ("spikes", "committed")) and \
-        first.attrs["identity"] == second.attrs["identity"]
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--reference", default=REFERENCE)
@@ -85,18 +74,8 @@ def main() -> None:
         trees = {"this tree": ROOT, "reference": reference}
         results = {}
         for way in WAYS:
-            for repeat in range(args.repeats):
-                order = list(trees.items()) if repeat % 2 else list(trees.items())[::-1]
-                outs = {}
-                for name, code in order:
-                    outs[name] = work / f"{name.replace(' ', '-')}.zarr"
-                    shutil.rmtree(outs[name], ignore_errors=True)
-                    result = run_child(code, RUN, src, outs[name], way)
-                    results.setdefault((way, name), []).append(result)
-                    print(f"{way}, {name}: {result['seconds']:.2f} s, process {result['process'] / 2**20:.0f} MiB, "
-                          f"workers {[round(w / 2**20) for w in result['workers']]} MiB", file=sys.stderr, flush=True)
-                if not same_bytes(outs["this tree"], outs["reference"]):
-                    raise SystemExit(f"{way}: the stores differ from the reference's")
+            for name, runs in side_by_side(trees, args.repeats, work, way, RUN, src, way).items():
+                results[(way, name)] = runs
         rows, figures = [], {}
         for way in WAYS:
             mine, ref = results[(way, "this tree")], results[(way, "reference")]

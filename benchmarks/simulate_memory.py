@@ -15,11 +15,9 @@ bounded by the chunks in flight, not by the recording's length).
 """
 
 import argparse
-import shutil
-import sys
 from pathlib import Path
 
-from _common import HIGH_WATER, load_average, markdown_table, median, reference_checkout, run_child, save_results
+from _common import HIGH_WATER, load_average, markdown_table, median, reference_checkout, save_results, side_by_side
 
 ROOT = Path(__file__).resolve().parent.parent
 REFERENCE = "9b4a252"  # the last commit before the simulate job became a front door to the lazy stages
@@ -30,7 +28,7 @@ sys.path.insert(0, os.getcwd())
 from distributed import Client, LocalCluster
 from pipeline.jobs.simulate import SimulateOptions, simulate
 {HIGH_WATER}
-src, dest, frames, motion = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4] or None
+src, frames, motion, dest = sys.argv[1], int(sys.argv[2]), sys.argv[3] or None, sys.argv[4]
 options = SimulateOptions(scale=4, frames=frames, motion=motion, noise="realistic", chunk_frames=20, truth_every=200)
 with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=":0") as cluster, Client(cluster) as client:
     client.run(lambda: None)
@@ -58,15 +56,6 @@ def sources(work: Path) -> dict[str, tuple[str, str]]:
     return {"picture, random motion": (str(work / "picture.png"), "random"), "6-frame video, flow": (str(folder), "")}
 
 
-def same_bytes(a: Path, b: Path) -> bool:
-    import numpy as np
-    import zarr
-
-    first, second = zarr.open_group(a, mode="r"), zarr.open_group(b, mode="r")
-    names = [name for name in ("spikes", "truth", "truth_frames", "flow") if name in first or name in second]
-    return all(name in first and name in second and np.array_equal(first[name][:], second[name][:]) for name in names)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--reference", default=REFERENCE)
@@ -79,18 +68,8 @@ def main() -> None:
         scenes = sources(work)
         for scene, (source, motion) in scenes.items():
             for frames in (args.frames, 10 * args.frames):
-                for repeat in range(args.repeats):
-                    order = list(trees.items()) if repeat % 2 else list(trees.items())[::-1]
-                    outs = {}
-                    for name, code in order:
-                        outs[name] = work / f"{name.replace(' ', '-')}.zarr"
-                        shutil.rmtree(outs[name], ignore_errors=True)
-                        result = run_child(code, RUN, source, outs[name], frames, motion)
-                        results.setdefault((scene, frames, name), []).append(result)
-                        print(f"{scene}, {frames} frames, {name}: {result['seconds']:.1f} s, workers "
-                              f"{[round(w / 2**20) for w in result['workers']]} MiB", file=sys.stderr, flush=True)
-                    if not same_bytes(outs["this tree"], outs["reference"]):
-                        raise SystemExit(f"{scene}, {frames} frames: the stores differ from the reference's")
+                runs = side_by_side(trees, args.repeats, work, f"{scene}, {frames} frames", RUN, source, frames, motion)
+                results |= {(scene, frames, name): value for name, value in runs.items()}
         rows, figures = [], {}
         for scene in scenes:
             for frames in (args.frames, 10 * args.frames):
