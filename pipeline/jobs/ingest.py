@@ -324,7 +324,7 @@ def run_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *,
         if parallel and client is None and scheduler_address(scheduler):  # a long-lived cluster: connect once
             client = stack.enter_context(dask_client(scheduler=scheduler))
         elif parallel and client is None:
-            client = LocalClusters(workers, show_dashboard=progress)
+            client = LocalClusters(workers)
         log.debug("%s -> %s: %d frames of %dx%d, cfa %s; %d tasks of %d frames, %d committed already; %s", src, dest,
                   plan.n_frames, meta.height, meta.width, meta.cfa, plan.n_tasks, plan.task_frames,
                   int((job.counts >= 0).sum()), "in this process, one stream" if not parallel else
@@ -344,7 +344,6 @@ class LocalClusters:
     :data:`SEGMENT_TASKS` tasks each (``pipeline.compute.executor.in_segments``)."""
 
     workers: int | None
-    show_dashboard: bool
 
 
 @dataclass(frozen=True)
@@ -403,7 +402,7 @@ class CaptureWrites(SpikeWrites):
                  capture: CaptureFrames, *, cli: bool = False, stream=None):
         super().__init__(url, meta, n_frames, chunk_frames, task_frames)
         self.capture, self.stream, self.cli = capture, stream, cli
-        self.dashboard = False  # the job's: print the client's dashboard link when its tasks go there
+        self.dashboard = False  # the job's: show the cluster's dashboard link when its tasks go there
         self.given_task = None  # the job's --task-frames, if given
         self.record = json.loads(capture.record)
         if cli:
@@ -414,8 +413,7 @@ class CaptureWrites(SpikeWrites):
         those), and cut as ``--task-frames`` asks, if it does (one task of the whole capture, however large, is one
         cut); the rest of the cut is :meth:`resumable`'s to check, with the store's chunks."""
         task_frames, recorded_task = self.task_frames if self.given_task else None, found.get("task_frames")
-        if isinstance(recorded_task, int) and task_frames is not None and self.n_frames <= min(recorded_task,
-                                                                                                task_frames):
+        if isinstance(recorded_task, int) and task_frames is not None and self.same_cut(recorded_task, task_frames):
             task_frames = recorded_task
         check_same_capture(self.url, self.capture.url, found, self.record, task_frames=task_frames, again=self.again)
 
@@ -440,7 +438,7 @@ class CaptureWrites(SpikeWrites):
             show_dashboard_once(client)
         if isinstance(client, LocalClusters):
             outcomes = in_segments(functools.partial(run_tasks, plan=plan), todo, SEGMENT_TASKS,
-                                   workers=client.workers, show_dashboard=client.show_dashboard)
+                                   workers=client.workers, show_dashboard=self.dashboard)
         elif client is not None:
             outcomes = run_tasks(client, todo, plan=plan)
         else:

@@ -30,7 +30,7 @@ from pipeline.stores.lease import check_free, claimed, held
 from pipeline.stores.outputs import SPIKE_STORE, new_output
 from pipeline.stores.spike_store import (COMMITTED, SPIKES, SpikeMeta, SpikeStore, SpikeStoreWriter, chunk_frames_for,
                                          open_spike_store, write_region)
-from stages.capture.bits import count_spikes, pack_rows, packed_width
+from stages.capture.bits import count_spikes, pack_rows
 from stages.errors import InputError, describe
 
 COMMITTED_UNITS = "spikes in the task's frames, written once they are stored; -1 = not committed"
@@ -87,9 +87,10 @@ class SpikeWrites:
         """How many frames task ``index`` writes (the last may hold fewer)."""
         return min(self.task_frames, self.n_frames - index * self.task_frames)
 
-    def frame_bytes(self) -> int:
-        """Bytes of one frame packed."""
-        return self.meta.height * packed_width(self.meta.width)
+    def same_cut(self, a: int, b: int) -> bool:
+        """Whether tasks of ``a`` and of ``b`` frames cut these spikes alike: equal, or each one task of them all (a
+        store may record a task larger than its recording, as it was asked)."""
+        return a == b or min(a, b) >= self.n_frames
 
     def resumable(self, store: SpikeStore | None = None) -> np.ndarray:
         """Cut as the unfinished store at ``url`` was (a cut the caller gives must be that one); refuse a store of
@@ -106,8 +107,8 @@ class SpikeWrites:
         asked_chunk, asked_task = self.asked
         recorded_task = committed.attrs.get("task_frames")
         recorded_ok = isinstance(recorded_task, int) and not isinstance(recorded_task, bool) and recorded_task > 0
-        if recorded_ok and asked_task is not None and min(recorded_task, self.n_frames) == asked_task:
-            asked_task = recorded_task  # one task of the whole recording either way: the same cut
+        if recorded_ok and asked_task is not None and self.same_cut(recorded_task, asked_task):
+            asked_task = recorded_task
         self.cut(store.spikes.chunks[0], asked_task or (recorded_task if recorded_ok else None))
         if (store.n_frames != self.n_frames or asked_chunk not in (None, self.chunk) or not recorded_ok
                 or self.task_frames != recorded_task or committed.shape != (self.n_tasks,)):
