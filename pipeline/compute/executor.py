@@ -302,12 +302,13 @@ def _die_with_parent() -> None:
 
 # ---- a graph in bounded rounds (lazy.to_spikes, the simulate and ingest jobs) ----
 
-def computed(graph, frames: dict, advance, client, at_once: int | None = None) -> list:
-    """The results of the tasks ``frames`` names (key -> frames it writes) of ``graph``, in that order, computed on
-    ``client`` (else dask's own scheduler), ``advance(frames)`` as each finishes; the first error raised. The graph
-    is handed over culled to what they need (a resume's tasks), its tasks' names kept (nothing fused); ``at_once``:
-    that many of them a round, what a round made that later rounds need (a chain's state, the sensor's draws, a
-    video's pair) kept for them, so that memory and the scheduler's graph stay bounded however many there are."""
+def computed(graph, frames: dict, advance, client, at_once: int | None = None, failed=None) -> list:
+    """The results of the tasks ``frames`` names (key -> what it writes) of ``graph``, in that order, computed on
+    ``client`` (else dask's own scheduler), ``advance(frames[key])`` as each finishes; the first error raised, but on
+    a client with ``failed``: ``failed(frames[key], why)`` and the others go on (results of those that finished). The
+    graph is handed over culled to what they need (a resume's tasks), its tasks' names kept (nothing fused);
+    ``at_once``: that many of them a round, what a round made that later rounds need (a chain's state, the sensor's
+    draws, a video's pair, windows) kept for them, so that memory and the scheduler's graph stay bounded."""
     keys = list(frames)
     if isinstance(graph, HighLevelGraph):
         graph = dict(graph.cull(set(keys)))
@@ -318,11 +319,14 @@ def computed(graph, frames: dict, advance, client, at_once: int | None = None) -
             if client is not None:
                 futures = client.get(round_graph, round_keys + kept, sync=False)
                 held |= dict(zip(kept, futures[len(round_keys):]))  # released below, whatever happens
-                with released(futures[:len(round_keys)]):  # forgotten by the cluster even while an error holds
-                    for future in as_completed(futures[:len(round_keys)]):  # them: a resume computes afresh
+                ours = futures[:len(round_keys)]
+                with released(ours):  # forgotten by the cluster even while an error holds them: a resume computes
+                    for future in in_bounded_window(iter(ours), len(ours), again=still_computing):  # afresh
                         if future.status == "finished":
                             advance(frames[future.key])
-                    results += client.gather(futures[:len(round_keys)])
+                        elif failed is not None:
+                            failed(frames[future.key], failure(future))
+                    results += client.gather(ours, errors="skip" if failed else "raise")
             else:
                 class Advance(Callback):  # dask's local schedulers call it as each task finishes, from their loop
                     def _posttask(self, key, result, dsk, state, worker_id):

@@ -16,10 +16,10 @@ import dask.array as da
 import numpy as np
 import xarray as xr
 from dask.base import tokenize
-from dask.delayed import Delayed
 
+from pipeline.compute.executor import computed
 from pipeline.compute.progress import progress_bar
-from pipeline.jobs.reconstruct_tasks import TileBlocks, finish_video, run_blocks, write_block
+from pipeline.jobs.reconstruct_tasks import finish_video, run_blocks, write_block
 from pipeline.lazy.spikes import (check_coordinates, check_here, check_times, distributed_client, run_of,
                                   url_text)
 from pipeline.lazy.video import VIDEO_DIMS, tile_blocks
@@ -121,66 +121,29 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
         piped = progress and not sys.stderr.isatty()  # no bar to draw: a line every BLOCKS_AT_ONCE blocks
         failed, finished, finished_units = {}, 0, 0
         with held(url), progress_bar(f"to_video {url}", to_run, unit="tasks", enabled=progress) as advance:
-            for (b, ty, tx), error in (_run_blocks(client, from_store, attrs["gain"], done, url, run)
-                                       if from_store is not None
-                                       else _in_rounds(client, _written(data, url, run), blocks)):
+            def outcome(block: tuple[int, int, int], error: str | None = None) -> None:
+                nonlocal finished, finished_units
+                b, ty, tx = block
                 if error is not None:
                     failed.update({i: f"tile ({ty}, {tx}): {error}" for i in range(starts[b], starts[b + 1])})
-                elif (b, ty, tx) in unit_of:  # a GPU pass also rewrites the tiles it shares with one not committed
-                    advance(unit_of[b, ty, tx])
+                elif block in unit_of:  # a GPU pass also rewrites the tiles it shares with one not committed
+                    advance(unit_of[block])
+                    finished_units += unit_of[block]  # as the bar: written ones
                 finished += 1
-                finished_units += unit_of.get((b, ty, tx), 0) if error is None else 0  # as the bar: written ones
                 if piped and (finished % BLOCKS_AT_ONCE == 0 or finished == len(blocks)):
                     print(f"to_video {url}: {finished_units} of {to_run} tasks", file=sys.stderr, flush=True)
+
+            if from_store is not None and client is not None:  # as the job runs it: the executor's window, each
+                # pass's one task made as it moves, the exposure computed (a cluster's restart forgets a held one)
+                from_store = dataclasses.replace(from_store, gain=attrs["gain"])
+                for done_tile in run_blocks(client, from_store.units(done), blocks=from_store, out=url, run=run):
+                    outcome((done_tile.block, done_tile.ty, done_tile.tx), done_tile.error)
+            else:  # BLOCKS_AT_ONCE blocks a round, a round's graph culled at once (its blocks share what they read)
+                written = _written(data, url, run)
+                computed(written.__dask_graph__(), {(written.name, *block, 0): block for block in blocks}, outcome,
+                         client, BLOCKS_AT_ONCE, failed=outcome)
         finish_video(url, failed, n, again="to_video(..., resume=True)")
     return {"frames": n, "tasks_run": to_run, "tasks_skipped": total - to_run}
-
-
-def _run_blocks(client, blocks: TileBlocks, gain: float, done: np.ndarray, url: str, run: str):
-    """The blocks of a reconstruction read from a store, not all committed in ``done``, with ``gain`` computed (as the
-    job's: their tasks need no exposure held by a cluster, which a scheduler restart forgets), each tile's tasks made
-    from ``blocks`` as they are run (never the whole graph); yield (block, None or why it failed). On ``client`` as
-    the ``reconstruct`` job runs them (``reconstruct_tasks.run_blocks``: the executor's bounded window, tasks the
-    cluster drops submitted again), else ``BLOCKS_AT_ONCE`` tiles a round on dask's own scheduler."""
-    blocks = dataclasses.replace(blocks, gain=gain)
-    if client is not None:
-        for outcome in run_blocks(client, blocks.units(done), blocks=blocks, out=url, run=run):
-            yield (outcome.block, outcome.ty, outcome.tx), outcome.error
-        return
-    units = list(blocks.units(done))
-    for at in range(0, len(units), BLOCKS_AT_ONCE):
-        chosen = units[at : at + BLOCKS_AT_ONCE]
-        graph = dict(blocks.written(b, k, url, run) for b, k in chosen)
-        dask.compute(*(Delayed(key, graph) for key in graph), optimize_graph=False)
-        yield from (((b, ty, tx), None) for b, k in chosen for ty, tx in blocks.passes[k])
-
-
-def _in_rounds(client, written: da.Array, blocks: list[tuple[int, int, int]]):
-    """The ``blocks`` of ``written`` computed ``BLOCKS_AT_ONCE`` a round (a round's graph culled at once, so the blocks
-    of a round share what they read); yield (block, None or why it failed). On dask's own scheduler the first error
-    stops it; on ``client`` every block is tried."""
-    for at in range(0, len(blocks), BLOCKS_AT_ONCE):
-        chosen = blocks[at : at + BLOCKS_AT_ONCE]
-        if client is None:
-            # unoptimised: each stage's tasks keep their names (windows, tfp, write ...) and annotations
-            dask.compute(*(written.blocks[b, ty, tx, 0] for b, ty, tx in chosen), optimize_graph=False)
-            yield from ((block, None) for block in chosen)
-        else:
-            yield from _outcomes(client, written, chosen)
-
-
-def _outcomes(client, written: da.Array, chosen: list[tuple[int, int, int]]):
-    """Compute blocks ``chosen`` of ``written`` on ``client``, their keys the graph's own (unoptimised: each stage's
-    tasks keep their names and annotations); yield (block, None or why it failed, in one line) as each finishes."""
-    from pipeline.compute.executor import failure, in_bounded_window, still_computing
-
-    graph = written.__dask_graph__()
-    blocks = [Delayed((written.name, b, ty, tx, 0), graph, layer=written.name) for b, ty, tx in chosen]
-    futures = client.compute(blocks, optimize_graph=False)
-    block_of = {future.key: block for future, block in zip(futures, chosen)}
-    for future in in_bounded_window(iter(futures), max(1, len(futures)), again=still_computing):
-        yield block_of[future.key], failure(future)
-        future.release()
 
 
 def graph_token(data: da.Array) -> str:
