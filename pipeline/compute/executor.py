@@ -1,33 +1,17 @@
 """Running a job's tasks on Dask; what the tasks are is the job's plan, frozen data made elsewhere.
 
-- **A bounded window.** At most a few tasks per worker are in flight (``in_bounded_window``,
-  ``submitted``): a recording of millions of frames never becomes one graph of millions of
-  tasks, and tasks are made from the plan only as the window moves.
-- **Nothing a lost worker takes with it.** Everything a task needs travels in the task itself (the
-  plan is a few hundred bytes), never as scattered data: a task whose worker dies, even the
-  cluster's only worker, is rerun by Dask on whichever worker is there or joins later. A task
-  the cluster drops is submitted again (``idempotent`` tasks) and a failure says whether it was
-  the task's own error or a cluster fault (``failure``).
-- **Outcomes as they happen.** ``submitted`` yields each task of the plan with its finished future,
-  in the order they finish, for the job to count (progress bars) or to report.
-- **Segments.** A job that starts its own local cluster and has more than ``size`` tasks runs them
-  ``size`` at a time, each segment in a child process that starts the cluster (scheduler and
-  workers), runs them, and exits (``in_segments``); the parent keeps only the plan, the progress
-  bar and the lease. A job of one segment runs it in its own process, on a local cluster of its own
-  (what it leaves behind is bounded by ``size``): no second interpreter to start, and in a process
-  that has started a cluster before (the watcher, a notebook) its workers are forked from the
-  same server (``pipeline.compute.worker_start``). Dask keeps
-  a little memory per task for good in every process that touches it (measured: ~0.5 KiB per
-  task in the client and scheduler, ~0.2-1 KiB in a worker; part of it is
-  ``dask.utils.key_split``'s cache of every task key, the rest we could not attribute; it is not
-  released by ``malloc_trim`` or by closing the cluster): a million-task job would carry hundreds
-  of MB of it. Outcomes stream back over a queue as they happen, so progress and failure reports
-  are as live as in one process. The child dies with its parent (``PR_SET_PDEATHSIG``), so a
-  killed job leaves no segment writing behind it, and ``--resume`` finds the output as the last
-  committed task left it.
-- **A graph in rounds.** ``computed`` runs the tasks a graph writes (a spike store's: ``lazy.to_spikes``, the
-  ``simulate`` job) a bounded number a round, on a client or on Dask's own scheduler, what later rounds read
-  (a chain's state) carried over: a graph of a long recording, held in bounded memory.
+- **A bounded window.** At most a few tasks per worker are in flight (``in_bounded_window``, ``submitted``): a
+  recording of millions of frames never becomes one graph of millions of tasks; tasks are made as the window moves.
+- **Nothing a lost worker takes with it.** Everything a task needs travels in the task itself, never as scattered
+  data: a task whose worker dies, even the cluster's only worker, is rerun by Dask on whichever worker is there or
+  joins later. A task the cluster drops is submitted again (``idempotent`` tasks), and a failure says whether it was
+  the task's own error or a cluster fault (``failure``). ``submitted`` yields each task with its finished future.
+- **Segments.** A job that starts its own local cluster and has more than ``size`` tasks runs them ``size`` at a
+  time, each segment in a child process that starts the cluster, runs them, streams their outcomes back over a queue
+  and exits, dying with its parent (``in_segments``): Dask keeps a little memory per task for good in every process
+  that touches it (docs/reliability.md, "Why segments"). A job of one segment runs it in its own process.
+- **A graph in rounds.** ``computed`` runs the tasks a graph writes (spike stores', ``to_video``'s) a bounded
+  number a round, on a client or on Dask's own scheduler, what later rounds read carried over.
 """
 
 import contextlib

@@ -1,7 +1,5 @@
 """``cscsr reconstruct --dry-run``: the plan of a checked job, priced by some of its own tasks run for real on the
-workers that would run them, into a temporary store that is not OUT's (a new folder under the temporary folder
-where every worker reaches it, else each worker's memory); nothing is created near OUT (``pipeline.compute.estimate``
-turns the measured tasks into hours and bytes).
+workers that would run them, into a temporary store that is not OUT's; nothing is created near OUT.
 """
 
 import contextlib
@@ -34,12 +32,10 @@ from stages.reconstruction.methods import NETWORKS
 def plan_job(plan: Plan, part: Part, blocks: TileBlocks, done: np.ndarray, hr_size: tuple[int, int],
              where: Placement, *, client=None, workers: int | None = None, store: str | None = None,
              segment_tasks: int = SEGMENT_TASKS) -> dict:
-    """The plan of a checked job, priced by some of its own tasks run for real on the workers that would run
-    them, all busy at once, into a temporary store that is not ``out``'s (:func:`_measured`, :func:`_scratch`): on
-    the job's cluster, or, for a job that would start its own local cluster, on a local cluster as a segment of the
-    job starts one, whose fixed cost each of the job's segments pays too.
-    Their time and compressed bytes give the hours on 1, 8 and 64 such workers, this job's time on its
-    workers, and the output's size (``pipeline.compute.estimate``)."""
+    """The plan of a checked job, priced by some of its own tasks run for real (:func:`_measured`) on the job's
+    cluster, or, for a job that would start its own, on a local cluster started as a segment of the job starts one
+    (whose fixed cost each segment pays too). Their time and bytes give the hours on 1, 8 and 64 such workers, this
+    job's time on its workers, and the output's size (``pipeline.compute.estimate``)."""
     centres = part.centres
     tasks = sum(1 for _ in blocks.units())  # a block of frames along time and a pass of its tiles (one on CPUs)
     to_run = tasks if not done.any() else sum(1 for _ in blocks.units(done))
@@ -82,9 +78,8 @@ def plan_job(plan: Plan, part: Part, blocks: TileBlocks, done: np.ndarray, hr_si
 
 
 def _sampled(blocks: TileBlocks, b: int, k: int, url: str, run: str) -> dict:
-    """Task of a dry run: pass ``k`` of block ``b`` of the job, its task (the job's own: read, reconstructed,
-    written) run here into the dry run's temporary store (:func:`_scratch`) -> the compressed bytes and HR pixels of
-    video it wrote, which it then drops (a sample holds one task's output at a time)."""
+    """Task of a dry run: the job's own task of pass ``k`` of block ``b``, run here into the dry run's store ->
+    the compressed bytes and HR pixels of video it wrote, which it then drops."""
     from dask.local import get_sync
 
     key, task = blocks.written(b, k, url, run)
@@ -106,8 +101,7 @@ def _sampled(blocks: TileBlocks, b: int, k: int, url: str, run: str) -> dict:
 
 
 def _trial_store(url: str, attrs: dict | None = None, layout: dict | None = None, keep: bool = False) -> None:
-    """Create the dry run's video store at ``url`` (``memory://``: this process's memory), or (no ``attrs``) remove
-    it, unless ``keep`` (a store that others remove), and forget its writer."""
+    """Create the dry run's video store at ``url``, or (no ``attrs``) remove it unless ``keep``; forget its writer."""
     if attrs is not None:
         create_video_store(url, attrs=attrs, **layout)
         return
@@ -118,12 +112,9 @@ def _trial_store(url: str, attrs: dict | None = None, layout: dict | None = None
 
 @contextlib.contextmanager
 def _scratch(client, workers: list[str]) -> Iterator[str]:
-    """Where a dry run's tasks write, never at or beside OUT (a dry run creates nothing there, nor a folder above
-    it, nor a key in its bucket): a store in a new folder under this machine's temporary folder where every one of
-    ``workers`` can write it (a local cluster's: they pay a write to disk, as the job's tasks do), else (a
-    cluster's workers that share no folder with us) a ``memory://`` store in each worker process's memory
-    (:func:`_measured` creates and removes it there); the folder is removed after either way. Each chunk is
-    encoded as the job's is: the bytes per pixel are the job's."""
+    """Where a dry run's tasks write, never at or beside OUT: a store in a new folder under this machine's temporary
+    folder where every one of ``workers`` can write it (they pay a write to disk, as the job's tasks do), else a
+    ``memory://`` store in each worker process's memory; the folder is removed after either way."""
     folder = tempfile.mkdtemp(prefix="cscsr-dry-run-")
     try:
         if all(client.run(_writable, folder, workers=workers).values()):
@@ -154,17 +145,12 @@ MOST_TASKS = 100  # a worker, in that time (tasks of milliseconds)
 
 def _measured(client, plan: Plan, part: Part, blocks: TileBlocks, hr_size: tuple[int, int], *,
               seconds: float = SAMPLE_SECONDS) -> dict:
-    """Run tasks of the job (from its middle on) on every worker that would run them (at most
-    ``TRIAL_WORKERS``), all at once as the job keeps them busy (workers that share a machine share its
-    cores, caches and memory bandwidth: one worker measured alone runs up to twice as fast as in the job),
-    into a temporary store (:func:`_scratch`: a folder of this machine that they all reach, else each worker's
-    memory), removed after: one task per worker to warm them (the method built, the stores opened, code compiled, as a
-    worker's first task does once), then tasks submitted as the job submits them (a bounded window,
-    ``pipeline.compute.executor.submitted``) for about ``seconds``.
-    -> {"workers" measured on, "of" how many would run the job's tasks, "tasks" timed, "seconds" until the
-    last workers went idle, "seconds_per_task" on one worker (that time over the tasks each ran: the
-    client's and scheduler's work included, and the workers' waits for it), "bytes" and "hr_pixels" of video
-    they wrote}."""
+    """Run tasks of the job (from its middle on) on every worker that would run them (at most ``TRIAL_WORKERS``),
+    all at once as the job keeps them busy (one worker measured alone runs up to twice as fast as in the job), into
+    a temporary store (:func:`_scratch`): one task per worker to warm them, then tasks submitted as the job submits
+    them for about ``seconds``. -> {"workers" measured on, "of" how many would run the job's tasks, "tasks" timed,
+    "seconds" until the last workers went idle, "seconds_per_task" on one worker (the client's and scheduler's work
+    included), "bytes" and "hr_pixels" of video they wrote}."""
     workers = client.scheduler_info()["workers"]
     resources = (blocks.annotations or {}).get("resources")
     able = [address for address, worker in workers.items()
@@ -215,14 +201,12 @@ def _measured(client, plan: Plan, part: Part, blocks: TileBlocks, hr_size: tuple
 
 
 def _measured_here(client, items, *, job: tuple, seconds: float) -> Iterator[dict]:
-    """:func:`_measured` as a segment of :func:`pipeline.compute.executor.in_segments` runs it (in its own process and
-    local cluster, as each segment of the job runs its tasks)."""
+    """:func:`_measured` as a segment of the job runs (``executor.in_segments``)."""
     yield _measured(client, *job, seconds=seconds)
 
 
 def _from_the_middle(blocks: TileBlocks) -> Iterator[tuple[int, int]]:
-    """The job's units (block along time, pass) from its middle frames on, round and round for ever: the sample a
-    dry run measures (the ends of a recording are often dark, or still)."""
+    """The job's units from its middle frames on, round and round for ever (a recording's ends are often dark)."""
     units = list(blocks.units())
     middle = next(n for n, (b, _) in enumerate(units) if blocks.starts[b + 1] > blocks.starts[-1] // 2)
     while True:
@@ -231,7 +215,6 @@ def _from_the_middle(blocks: TileBlocks) -> Iterator[tuple[int, int]]:
 
 
 def _most_sampled(job_tasks: int, workers: int) -> int:
-    """The most tasks a dry run times after the warm-up round (one task a worker): no more than the job has, the
-    warm-up counted, in whole rounds of a task a worker, but 3 rounds at least (a job of a few tasks is priced on a
-    few rounds of them), and :data:`MOST_TASKS` a worker at most."""
+    """The most tasks a dry run times after the warm-up round: no more than the job has, in whole rounds of a task a
+    worker, 3 rounds at least and :data:`MOST_TASKS` a worker at most."""
     return min(MOST_TASKS, max(3, job_tasks // workers - 1)) * workers

@@ -1,36 +1,14 @@
 """``cscsr reconstruct``: spike store -> HR video store, over a Dask cluster.
 
-Output frame j is centred on spike frame ``c_j = W//2 + j*K`` and made from frames
-``[c_j - W//2, c_j + W//2]``. The job runs the lazy graph's tasks (``pipeline.jobs.reconstruct_tasks.TileBlocks``,
-the blocks ``lazy.reconstruct`` and ``lazy.to_video`` make): a block is a few consecutive output frames (the
-method's ``batch``) of one tile; its task reads its windows and halo straight from Zarr (no overlap graph),
-reconstructs, crops the halo and writes one chunk per (frame, tile), each then recorded in ``committed``. The plan
-(``pipeline.jobs.reconstruct_plan``) is frozen data; ``pipeline.compute.executor`` submits the blocks' tasks in a
-bounded window. The reconstructor (a model, for ``cscsr``) is built once per worker process and reused. A job that
-starts its own local cluster runs its tasks in segments, each in a fresh process and cluster
-(``pipeline.compute.executor``), so that memory stays bounded over millions of tasks.
-
-GPU workers: when the cluster has workers that advertise the ``GPU`` resource (one per GPU,
-``pipeline.compute.cluster``), network tasks ask for a share of one (``GPU_SHARE``), so they run there and
-only there, several at once: one on the device while the others read and write. On GPU workers
-the default weights are ``full`` (``lite`` on CPUs), and the default tile is the largest that the
-GPU's memory holds (the whole frame where it fits, several frames a pass), else tasks take
-several tiles of the same shape (``gpu_batch`` windows in all) as one batch; classic tasks run
-anywhere. Without such workers tasks are cut and placed as above.
-
-The gain is fixed for the whole recording before any task runs (``--gain``, else the store's,
-else automatic exposure of the whole recording's middle window), so tiles and frames agree with each
-other, and a part of a recording with a whole run.
-
-A part (``--start``/``--stop``, ``--region``; ``reconstruct_plan.job_part``): the output frames of the whole
-recording whose centre lies in [start, stop), each read from its whole window (outside the range where the
-window reaches past it); tiles cut inside the region, their halo read from outside it where the recording
-has pixels. The output records the part (``start``, ``stop``, ``region``), and ``--resume`` checks it.
-
-``--dry-run`` (:func:`plan_job`): every check of a real run, nothing created; a few of the job's tasks run
-for real on its workers, all busy at once, into a temporary store that is not OUT's (in a new folder under this
-machine's temporary folder where every worker reaches it, else in each worker's memory), price the job
-(``pipeline.compute.estimate``).
+Output frame j is centred on spike frame ``c_j = W//2 + j*K`` and made from frames ``[c_j - W//2, c_j + W//2]``.
+The job checks its options, places and builds its method (:func:`prepared`), fixes the gain for the whole recording
+(``--gain``, else the store's, else the automatic exposure of its middle window: tiles, frames and parts agree),
+cuts the blocks ``lazy.reconstruct`` cuts (``reconstruct_tasks.cut``) and runs their tasks (each reads its windows
+and halo from Zarr, reconstructs, writes and commits its tiles) through the executor's bounded window: on the
+client's cluster, else in segments on fresh local clusters (``pipeline.compute.executor``). A part (``--start``/
+``--stop``, ``--region``: ``reconstruct_plan.job_part``) is recorded in the output, which ``--resume`` checks.
+``--dry-run`` prices the plan by a few of its own tasks (``pipeline.jobs.dry_run``), creating nothing.
+Where the network runs, its default weights and tile: docs/cluster.md.
 """
 
 import contextlib
@@ -96,9 +74,9 @@ def network_options(options: ReconstructOptions) -> tuple[str | None, str | None
 
 
 def checked_method(store: SpikeStore, options: ReconstructOptions) -> tuple[int, Reconstructor]:
-    """Every check of a job on ``store`` that needs no output: the options against the recording, the
-    scale (``--scale``, else the store's, else 4) and the method, its weights loaded (on the CPU: this
-    process only checks them; without ``--weights``, those for CPU workers and the recording's CFA). -> (scale, method)."""
+    """Every check of a job on ``store`` that needs no output or cluster: the options against the recording, and the
+    method built with its weights (without ``--weights``, those for CPU workers and the recording's CFA) and checked
+    (:func:`_built_method`). -> (scale, method)."""
     options.check()
     if options.window > store.n_frames:
         raise InputError(f"--window {options.window} is longer than the recording ({store.n_frames} frames)")
@@ -108,22 +86,19 @@ def checked_method(store: SpikeStore, options: ReconstructOptions) -> tuple[int,
 
 
 def _built_method(options: ReconstructOptions, stored_scale, cfa: str, recording: str | None = None):
-    """(the scale: ``--scale``, else the recording's ``stored_scale``, else 4; the method, built on the CPU (its
-    weights loaded and checked: this process only checks them) and checked against the window, scale and ``cfa``;
-    a network's check names ``recording`` beside its weights)."""
+    """(the scale: ``--scale``, else the recording's ``stored_scale``, else 4; the method, built on the CPU (this
+    process only checks its weights) and checked against the window, scale and ``cfa``, naming ``recording``)."""
     scale = options.scale if options.scale is not None else int(stored_scale or 4)
     method = reconstructor(options.method, options.weights, *network_options(options), device="cpu")
-    named = (recording,) if recording and options.method in NETWORKS else ()
-    method.check(options.window, scale, cfa, *named)
+    method.check(options.window, scale, cfa, *((recording,) if recording and options.method in NETWORKS else ()))
     return scale, method
 
 
 def prepared(options: ReconstructOptions, client, cfa: str, stored_scale, lr_shape: tuple[int, int],
              found: dict, recording: str | None = None) -> tuple[ReconstructOptions, Placement, int, Reconstructor]:
-    """Where the method runs (:func:`placement`: ``client``'s GPU workers, else this machine's), the options placed
-    (:func:`placed`: the weights) and sized (:func:`sized`: the tile, the windows a pass) for it and for the part's
-    ``lr_shape``, and the method built and checked (:func:`_built_method`) -> (options, placement, scale, method).
-    ``found``: what a resumed output records. The job and ``lazy.reconstruct`` prepare their method here."""
+    """The method placed (:func:`placement`), its options :func:`placed` and :func:`sized` for there and for the
+    part's ``lr_shape``, and built and checked -> (options, placement, scale, method); ``found``: what a resumed
+    output records. The job and ``lazy.reconstruct`` prepare their method here."""
     where = placement(options, client)
     options = placed(options, where, found, cfa)
     scale, method = _built_method(options, stored_scale, cfa, recording)
@@ -131,22 +106,20 @@ def prepared(options: ReconstructOptions, client, cfa: str, stored_scale, lr_sha
 
 
 def placement(options: ReconstructOptions, client) -> Placement:
-    """On ``client``'s GPU workers if it has any, else (no client: a local cluster) on this machine's GPUs."""
+    """On ``client``'s GPU workers if it has any, else (no client: a local cluster) on this machine's GPUs; with the
+    smallest one's memory."""
     if options.method not in NETWORKS or options.backend != "torch":
         return Placement(False, None)
     if client is None:
-        gpus = visible_gpus()
-        if not gpus:
+        if not (gpus := visible_gpus()):
             return Placement(False, None)
         import torch
 
         return Placement(True, min(torch.cuda.get_device_properties(i).total_memory for i in range(gpus)))
     addresses = [address for address, worker in client.scheduler_info()["workers"].items()
                  if (worker.get("resources") or {}).get(GPU, 0) >= 1]
-    if not addresses:
-        return Placement(False, None)
-    sizes = [size for size in client.run(gpu_memory_bytes, workers=addresses).values() if size]
-    return Placement(True, min(sizes) if sizes else None)
+    sizes = [size for size in client.run(gpu_memory_bytes, workers=addresses).values() if size] if addresses else []
+    return Placement(bool(addresses), min(sizes) if sizes else None)
 
 
 def gpu_memory_bytes() -> int | None:
@@ -157,9 +130,8 @@ def gpu_memory_bytes() -> int | None:
 
 
 def placed(options: ReconstructOptions, where: Placement, recorded: dict, cfa: str = "rggb") -> ReconstructOptions:
-    """The options with the weights that depend on where the network runs and on the recording's ``cfa`` filled
-    in: ``--weights``, else what a resumed output records, else ``lite-mono`` for a mono recording, ``full`` on
-    GPU workers and ``lite`` on CPUs. Chosen once per job; the output records it."""
+    """The options with the network's weights filled in: ``--weights``, else what a resumed output records, else
+    :func:`reconstruct_plan.default_weights` for ``where`` and the recording's ``cfa``."""
     if options.method not in NETWORKS or options.weights:
         return options
     return dataclasses.replace(options, weights=recorded.get("weights") or default_weights(where.gpus, cfa))
@@ -168,9 +140,8 @@ def placed(options: ReconstructOptions, where: Placement, recorded: dict, cfa: s
 def sized(options: ReconstructOptions, where: Placement, method: Reconstructor, shape: tuple[int, int],
           recorded: dict) -> ReconstructOptions:
     """The options with the tile and the windows per pass filled in: ``--tile`` (else what a resumed output
-    records), ``--gpu-batch``; else on GPUs of known memory what the smallest holds
-    (:func:`stages.reconstruction.tiles.device_tile`: the whole frame where it fits), and otherwise ``DEFAULT_TILE`` and
-    ``GPU_BATCH``."""
+    records), ``--gpu-batch``; else on GPUs of known memory what the smallest holds (``tiles.device_tile``: the
+    whole frame where it fits), and otherwise ``DEFAULT_TILE`` and ``GPU_BATCH``."""
     tile, batch = options.tile or recorded.get("tile_lr"), options.gpu_batch
     if where.gpus and where.memory and (tile is None or batch is None):
         from cscsr.inference.device_memory import bytes_per_lr_pixel, usable_bytes
@@ -182,8 +153,7 @@ def sized(options: ReconstructOptions, where: Placement, method: Reconstructor, 
 
 
 def _recorded_attrs(out: str) -> dict:
-    """What the output to resume records, or nothing if it cannot be read as a video store (the resume's
-    own checks then refuse it, in their words)."""
+    """What the output to resume records, or nothing if it is not a video store (refused later, with why)."""
     try:
         return dict(open_video_store(out).attrs)
     except Exception:  # noqa: BLE001 - refused later, with the reason, by new_output and _prepare_output
@@ -193,14 +163,10 @@ def _recorded_attrs(out: str) -> dict:
 def reconstruct(store_url: str, out: str, options: ReconstructOptions = ReconstructOptions(), *,
                 workers: int | None = None, scheduler: str | None = None, client=None, progress: bool = True,
                 dry_run: bool = False) -> dict:
-    """Reconstruct the recording at ``store_url`` (or the part ``options`` name) into an HR video store at ``out``.
-
-    Runs on ``client`` if given, else on the scheduler named by ``scheduler`` (or the environment),
-    else in segments of ``options.segment_tasks`` tasks, each on a fresh local cluster of
-    ``workers`` (see :mod:`pipeline.compute.executor`). Returns
-    counts: output frames, tasks run now, tasks found already committed. ``dry_run``: every check, nothing
-    created; returns the plan, priced by a few of its tasks run for real (:func:`plan_job`).
-    """
+    """Reconstruct the recording at ``store_url`` (or the part ``options`` name) into an HR video store at ``out``,
+    on ``client``, else on the scheduler ``scheduler`` names (or the environment), else in segments of
+    ``options.segment_tasks`` tasks, each on a fresh local cluster of ``workers``. -> counts: output frames, tasks run
+    now, tasks found committed. ``dry_run``: every check, nothing created; -> the plan, priced (:func:`plan_job`)."""
     check_workers(workers, scheduler)
     options.check()
     check_apart(out, store_url, options.weights)
@@ -230,8 +196,7 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
             stack.enter_context(claimed(out))  # one job per output, taken atomically before OUT is touched
             if options.resume:
                 check_free(out)  # and no live lease (a job on a machine that shares no claim file with us)
-            # only one of our stores is replaced, and kept aside until the new one is complete (pipeline.stores.outputs); a
-            # failed job's new store stays for --resume
+            # only one of our stores is replaced, kept aside until the new one is complete; a failed one stays
             stack.enter_context(new_output(out, overwrite=options.overwrite, kind=VIDEO_STORE,
                                            flag="--resume or --overwrite", resume=options.resume, keep_partial=True))
         gain = options.gain or meta.gain
@@ -280,9 +245,8 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
 
 
 def _check_output(out: str, options: ReconstructOptions) -> None:
-    """For a dry run: what a real run refuses about ``out`` once it has claimed it (another live job writing it;
-    an output that exists and is not ours, or that we were not asked to resume or replace), creating nothing.
-    (A job that has claimed ``out`` and not yet started writing it holds no lease yet: it is not seen.)"""
+    """For a dry run: what a real run refuses about ``out`` once it has claimed it (another live job writing it; an
+    output that is not ours, or that we were not asked to resume or replace), creating nothing."""
     if options.resume:  # it exists: checked before
         check_free(out)
     else:
@@ -320,8 +284,8 @@ def _prepare_output(plan: Plan, resume: bool, centres: list[int], blocks: TileBl
 
 def _check_resumable(plan: Plan, group, centres: list[int], blocks: TileBlocks, *, adopt: bool = False) -> np.ndarray:
     """Refuse to resume ``group`` (the output) with ``plan`` unless it was made from the same data with the same
-    parameters (the part of the recording included); -> its commit mask. ``adopt``: an output from before the
-    record of what it was made from gets it now (a dry run leaves it as it is)."""
+    parameters (the part included); -> its commit mask. ``adopt``: an output from before the record of what it was
+    made from gets it now (a dry run leaves it as it is)."""
     expected = plan.attrs()
     if other := plan.other_data(dict(group.attrs)):  # the same paths, another recording or other weights
         raise InputError(f"cannot resume {plan.out}: {other}")

@@ -1,17 +1,10 @@
-"""A reconstruction's tasks, one home for both front doors: the ``reconstruct`` job (``pipeline.jobs.reconstruct``,
-its dry run ``pipeline.jobs.dry_run``) and the lazy graphs (``pipeline.lazy.video``, ``pipeline.lazy.written``).
+"""A reconstruction's tasks, for the ``reconstruct`` job (and its dry run) and the lazy graphs alike.
 
 :class:`TileBlocks` is a reconstruction read straight from a spike store, as frozen data: output frames cut into
 blocks along time (the network's batches) and into tiles, on GPU workers the tiles of one shape joined into one
-network pass. The tasks of any block are made on demand. ``lazy.reconstruct`` wraps every block in a dask array
-(:meth:`TileBlocks.graph`): a task per block of a tile that reads its windows and halo as packed bytes from the store
-and reconstructs them (``{method}-<token>``; a joined pass is a ``pass-`` task, its tiles taken from it). Written
-(:meth:`TileBlocks.written`: the job, and ``lazy.to_video`` of such an array, a bounded window at a time through
-``pipeline.compute.executor``), one task per pass reads, reconstructs, writes and commits its tiles, so an HR block
-never travels between workers.
-
-Also here, what the workers build once per process: the method (a network loaded once per weights file), the
-stores opened once per run; and the automatic exposure.
+network pass; the tasks of any block are made on demand, as the lazy array's (:meth:`TileBlocks.graph`) or as the
+job's (:meth:`TileBlocks.written`: read, reconstruct, write and commit in one task). Also here, what workers build
+once per process (the method, the stores opened) and the automatic exposure.
 """
 
 import dataclasses
@@ -40,11 +33,9 @@ WINDOW_BLOCKS = 1024  # the most blocks along time for a method of one window a 
 def reconstructor(method: str, weights: str | None, precision: str | None = "fp32", backend: str | None = "torch",
                   weights_sha256: str | None = None, *, fast_gpu: bool = False,
                   device: str | None = None) -> Reconstructor:
-    """The method, built once per process and file contents (the cache lives in each worker) and reused
-    by its tasks: for the network, loaded from its weights once, onto the worker's GPU if any (or onto
-    ``device``: the job's own process checks the weights on the CPU). Keyed by the weights' SHA-256 (a
-    job's tasks pass the one the job was planned with; else the file is hashed now), so a long-lived
-    worker or watcher never runs a model cached from an older file at that path."""
+    """The method, built once per process and weights file (onto the worker's GPU if any, else ``device``) and
+    reused by its tasks. Keyed by the weights' SHA-256 (the one the job was planned with; else hashed now), so a
+    long-lived worker never runs a model cached from an older file at that path."""
     if method not in NETWORKS:
         with _building:
             return _built(method, None, None, None, None)
@@ -95,11 +86,9 @@ class MethodSpec:
 
 
 def block_frames(n: int, batch: int, first: int) -> tuple[int, ...]:
-    """Output frames per block along time. For a method of ``batch`` windows a pass: batches of the whole
-    recording's output frames, from index ``first`` on (a part's first and last may be part of one), so a part's
-    batches are a whole run's and a resumed block holds what an uninterrupted one held (a batch's numbers can depend
-    on its size). For one window a pass: a window a block up to :data:`WINDOW_BLOCKS` blocks, then several (the graph
-    stays bounded)."""
+    """Output frames per block along time: for ``batch`` windows a pass, the batches of the whole recording's output
+    frames from index ``first`` on, so a part's and a resume's batches are a whole run's (a batch's numbers can depend
+    on its size); for one window a pass, one a block up to :data:`WINDOW_BLOCKS` blocks, then several."""
     if n == 0:
         return (0,)
     if batch == 1:
@@ -113,9 +102,8 @@ def block_frames(n: int, batch: int, first: int) -> tuple[int, ...]:
 class TileBlocks:
     """A reconstruction read straight from the spike store at ``url`` (the recording ``identity``): output frames
     centred on spike frames ``first_centre + j * every`` (j < ``sum(frames)``), ``frames`` of them a block along
-    time, each block cut into ``grid``'s tiles, the tiles of each of ``passes`` reconstructed in one network pass
-    (one tile each but on GPU workers). ``gain``: a number, or the key of a task that gives it. Frozen data; the
-    graph of any block is built on demand (:meth:`graph`), its keys the same for the job and the lazy graph."""
+    time, each cut into ``grid``'s tiles, the tiles of each of ``passes`` reconstructed in one network pass (one
+    tile each but on GPU workers). ``gain``: a number, or the key of a task that gives it."""
 
     spec: MethodSpec
     url: str
@@ -136,8 +124,7 @@ class TileBlocks:
     def __post_init__(self) -> None:
         from dask.base import tokenize
 
-        # the key prefix of its blocks' tasks: the method's name and a token of everything that makes them (made
-        # once, here: it travels with the blocks, to segments and to a dry run's tasks)
+        # its tasks' key prefix: the method's name and a token of everything that makes them (made once, here)
         object.__setattr__(self, "name", f"{self.spec.method}-{tokenize(self)}")
 
     @functools.cached_property
@@ -206,10 +193,8 @@ class TileBlocks:
 
     def written(self, b: int, k: int, url: str, run: str) -> tuple[tuple, object]:
         """(key, task) of the task that reads and reconstructs every tile of pass ``k`` of block ``b`` and writes them
-        into the video store at ``url`` (:func:`write_blocks`): ``(<name>-<run>, b, ty, tx, 0)`` for a tile of its
-        own (its key prefix the method's name), ``(pass-<name>-<run>, b, k)`` for a joined pass (``pass-`` and the
-        method's name). One task, so an HR block never travels between workers: a write of its own was taken by an idle
-        worker (Dask's work stealing) while the worker that held the block ran its next."""
+        into the video store at ``url`` (:func:`write_blocks`), keyed ``(<name>-<run>, b, ty, tx, 0)``, or
+        ``(pass-<name>-<run>, b, k)`` for a joined pass. One task, so an HR block never travels between workers."""
         from dask._task_spec import Task
 
         tiles, (rows, columns) = self.passes[k], self.hr_tiles
@@ -221,10 +206,9 @@ class TileBlocks:
 def cut(spec: MethodSpec, url: str, identity: str, centres: list[int], first: int, every: int, window: int,
         grid: list[list[Tile]], batch: int, cfa: str, reset: str, scale: int, most: int, gain: float | tuple,
         gpu: bool) -> TileBlocks:
-    """The blocks of a reconstruction of the output frames centred on ``centres`` (index ``first`` of the whole
-    recording's output frames) of the store at ``url``: :func:`block_frames` along time (``batch``: the method's
-    windows a pass), ``grid``'s tiles, and on GPU workers (``gpu``) the tiles of one shape joined into passes of
-    ``most`` windows (``reconstruct_plan.tile_blocks``). The job and ``lazy.reconstruct`` cut them here."""
+    """The blocks of the output frames centred on ``centres`` (index ``first`` of the whole recording's) of the store
+    at ``url``: :func:`block_frames` along time, ``grid``'s tiles, and on GPU workers (``gpu``) the tiles of one shape
+    joined into passes of ``most`` windows. The job and ``lazy.reconstruct`` cut them here."""
     from pipeline.jobs.reconstruct_plan import tile_blocks
 
     passes = tile_blocks(grid, max(1, most // batch) if gpu else 1)
@@ -246,11 +230,9 @@ class Outcome(NamedTuple):
 
 def run_blocks(client, units: Iterable[tuple[int, int]], *, blocks: TileBlocks, out: str,
                run: str) -> Iterator[Outcome]:
-    """Run ``units`` (block along time, pass) of ``blocks`` on ``client`` (``pipeline.compute.executor``: a bounded
-    window, lost workers survived, tasks the cluster drops submitted again), written into the video store at
-    ``out``, each unit's task (:meth:`TileBlocks.written`) made as the window moves; yield the outcome of each of its
-    tiles as it finishes. The ``reconstruct`` job and ``lazy.to_video`` of a reconstruction read from a store run
-    their blocks here."""
+    """Run ``units`` (block along time, pass) of ``blocks`` on ``client``, written into the video store at ``out``,
+    each unit's task (:meth:`TileBlocks.written`) made as the executor's bounded window moves; yield the outcome of
+    each of its tiles as it finishes. The job and ``lazy.to_video`` of a store's reconstruction on a client."""
     from dask.highlevelgraph import HighLevelGraph, MaterializedLayer
 
     from pipeline.compute.executor import failure, submitted
@@ -281,10 +263,7 @@ def read_tiles(gain, spec: MethodSpec, url: str, identity: str, centres: tuple[i
 def cropped(images: list[np.ndarray], crop: tuple[slice, slice]) -> np.ndarray:
     """A tile's HR images, each (H, W, 3), cropped to ``crop`` (its halo off) -> (n, h, w, 3) uint8."""
     ys, xs = crop
-    out = np.empty((len(images), ys.stop - ys.start, xs.stop - xs.start, 3), np.uint8)
-    for n, image in enumerate(images):
-        out[n] = image[ys, xs]
-    return out
+    return np.array([image[ys, xs] for image in images], np.uint8).reshape(-1, ys.stop - ys.start, xs.stop - xs.start, 3)
 
 
 class JobIncomplete(RuntimeError):
@@ -304,9 +283,8 @@ class JobIncomplete(RuntimeError):
 
 
 def finish_video(url: str, failed: dict[int, str], n_frames: int, again: str = "--resume") -> None:
-    """Complete the video store at ``url`` (``state`` its last write; a worker killed mid-write leaves a temporary
-    file: removed), unless tiles of output frames ``failed`` ({frame: why}): then :class:`JobIncomplete` names them,
-    the rest committed for a resume (``again``). The job's end and ``lazy.to_video``'s."""
+    """Complete the video store at ``url`` (a killed worker's temporary files removed, ``state`` the last write),
+    unless output frames ``failed`` ({frame: why}): then :class:`JobIncomplete` names them for a resume (``again``)."""
     if failed:
         raise JobIncomplete(url, failed, n_frames, again)
     remove_partial_writes(url)
@@ -337,15 +315,13 @@ def write_block(block: np.ndarray, url: str, run: str, first: int, tile: tuple[i
 
 @functools.lru_cache(maxsize=4)
 def writer(url: str, run: str) -> TileWriter:
-    """The output store opened once per worker process and run (opening costs several metadata reads; a task's own
-    work can be under a millisecond)."""
+    """The output store opened once per worker process and run (a task's own work can be under a millisecond)."""
     return TileWriter(url)
 
 
 @functools.lru_cache(maxsize=8)
 def spike_array(url: str, identity: str):
-    """The store's ``spikes`` array, opened once per process and recording (``identity``: another recording at the
-    same path is opened afresh, and refused if it is not the one the graph was built on)."""
+    """The store's ``spikes`` array, opened once per process and recording ``identity`` (refused if another)."""
     store = open_spike_store(url)
     if store_identity(store) != identity:
         raise InputError(f"spike store {url} is not the recording this graph was built on (it was replaced): "
@@ -355,10 +331,8 @@ def spike_array(url: str, identity: str):
 
 def tile_windows(spikes, url: str, centres, half: int, tile: Tile, cfa: str, reset: str, gain: float,
                  scale: int) -> list[Window]:
-    """The windows centred on spike frames ``centres`` of ``tile``'s read region (halo included), read packed
-    straight from the store's ``spikes`` array (refusing a lost chunk): the store's own bytes where the region starts
-    on a byte (tiles of a whole recording do), else its bits shifted to start the row (a selection of pixels from
-    an even column that is not a multiple of 8)."""
+    """The windows centred on spike frames ``centres`` of ``tile``'s read region (halo included), read packed from
+    the store's ``spikes`` (refusing a lost chunk), their bits shifted where the region does not start on a byte."""
     width = tile.rx1 - tile.rx0
     shift = tile.rx0 % 8
     region = (slice(tile.ry0, tile.ry1), slice(tile.rx0 // 8, -(-tile.rx1 // 8)))
@@ -373,9 +347,8 @@ def tile_windows(spikes, url: str, centres, half: int, tile: Tile, cfa: str, res
 
 def gain_task(url: str, identity: str, n_frames: int, width: int, window: int, every: int,
               reset: str) -> tuple[tuple[str], tuple]:
-    """(key, arguments of :func:`store_gain`) of the task that gives the automatic exposure of the recording at
-    ``url`` (``n_frames`` frames ``width`` pixels wide): the job's rule, the middle window of the whole recording's
-    output frames, so every part of it is exposed alike. The job and ``lazy.windows`` make it here."""
+    """(key, arguments of :func:`store_gain`) of the automatic exposure of the recording at ``url``: the middle
+    window of the whole recording's output frames, so every part of it is exposed alike."""
     from dask.base import tokenize
 
     whole = output_centres(n_frames, window, every)

@@ -2,21 +2,13 @@
 
     spikes (t, y, x) bool                      lazy.open_spikes, lazy.simulate  (pipeline.lazy.spikes)
       -> windows (t, dt, y, x) bool            one 41-frame window per output frame: dask's overlap along time
-      -> hr (t, y, x, rgb) uint8               tfp, tfi, reconstruct, apply: a blockwise map per tile, halo included
-      -> a video store                          to_video (pipeline.lazy.written): per (frames, tile) block, resumable
+      -> hr (t, y, x, rgb) uint8               tfp, tfi, reconstruct, apply: a block per (frames, tile), halo included
+      -> a video store                          to_video (pipeline.lazy.written): per block, resumable
 
-The arithmetic is the job's own (one home for each piece): the output frames, ranges and regions of
-``pipeline.jobs.reconstruct_plan.job_part``, the tiles and halos of ``stages.reconstruction.tiles.tile_grid``, the reconstructors of
-``pipeline.jobs.reconstruct_tasks.reconstructor`` (built once per worker process), the frames grouped into the network's
-batches as the job's blocks group them (``reconstruct_tasks.block_frames``), the gain by the job's rule, the store written by
-``pipeline.stores.video_store`` with the attributes a job records (``reconstruct_plan.Plan``). So ``to_video`` of a lazy
-reconstruction writes the bytes ``cscsr reconstruct`` writes with the same options, and ``cscsr reconstruct
---resume``, ``info``, ``export`` and ``evaluate`` read it as the job's.
-
-Nothing is computed before ``to_video`` (or the user's ``.compute()``), but for the network's weights, which
-are loaded once here to check them (as the job checks them before any output exists).
+Every piece is the job's (the output frames and parts, the tiles and halos, the method prepared and cut into blocks,
+the gain), so ``to_video`` of a lazy reconstruction writes the bytes ``cscsr reconstruct`` writes with the same
+options. Nothing is computed before ``to_video`` or ``.compute()``, but for the network's weights, checked here.
 """
-
 
 import contextlib
 import dataclasses
@@ -46,8 +38,8 @@ VIDEO_DIMS = ("t", "y", "x", "rgb")
 
 @dataclasses.dataclass(frozen=True)
 class FunctionReconstructor:
-    """A user's own method as a :class:`stages.reconstruction.methods.Reconstructor`: ``func(window) -> image``, ``window`` (N, h, w)
-    bool (a tile and its halo), ``image`` (scale*h, scale*w, 3) uint8."""
+    """A user's own method as a ``Reconstructor``: ``func(window) -> image``, ``window`` (N, h, w) bool (a tile and
+    its halo), ``image`` (scale*h, scale*w, 3) uint8."""
 
     func: Callable
     scale: int
@@ -91,10 +83,9 @@ def reconstruct(win: xr.DataArray, *, method: str = "cscsr", weights: str | None
                 precision: str = "fp32", backend: str = "torch", gain: float | None = None,
                 scale: int | None = None) -> xr.DataArray:
     """Every window reconstructed by ``method`` (tfp, tfi, cscsr, cscsr-ensemble) as the job does it: (t, y, x, rgb)
-    uint8 at ``scale`` (default the recording's, else 4), one block per (the job's task of frames, tile), each tile
-    read with the method's halo. ``weights`` (the network's): default ``full`` where a ``distributed`` client has
-    GPU workers (the tasks then carry the ``GPU`` resource the jobs' network tasks ask for, and run there), else
-    ``lite``. ``gain``: default the recording's, else the job's automatic exposure. Lazy."""
+    uint8 at ``scale`` (default the recording's, else 4), a block per (the job's task of frames, tile). ``weights``:
+    default ``full`` where a ``distributed`` client has GPU workers (its tasks then run there), else ``lite``.
+    ``gain``: default the recording's, else the job's automatic exposure. Lazy."""
     win = check_windows(win)
     check_text("method", method)
     options = ReconstructOptions(method=method, every=win.attrs["every"], window=win.attrs["window"], gain=gain,
@@ -136,8 +127,8 @@ def apply(win: xr.DataArray, func: Callable, *, scale: int, halo: int = 0, tile:
 
 def _reconstructed(win: xr.DataArray, spec: MethodSpec, built: Reconstructor, scale: int, tile: int, gain, most: int,
                    gpu: bool, *, fast_gpu: bool | None) -> xr.DataArray:
-    """The graph of :func:`reconstruct` and :func:`apply`: the windows' frames grouped as the job's tasks group them
-    (the network's ``batch``), a blockwise map per tile of the job's grid reading its halo, tiles put together."""
+    """The graph of :func:`reconstruct` and :func:`apply`: the job's blocks read from the store where the windows
+    are a store's as read, else a blockwise map per tile of the job's grid over the windows, tiles put together."""
     attrs = win.attrs
     height, width, cfa = attrs["height"], attrs["width"], attrs["cfa"]
     region = tuple(attrs["region"])
@@ -198,17 +189,15 @@ def _gain(win: xr.DataArray, gain: float | None):
 
 
 def _task_frames(chunks: tuple[int, ...], batch: int, first: int) -> tuple[int, ...]:
-    """Chunks of output frames for a method that reconstructs ``batch`` windows together: the job's blocks
-    (``reconstruct_tasks.block_frames``), so that each batch holds the windows it holds in the job (a network's numbers
-    can depend on the batch); any chunking (empty chunks dropped) where windows are reconstructed one at a time."""
+    """Chunks of output frames: the job's blocks for a method of ``batch`` windows a pass (a network's numbers can
+    depend on its batch), else ``chunks`` (empty ones dropped)."""
     if batch == 1:
         return tuple(n for n in chunks if n) or (0,)
     return block_frames(sum(chunks), batch, first)
 
 
 def _windows_tile(data: da.Array, oy: int, ox: int, t: Tile, arguments: tuple, hr_tile: tuple[int, int]) -> da.Array:
-    """Tile ``t`` of every window (``data``: the windows, kept from LR pixel (oy, ox)) reconstructed, a block per
-    chunk of frames: its windows of the tile and halo unpacked, packed again by the task."""
+    """Tile ``t`` of every window (``data``, kept from LR pixel (oy, ox)) reconstructed, a block per chunk of frames."""
     read = data[:, :, t.ry0 - oy : t.ry1 - oy, t.rx0 - ox : t.rx1 - ox]
     return read.map_blocks(_reconstruct_block, *arguments, name=f"{arguments[0].method}-{tokenize(read.name, *arguments)}",
                            chunks=(read.chunks[0], *((n,) for n in hr_tile), (3,)), dtype=np.uint8,
@@ -216,9 +205,8 @@ def _windows_tile(data: da.Array, oy: int, ox: int, t: Tile, arguments: tuple, h
 
 
 def tile_blocks(data: da.Array) -> TileBlocks | None:
-    """The blocks ``data`` holds, where it is :func:`reconstruct`'s array of blocks read from a store as it was made
-    (no selection, function or rechunk since: those make a new array): then ``to_video`` on a cluster runs its blocks
-    as the job does (``reconstruct_tasks.run_blocks``). Else None."""
+    """The blocks ``data`` holds where it is :func:`reconstruct`'s array read from a store as it was made (nothing
+    since: ``to_video`` on a cluster then runs them as the job does), else None."""
     layer = data.__dask_graph__().layers.get(data.name)
     if not isinstance(layer, BlocksLayer):
         return None
@@ -227,10 +215,9 @@ def tile_blocks(data: da.Array) -> TileBlocks | None:
 
 
 class BlocksLayer(Layer):
-    """The tasks of every block of ``blocks`` (``TileBlocks.graph``: the job's) as one graph layer, annotated as the
-    job's, each task made when something asks for it: a long recording's graph costs nothing to build or hold until
-    it is computed, and then only what a computation needs (:meth:`cull`) is made. Knows the blocks it was made from
-    (:func:`tile_blocks`). The tasks made are kept, so a graph materialised more than once is made once."""
+    """The tasks of every block of ``blocks`` (``TileBlocks.graph``) as one graph layer, annotated as the job's, each
+    task made (once) when something asks for it: a long recording's graph costs nothing until it is computed, and then
+    only what a computation needs (:meth:`cull`) is made."""
 
     has_legacy_tasks = False  # every task a ``dask._task_spec.Task`` (the base class would make them all to find out)
 
@@ -302,8 +289,7 @@ class BlocksLayer(Layer):
 
 
 def _blocks_array(blocks: TileBlocks, gain) -> da.Array:
-    """``blocks`` as a dask array (t, y, x, rgb) uint8: every block's tasks in one layer made on demand
-    (:class:`BlocksLayer`), on the automatic exposure's graph where ``gain`` is lazy."""
+    """``blocks`` as a dask array (t, y, x, rgb) uint8 (:class:`BlocksLayer`), on the exposure's graph if lazy."""
     layers, dependencies = {blocks.name: BlocksLayer(blocks)}, {blocks.name: set()}
     if isinstance(gain, da.Array):
         below = gain.__dask_graph__()

@@ -33,20 +33,15 @@ AS_STORED = ("getitem", "rechunk-merge", "rechunk-split", "rechunk-p2p")  # grap
 def windows(spikes: xr.DataArray, length: int = WINDOW, every: int = WINDOW, start=None, stop=None, region=None,
             *, margin: int = MARGIN) -> xr.DataArray:
     """The windows of the output frames ``cscsr reconstruct --window LENGTH --every EVERY --start --stop --region``
-    makes of ``spikes``: (t, dt, y, x) bool, output frame ``t`` (coordinate: its centre's time; ``frame``: its
-    centre spike frame) seeing spike frames ``centre + dt``, dt in -LENGTH//2..LENGTH//2. The time overlap of
-    neighbouring windows is dask's (``map_overlap`` along t: each chunk of the recording reads LENGTH//2 frames of
-    its neighbours), not a copy of the recording. With a region, its LR pixels and ``margin`` more on every side
-    where the frame has them (the context a method's halo reads); ``attrs['region']`` says which are the region's.
-    Lazy: nothing is read.
+    makes of ``spikes``: (t, dt, y, x) bool, output frame ``t`` (coordinate: its centre's time; ``frame``: its centre
+    spike frame) seeing spike frames ``centre + dt``. The time overlap of neighbouring windows is dask's
+    (``map_overlap`` along t), not a copy of the recording. With a region, its LR pixels and ``margin`` more on every
+    side where the frame has them (the context a method's halo reads). Lazy: nothing is read.
 
     ``spikes`` may be a selection of a recording (``isel``/``sel``): a contiguous increasing run of frames and of
-    pixels is honoured in the recording's numbers (its ``frame``, ``y``, ``x`` coordinates): the windows are those
-    of the recording's output frames whose whole window lies in the selected frames (centres on the recording's
-    grid), the region is the selected pixels (their edges are the frame's edges for a method's halo), ``start``,
-    ``stop`` and ``region`` are in the recording's frames and pixels, and the automatic gain is the whole
-    recording's. Refused in one line: steps, repeats, reversed or shuffled frames or pixels, and (for a Bayer CFA)
-    pixels that start or end on an odd row or column (the colour pattern's phase)."""
+    pixels, in the recording's numbers: the windows of the recording's output frames whose whole window it holds, the
+    selected pixels the frame's edges, the automatic gain the whole recording's. Refused in one line: steps, repeats,
+    reversed or shuffled frames or pixels, and (a Bayer CFA) pixels that start or end on an odd row or column."""
     spikes = check_spikes(spikes)
     for name, value in (("length", length), ("every", every), ("margin", margin)):
         check_number(name, value, integer=True)
@@ -125,12 +120,10 @@ def windows(spikes: xr.DataArray, length: int = WINDOW, every: int = WINDOW, sta
 
 
 class PackedReads:
-    """What windows made by :func:`windows` of a store's spikes, or of one selection of them, with nothing in
-    between, are: their reconstruction (``pipeline.lazy.video``) reads each block's tile and halo as packed bytes
-    straight from the store inside the block's task, as the jobs' tasks do, so unpacked windows never travel between
-    workers. Known by the windows' graph name: a function, a rechunk or a second selection in between (a new
-    name) makes the reconstruction read the windows themselves. One selection along ``t`` (``isel``/``sel``) of
-    the windows is still theirs (:meth:`holds`)."""
+    """Windows made by :func:`windows` of a store's spikes (or one selection of them) with nothing in between: their
+    reconstruction reads each block's tile and halo as packed bytes straight from the store, as the job's tasks do.
+    Known by the windows' graph name (anything in between makes a new one); one selection along ``t`` of the windows
+    is still theirs (:meth:`holds`)."""
 
     def __init__(self, url: str, identity: str, name: str, chunks: tuple, first_centre: int, every: int):
         self.url, self.identity, self.name, self.chunks = url, identity, name, chunks
@@ -156,9 +149,8 @@ class PackedReads:
 
 
 def _store_spikes(spikes: xr.DataArray) -> xr.DataArray | None:
-    """The whole recording ``spikes`` were read from, opened again from its store (its automatic gain is the whole
-    recording's); None where they were not read from a store (then ``gain=`` must be given). One line where the
-    store holds another recording now."""
+    """The whole recording ``spikes`` were read from, opened again from its store; None where they were not read from
+    a store. One line where the store holds another recording now."""
     url, identity = spikes.attrs.get("store"), spikes.attrs.get("identity")
     if not isinstance(url, str) or not isinstance(identity, str):
         return None
@@ -170,10 +162,8 @@ def _store_spikes(spikes: xr.DataArray) -> xr.DataArray | None:
 
 
 def _as_stored(bits: da.Array, stored: da.Array) -> bool:
-    """Whether ``bits`` hold the values of the store's ``stored`` spikes as the store holds them: selected (``isel``,
-    ``sel``) or rechunked, nothing else. xarray keeps the attributes that name the store through arithmetic,
-    ``where``, ``shift`` and the user's ``map_blocks``, whose spikes are then not the store's: their automatic gain
-    is their own, and an output made of them does not record the store as its source."""
+    """Whether ``bits`` hold the store's ``stored`` spikes as it holds them: selected or rechunked, nothing else
+    (xarray keeps the attributes that name the store through arithmetic and the user's ``map_blocks``)."""
     below = stored.__dask_graph__().layers
     return all(key_split(name) in AS_STORED for name in bits.__dask_graph__().layers if name not in below)
 
@@ -201,8 +191,7 @@ def _windows_of(block: np.ndarray, *, starts: tuple[int, ...], centre0: int, cen
 
 
 def _store_gain(store: xr.DataArray, length: int, every: int) -> da.Array:
-    """0-d lazy: the automatic exposure of the whole recording ``store`` (as :func:`open_spikes` reads it), by the
-    job's own task (``reconstruct_tasks.store_gain``, under its key): its middle window read from the store."""
+    """0-d lazy: the automatic exposure of the whole recording ``store``, by the job's own task and key."""
     from dask._task_spec import Task
 
     frames, _, width = store.shape
@@ -260,9 +249,8 @@ def check_windows(win, what: str = "windows") -> xr.DataArray:
 
 
 def _output_part(frames, attrs: dict, what: str) -> dict:
-    """``start``, ``stop`` and ``first`` of output frames centred on spike ``frames`` (a selection along t of
-    ``attrs``' part, or all of it): refused in one line unless they are consecutive output frames of the
-    recording's grid (every ``every`` from ``window // 2``), increasing."""
+    """``start``, ``stop`` and ``first`` of output frames centred on spike ``frames`` (``attrs``' part, or a
+    selection of it): refused in one line unless consecutive output frames of the recording's grid, increasing."""
     frames = np.asarray(frames)
     every, half = int(attrs["every"]), int(attrs["window"]) // 2
     if frames.size == 0:

@@ -1,10 +1,6 @@
 """Lazy reconstructions written and read back: :func:`to_video` writes ``hr`` (t, y, x, rgb) as the ``reconstruct``
-job's video store (``pipeline.stores.video_store``: the same layout, record and commit per block, so the job, ``info``,
-``export`` and ``evaluate`` read it and each can resume the other's), each block checked against its chunk;
-:func:`open_video` gives a written store back as the ``hr`` that wrote it.
-
-A selection of ``hr`` is written exactly (its output frames as ``start``/``stop``, its whole LR pixels as ``region``)
-or refused in one line before anything exists.
+job's video store (the same layout, record and commit per block: the job, ``info``, ``export`` and ``evaluate`` read
+it, and each can resume the other's); :func:`open_video` gives a written store back as the ``hr`` that wrote it.
 """
 
 import dataclasses
@@ -33,32 +29,26 @@ from stages.errors import InputError, InputTypeError
 from stages.numbers import check_flag
 from stages.reconstruction.methods import NETWORKS
 
-BLOCKS_AT_ONCE = 256  # blocks (tiles of a store's reconstruction) to_video computes and writes a round, but on a
-# cluster a store's reconstruction, which runs through the executor's window: the graph in memory stays bounded
+BLOCKS_AT_ONCE = 256  # blocks to_video computes and writes a round (but a store's reconstruction on a cluster)
 
 
 def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = False,
              progress: bool = False) -> dict:
-    """Write ``hr`` (t, y, x, rgb) uint8 as a video store at ``url`` (the job's format: ``video`` one chunk per
-    (frame, tile) of ``hr``'s chunks, ``frames``, ``committed``, the attributes, ``state``), computed on the active
-    ``distributed`` client if there is one, else on dask's default scheduler. A reconstruction read from a store as
-    ``lazy.reconstruct`` made it runs on a client as the ``reconstruct`` job runs (``reconstruct_tasks.run_blocks``:
-    the executor's bounded window, each block's tasks made as it moves, tasks the cluster drops submitted again);
-    any other ``hr`` ``BLOCKS_AT_ONCE`` blocks a round (their graph culled at once, so that they share what they
-    read). Each block is checked against its chunk (shape, uint8), written, then committed. On a client, as in the
-    jobs, a block that fails does not stop the others, and the call then fails naming the output frames lost
-    (``JobIncomplete``); on dask's own scheduler the first error stops it. ``resume=True`` continues a store a
-    failed or killed call left, computing only the blocks not committed (the same bytes as one uninterrupted call),
-    and refuses one written by another graph (``committed``'s ``graph``: the token of ``hr``'s graph, which covers
-    every function in it where Dask can hash it). -> {frames, tasks_run, tasks_skipped}, counted in the job's tasks
-    (a frame's tile; the network's batch of frames), so that a fresh call's ``tasks_run`` is a finished store's
-    ``tasks_skipped``. ``progress=True``: a bar on a terminal, a line every ``BLOCKS_AT_ONCE``
-    blocks where standard error is piped.
+    """Write ``hr`` (t, y, x, rgb) uint8 as a video store at ``url``, in the job's format (one chunk per (frame,
+    tile) of ``hr``'s chunks, ``committed``, the attributes, ``state``), on the active ``distributed`` client if
+    there is one, else on dask's default scheduler. On a client, a reconstruction read from a store as
+    ``lazy.reconstruct`` made it runs as the ``reconstruct`` job runs (``reconstruct_tasks.run_blocks``); anything
+    else runs ``BLOCKS_AT_ONCE`` blocks a round (``executor.computed``). Each block is checked against its chunk
+    (shape, uint8), written, then committed. On a client a block that fails does not stop the others, and the call
+    fails naming the output frames lost (``JobIncomplete``); on dask's own scheduler the first error stops it.
+    ``resume=True`` continues what a failed or killed call left, computing only the blocks not committed (the bytes
+    of one uninterrupted call), and refuses a store written by another graph (``committed``'s ``graph``: the token of
+    ``hr``'s graph). -> {frames, tasks_run, tasks_skipped}, in the job's tasks (a frame's tile; the network's batch
+    of frames). ``progress=True``: a bar on a terminal, a line every ``BLOCKS_AT_ONCE`` blocks where stderr is piped.
 
     ``hr`` may be a selection (``isel``/``sel``) of a reconstruction: a contiguous increasing run of output frames
-    (recorded as its ``start``/``stop``) and of whole LR pixels (HR rows and columns in multiples of the scale,
-    recorded as its ``region``). Anything else (repeated, reversed, skipped frames; steps; a cut through an LR
-    pixel) is refused in one line before anything is written.
+    (recorded as its ``start``/``stop``) and of whole LR pixels (recorded as its ``region``). Anything else is
+    refused in one line before anything is written.
     """
     hr = _check_video(hr)
     url = url_text(url)
@@ -147,8 +137,7 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
 
 
 def graph_token(data: da.Array) -> str:
-    """What identifies ``data``'s graph: its name, which Dask derives from every layer's function and arguments
-    (a function by its code and closure, where Dask can hash them; one it cannot is a new token each time)."""
+    """What identifies ``data``'s graph: its name (Dask's token of every layer's function and arguments) and chunks."""
     return tokenize(data.name, data.chunks)
 
 
@@ -164,9 +153,8 @@ def _open_to_resume(url: str) -> None:
 
 
 def _selected_part(hr: xr.DataArray) -> dict:
-    """The ``start``/``stop`` and ``region`` a selection of a reconstruction holds (none where it is all of it, or
-    ``hr`` does not say what it was made of); one line for a selection that cannot be written as one, or whose
-    coordinates were changed (``t`` against ``frame``; pixels outside the reconstruction's region)."""
+    """The ``start``/``stop`` and ``region`` a selection of a reconstruction holds (none where it is all of it); one
+    line for a selection that cannot be written as one, or whose coordinates were changed."""
     attrs, changed = hr.attrs, {}
     if isinstance(attrs.get("fps"), (int, float)) and isinstance(attrs.get("every"), int):
         check_times(hr, attrs["fps"] * attrs["every"], "hr", "lazy.reconstruct")  # t: the centre's time
@@ -221,7 +209,7 @@ def _tiled(data: da.Array) -> da.Array:
 
 def _resumable(url: str, attrs: dict, n: int, tiles: tuple[int, int], graph: str) -> np.ndarray:
     """The commit mask of the store to resume, refused unless it was made with the same attributes and layout, by
-    the same graph (where it records one: a job's store records none, its attributes say all)."""
+    the same graph (where it records one: a job's does not)."""
     group = open_video_store(url, writable=True)
     done = resumed_mask(group, url, {k: v for k, v in attrs.items() if k != "fps"}, dict(group.attrs), (n, *tiles))
     if group[COMMITTED].attrs.get("graph", graph) != graph:
@@ -232,9 +220,8 @@ def _resumable(url: str, attrs: dict, n: int, tiles: tuple[int, int], graph: str
 
 
 def _written(data: da.Array, url: str, run: str) -> da.Array:
-    """A task per block of ``data`` (t, y, x, rgb) uint8 (the job's: ``reconstruct_tasks.write_block``): check it
-    against its chunk, write its frames' chunks of its tile into the video store at ``url``, commit them
-    -> (blocks along t, tile rows, tile columns, 1) int64, the frames each wrote."""
+    """A task per block of ``data`` (t, y, x, rgb) uint8 that writes it into the video store at ``url``
+    (``reconstruct_tasks.write_block``) -> (blocks along t, tile rows, tile columns, 1) int64, the frames each wrote."""
     from dask._task_spec import Task, TaskRef
     from dask.highlevelgraph import HighLevelGraph
 
@@ -255,12 +242,10 @@ STORE_ONLY = ("gain", "format_version", "cscsr_version", "state")  # attributes 
 
 
 def open_video(url) -> xr.DataArray:
-    """The video store at ``url`` as the lazy ``hr`` that wrote it: (t, y, x, rgb) uint8, one dask chunk per stored
-    chunk (a frame's tile), nothing read but metadata; coordinates ``t`` (seconds: each output frame's centre),
-    ``frame`` (its centre spike frame), ``y``/``x`` (HR pixels of the recording: the ``region`` times ``scale``)
-    and ``gain``; ``attrs`` what the store records of how it was made (as ``hr.attrs``). A store written by the
-    ``reconstruct`` job, or before ``region``/``fps`` were recorded, reads alike (its y/x from 0). Refuses, in one
-    line, what is not a video store, a damaged one (a chunk lost), and one whose writer did not finish."""
+    """The video store at ``url`` as the lazy ``hr`` that wrote it: (t, y, x, rgb) uint8, a dask chunk per stored
+    chunk, nothing read but metadata; coordinates ``t`` (seconds), ``frame`` (the centre spike frame), ``y``/``x``
+    (the recording's HR pixels; from 0 in a store from before ``region``) and ``gain``; ``attrs`` as ``hr.attrs``.
+    Refuses, in one line, what is not a video store, a damaged one, and one whose writer did not finish."""
     url = url_text(url)
     check_here([url])
     group = open_video_store(url)
