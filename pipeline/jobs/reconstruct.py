@@ -73,6 +73,12 @@ def network_options(options: ReconstructOptions) -> tuple[str | None, str | None
     return (options.precision, options.backend) if options.method in NETWORKS else (None, None)
 
 
+def method_spec(options: ReconstructOptions, method: Reconstructor, where: Placement) -> MethodSpec:
+    """What the tasks of a job of ``options`` build: ``method`` (:func:`prepared`) where it runs."""
+    return MethodSpec(options.method, method.weights, *network_options(options), method.weights_sha256,
+                      bool(options.fast_gpu and where.gpus))
+
+
 def checked_method(store: SpikeStore, options: ReconstructOptions) -> tuple[int, Reconstructor]:
     """Every check of a job on ``store`` that needs no output or cluster: the options against the recording, and the
     method built with its weights (without ``--weights``, those for CPU workers and the recording's CFA) and checked
@@ -187,7 +193,7 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
         options, where, scale, method = prepared(  # the weights by where the network runs
             options, client, meta.cfa, store.attrs.get("scale"), (y1 - y0, x1 - x0),
             _recorded_attrs(out) if options.resume else {}, f"the recording {store.url}")
-        precision, backend = network_options(options)
+        spec = method_spec(options, method, where)  # the job's blocks: the lazy graph's for the same options
         centres = part.centres
         grid = tile_grid(meta.height, meta.width, options.tile, method.halo, part.region)
         if dry_run:
@@ -206,16 +212,13 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
             gain = result_of(client, store_gain, args, key) if client else store_gain(*args)
         # the spike store as workers find it, whatever their working directory (and as the output records it)
         plan = Plan(recorded(store_url), out, options.method, method.weights, options.window, options.every, float(gain),
-                    scale, meta.cfa, meta.reset, options.tile, uuid.uuid4().hex, precision, options.gpu_batch, backend,
-                    fast_gpu=options.fast_gpu and where.gpus if options.method in NETWORKS else None,
+                    scale, meta.cfa, meta.reset, options.tile, uuid.uuid4().hex, spec.precision, options.gpu_batch,
+                    spec.backend, fast_gpu=spec.fast_gpu if options.method in NETWORKS else None,
                     **made_from(store, method.weights_sha256),  # what --resume checks beside the paths
                     start=part.start, stop=part.stop, region=part.region)
         hr_size = ((y1 - y0) * scale, (x1 - x0) * scale)
-        spec = MethodSpec(plan.method, plan.weights, plan.precision, plan.backend, plan.weights_sha256,
-                          bool(plan.fast_gpu))  # the job's blocks: the lazy graph's for the same options
         blocks = cut(spec, plan.spikes, plan.source_identity, centres, part.first, plan.every, plan.window, grid,
-                     method.batch, plan.cfa, plan.reset, plan.scale, plan.gpu_batch, plan.gain,
-                     where.gpus and plan.method in NETWORKS)
+                     method.batch, plan.cfa, plan.reset, plan.scale, plan.gpu_batch, plan.gain, where.gpus)
         if dry_run:
             done = (_check_resumable(plan, open_video_store(out), centres, blocks) if options.resume
                     else np.zeros((len(centres), len(grid), len(grid[0])), bool))

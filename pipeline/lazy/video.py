@@ -92,17 +92,13 @@ def reconstruct(win: xr.DataArray, *, method: str = "cscsr", weights: str | None
                                  scale=scale, tile=tile, weights=weights, precision=precision, backend=backend)
     with python_words():
         options.check()
-    from pipeline.jobs.reconstruct import network_options, prepared
+    from pipeline.jobs.reconstruct import method_spec, prepared
 
     y0, y1, x0, x1 = win.attrs["region"]
     options, where, scale, built = prepared(options, distributed_client(win.data), win.attrs["cfa"],
                                             win.attrs.get("scale"), (y1 - y0, x1 - x0), {})
-    precision_, backend_ = network_options(options)
-    spec = MethodSpec(options.method, built.weights, precision_, backend_, built.weights_sha256,
-                   bool(options.fast_gpu and where.gpus) if options.method in NETWORKS else False)
-    gpu = where.gpus and options.method in NETWORKS
-    return _reconstructed(win, spec, built, scale, options.tile, gain, options.gpu_batch, gpu,
-                          fast_gpu=spec.fast_gpu if options.method in NETWORKS else None)
+    return _reconstructed(win, method_spec(options, built, where), built, scale, options.tile, gain,
+                          options.gpu_batch, where.gpus)
 
 
 def apply(win: xr.DataArray, func: Callable, *, scale: int, halo: int = 0, tile: int | None = None,
@@ -122,11 +118,11 @@ def apply(win: xr.DataArray, func: Callable, *, scale: int, halo: int = 0, tile:
     own = FunctionReconstructor(func, scale, halo, name)
     y0, y1, x0, x1 = win.attrs["region"]
     return _reconstructed(win, MethodSpec(name, own=own), own, scale, tile or max(y1 - y0, x1 - x0, 8) // 8 * 8 + 8,
-                          gain, 1, False, fast_gpu=None)
+                          gain, 1, False)
 
 
 def _reconstructed(win: xr.DataArray, spec: MethodSpec, built: Reconstructor, scale: int, tile: int, gain, most: int,
-                   gpu: bool, *, fast_gpu: bool | None) -> xr.DataArray:
+                   gpu: bool) -> xr.DataArray:
     """The graph of :func:`reconstruct` and :func:`apply`: the job's blocks read from the store where the windows
     are a store's as read, else a blockwise map per tile of the job's grid over the windows, tiles put together."""
     attrs = win.attrs
@@ -163,7 +159,8 @@ def _reconstructed(win: xr.DataArray, spec: MethodSpec, built: Reconstructor, sc
                                    ((t.y1 - t.y0) * scale, (t.x1 - t.x0) * scale)) for t in row] for row in grid]
         hr = da.concatenate([da.concatenate(row, axis=2) for row in rows], axis=1)  # tiles side by side, rows down
     plan = Plan(attrs.get("store") or "", "", spec.method, built.weights, attrs["window"], attrs["every"], np.nan, scale,
-                cfa, attrs["reset"], tile, "", spec.precision, most, spec.backend, fast_gpu,
+                cfa, attrs["reset"], tile, "", spec.precision, most, spec.backend,
+                spec.fast_gpu if spec.method in NETWORKS else None,
                 source_identity=attrs.get("identity"), source_shape=(attrs["frames"], height, width),
                 weights_sha256=built.weights_sha256, start=attrs["start"], stop=attrs["stop"], region=region)
     # what a job's output records, and its frame rate: output frames per second of recording
