@@ -74,18 +74,7 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
         raise InputError("hr lacks its gain coordinate, the exposure its blocks are reconstructed with: keep the "
                          "coordinates lazy.reconstruct gives")
     client = distributed_client(hr.data)
-    if client is not None and isinstance(gain, da.Array):  # the automatic exposure: computed once for every round,
-        gain = client.persist(gain)  # held by the cluster (the same key) until this call returns
-        from distributed import futures_of
-
-        try:
-            attrs["gain"] = float(futures_of(gain)[0].result())
-        except BaseException:  # an exposure that failed is not kept by the error's traceback: computed afresh next
-            for future in futures_of(gain):
-                future.release()
-            raise
-    else:
-        attrs["gain"] = None if gain is None else float(dask.compute(gain)[0])
+    attrs["gain"] = None if gain is None else float(dask.compute(gain, optimize_graph=False)[0])  # its key: the job's
     fps = attrs.get("fps")
     graph = graph_token(hr.data)
     with claimed(url), new_output(url, overwrite=overwrite, kind=VIDEO_STORE, flag="resume=True or overwrite=True",
