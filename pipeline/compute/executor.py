@@ -292,17 +292,26 @@ def computed(graph, frames: dict, advance, client, at_once: int | None = None, f
     a client with ``failed``: ``failed(frames[key], why)`` and the others go on (results of those that finished). The
     graph is handed over culled to what they need (a resume's tasks), its tasks' names kept (nothing fused);
     ``at_once``: that many of them a round, what a round made that later rounds need (a chain's state, the sensor's
-    draws, a video's pair, windows) kept for them, so that memory and the scheduler's graph stay bounded."""
+    draws, a video's pair, windows) kept for them, so that memory and the scheduler's graph stay bounded; what a
+    scheduler's restart cancelled of it is made again."""
     keys = list(frames)
     if isinstance(graph, HighLevelGraph):
         graph = dict(graph.cull(set(keys)))
+    dependencies, dependents = get_deps(graph)
     results, held = [], {}  # held: what earlier rounds made that later ones need (futures on a client, else values)
     try:
-        for round_keys, round_graph, earlier, kept, needed_later in _rounds(graph, keys, at_once or len(keys) or 1):
-            round_graph = round_graph | {key: held[key] for key in earlier}  # what earlier rounds made
+        for round_keys, round_graph, earlier, kept, needed_later in _rounds(graph, keys, at_once or len(keys) or 1,
+                                                                            dependencies, dependents):
+            again = _made_again(dependencies, earlier, held) if client is not None else set()
+            reads = earlier | {dep for key in again for dep in dependencies[key]}
+            round_graph = round_graph | {key: graph[key] for key in again} | {key: held[key] for key in reads - again}
             if client is not None:
-                futures = client.get(round_graph, round_keys + kept, sync=False)
-                held |= dict(zip(kept, futures[len(round_keys):]))  # released below, whatever happens
+                renewed = kept + [key for key in again if key in held]  # held anew (the cancelled ones released)
+                futures = client.get(round_graph, round_keys + renewed, sync=False)
+                for key, future in zip(renewed, futures[len(round_keys):]):  # released below, whatever happens
+                    if key in held:
+                        held[key].release()
+                    held[key] = future
                 ours = futures[:len(round_keys)]
                 with released(ours):  # forgotten by the cluster even while an error holds them: a resume computes
                     for future in in_bounded_window(iter(ours), len(ours), again=still_computing):  # afresh
@@ -332,11 +341,21 @@ def computed(graph, frames: dict, advance, client, at_once: int | None = None, f
     return results
 
 
-def _rounds(graph: dict, keys: list, at_once: int):
+def _made_again(dependencies: dict, earlier: set, held: dict) -> set:
+    """The keys to make again so that a round can read ``earlier``: those whose ``held`` futures a scheduler's restart
+    cancelled, and what they need that is not held (any more)."""
+    again, stack = set(), [key for key in earlier if held[key].status == "cancelled"]
+    while stack:
+        if (key := stack.pop()) not in again:
+            again.add(key)
+            stack.extend(dep for dep in dependencies[key] if dep not in held or held[dep].status == "cancelled")
+    return again
+
+
+def _rounds(graph: dict, keys: list, at_once: int, dependencies: dict, dependents: dict):
     """``keys`` of ``graph`` ``at_once`` a round, in order: per round its keys, its graph (what they need that no
     earlier round made), the keys of earlier rounds it reads, the keys it makes that a later round reads, and every
     key made so far that a later round reads."""
-    dependencies, dependents = get_deps(graph)
     unread = {key: len(readers) for key, readers in dependents.items()}  # readers not yet made
     made, open_keys = set(), set()
     for start in range(0, len(keys), at_once):

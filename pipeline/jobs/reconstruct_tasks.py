@@ -263,7 +263,10 @@ def read_tiles(gain, spec: MethodSpec, url: str, identity: str, centres: tuple[i
 def cropped(images: list[np.ndarray], crop: tuple[slice, slice]) -> np.ndarray:
     """A tile's HR images, each (H, W, 3), cropped to ``crop`` (its halo off) -> (n, h, w, 3) uint8."""
     ys, xs = crop
-    return np.array([image[ys, xs] for image in images], np.uint8).reshape(-1, ys.stop - ys.start, xs.stop - xs.start, 3)
+    out = np.empty((len(images), ys.stop - ys.start, xs.stop - xs.start, 3), np.uint8)
+    for n, image in enumerate(images):
+        out[n] = image[ys, xs]
+    return out
 
 
 class JobIncomplete(RuntimeError):

@@ -75,6 +75,7 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
                          "coordinates lazy.reconstruct gives")
     client = distributed_client(hr.data)
     attrs["gain"] = None if gain is None else float(dask.compute(gain, optimize_graph=False)[0])  # its key: the job's
+    computed_gain = {gain.__dask_keys__()[0]: attrs["gain"]} if isinstance(gain, da.Array) else {}  # not made again
     fps = attrs.get("fps")
     graph = graph_token(hr.data)
     with claimed(url), new_output(url, overwrite=overwrite, kind=VIDEO_STORE, flag="resume=True or overwrite=True",
@@ -119,7 +120,9 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
                     outcome((done_tile.block, done_tile.ty, done_tile.tx), done_tile.error)
             else:  # BLOCKS_AT_ONCE blocks a round, a round's graph culled at once (its blocks share what they read)
                 written = _written(data, url, run)
-                computed(written.__dask_graph__(), {(written.name, *block, 0): block for block in blocks}, outcome,
+                keys = {(written.name, *block, 0): block for block in blocks}
+                graph = dict(written.__dask_graph__().cull(set(keys)))
+                computed(graph | {key: value for key, value in computed_gain.items() if key in graph}, keys, outcome,
                          client, BLOCKS_AT_ONCE, failed=outcome)
         finish_video(url, failed, n, again="to_video(..., resume=True)")
     return {"frames": n, "tasks_run": to_run, "tasks_skipped": total - to_run}
