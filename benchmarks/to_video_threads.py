@@ -11,7 +11,7 @@ interpreter, the order alternating; measured: the call's wall time and the proce
 
 Goals: wall time <= 1.05x the reference's; peak memory <= 1.1x.
 
-``python benchmarks/to_video_threads.py [--reference REV] [--repeats R] [--frames N]``
+``python benchmarks/to_video_threads.py [--reference REV] [--repeats R] [--frames N] [--stages tfp lite]``
 """
 
 import argparse
@@ -51,6 +51,7 @@ def main() -> None:
     parser.add_argument("--reference", default=REFERENCE)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--frames", type=int, default=2000)
+    parser.add_argument("--stages", nargs="+", choices=STAGES, default=list(STAGES))
     args = parser.parse_args()
     store = Path(tempfile.gettempdir()) / f"cscsr-to-video-threads-{args.frames}.zarr"
     if not store.exists():
@@ -59,7 +60,7 @@ def main() -> None:
     rows, measured = [], {}
     with reference_checkout(args.reference, "cscsr-to-video-threads-") as (work, reference):
         trees = {"this tree": Path(__file__).resolve().parents[1], "reference": reference}
-        for stage in STAGES:
+        for stage in args.stages:
             runs = side_by_side(trees, args.repeats, work, stage, RUN, store, stage)
             now, before = (median([run["seconds"] for run in runs[name]]) for name in trees)
             peaks = [max(run["process"] for run in runs[name]) / 2**20 for name in trees]
