@@ -284,7 +284,7 @@ def _die_with_parent() -> None:
             pass
 
 
-# ---- a graph in bounded rounds (lazy.to_spikes, the simulate and ingest jobs) ----
+# ---- a graph in bounded rounds (the spike stores' writes, to_video's rounds) ----
 
 def computed(graph, frames: dict, advance, client, at_once: int | None = None, failed=None) -> list:
     """The results of the tasks ``frames`` names (key -> what it writes) of ``graph``, in that order, computed on
