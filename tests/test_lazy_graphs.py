@@ -325,22 +325,11 @@ def test_on_a_cluster_tasks_a_scheduler_restart_drops_are_submitted_again(record
     future cancelled, the worker process restarted by its nanny) drops the tasks in flight, which are submitted
     again, and the store is the bytes of one run (rounds of ``client.compute`` reported those frames lost). The
     writes are held after the third (``pipeline.compute.hold``), so the restart lands while work remains."""
-    from pipeline.compute.hold import hold_environment
-
     hr = lazy.tfp(lazy.windows(lazy.open_spikes(recording), every=20), tile=16)  # 8 output frames of 3x4 tiles
     with threaded():
         lazy.to_video(hr, str(tmp_path / "whole.zarr"))
-    release, out = tmp_path / "release", str(tmp_path / "restarted.zarr")
-    for name, value in hold_environment(3, release).items():  # in the worker process's environment
-        monkeypatch.setenv(name, value)
-
-    restarted = []
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as local, \
-            Client(local) as client:
-        restarter = threading.Thread(target=restart_when_held, args=(client, out, 3, release, restarted))
-        restarter.start()
-        counts = lazy.to_video(hr, out)
-        restarter.join()
+    out = str(tmp_path / "restarted.zarr")
+    counts, restarted = to_video_restarted(hr, out, 3, tmp_path, monkeypatch)
     assert restarted and restarted[0] < 8 * 4 and counts["tasks_skipped"] == 0  # restarted with work remaining
     video, frames, attrs = stored(out)
     assert np.array_equal(video, stored(str(tmp_path / "whole.zarr"))[0]) and attrs["state"] == "complete"
@@ -351,23 +340,13 @@ def test_a_scheduler_restart_loses_only_the_round_in_flight_of_any_other_hr(reco
     later rounds read carried over (windows, the automatic exposure). A scheduler restart mid-call cancels what is
     carried: it is made again, so only the round in flight is lost (every later round was: 12 of 84 tiles
     committed), and a resume writes the bytes of one run."""
-    from pipeline.compute.hold import hold_environment
-
     monkeypatch.setattr(lazy_written, "BLOCKS_AT_ONCE", 8)
     hr = lazy.tfp(lazy.windows(lazy.open_spikes(recording), every=20), tile=16).isel(t=slice(1, 8))  # 7 x 12 tiles
     with threaded():
         lazy.to_video(hr, str(tmp_path / "whole.zarr"))
-    release, out = tmp_path / "release", str(tmp_path / "restarted.zarr")
-    for name, value in hold_environment(12, release).items():  # in the worker process's environment
-        monkeypatch.setenv(name, value)
-    restarted = []
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as local, \
-            Client(local) as client:
-        restarter = threading.Thread(target=restart_when_held, args=(client, out, 12, release, restarted))
-        restarter.start()
-        with pytest.raises(RuntimeError, match="cluster fault: the task was cancelled"):  # the round in flight
-            lazy.to_video(hr, out)
-        restarter.join()
+    out = str(tmp_path / "restarted.zarr")
+    error, restarted = to_video_restarted(hr, out, 12, tmp_path, monkeypatch)
+    assert isinstance(error, RuntimeError) and "cluster fault: the task was cancelled" in str(error)  # in flight
     assert restarted and committed_tiles(out) >= 84 - 8, (restarted, committed_tiles(out))
     with threaded():
         counts = lazy.to_video(hr, out, resume=True)
@@ -375,17 +354,37 @@ def test_a_scheduler_restart_loses_only_the_round_in_flight_of_any_other_hr(reco
     assert np.array_equal(stored(out)[0], stored(str(tmp_path / "whole.zarr"))[0])
 
 
-def restart_when_held(client, out: str, tiles: int, release, restarted: list) -> None:
-    """Restart ``client``'s scheduler once ``tiles`` tiles of ``out`` are committed (its writes held after them),
-    noting how many were; then release the held writes, whatever happened."""
-    try:
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and committed_tiles(out) < tiles:
-            time.sleep(0.05)
-        client.restart()
-        restarted.append(committed_tiles(out))
-    finally:
-        release.touch()
+def to_video_restarted(hr, out: str, tiles: int, tmp_path, monkeypatch):
+    """``lazy.to_video(hr, out)`` on a cluster of one worker process whose scheduler is restarted once ``tiles`` tiles
+    are committed (its writes held after them: ``pipeline.compute.hold``) -> (the counts, or the error it raised; the
+    tiles committed when it restarted)."""
+    from pipeline.compute.hold import hold_environment
+
+    release, restarted = tmp_path / "release", []
+    for name, value in hold_environment(tiles, release).items():  # in the worker process's environment
+        monkeypatch.setenv(name, value)
+
+    def restart_when_held(client):
+        try:
+            deadline = time.monotonic() + 120
+            while time.monotonic() < deadline and committed_tiles(out) < tiles:
+                time.sleep(0.05)
+            client.restart()
+            restarted.append(committed_tiles(out))
+        finally:  # whatever happened, the held writes go on
+            release.touch()
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as local, \
+            Client(local) as client:
+        restarter = threading.Thread(target=restart_when_held, args=(client,))
+        restarter.start()
+        try:
+            outcome = lazy.to_video(hr, out)
+        except RuntimeError as error:
+            outcome = error
+        finally:
+            restarter.join()
+    return outcome, restarted
 
 
 def committed_tiles(url: str) -> int:
