@@ -22,7 +22,7 @@ from pipeline.lazy.video import VIDEO_DIMS, tile_blocks
 from pipeline.lazy.windows import _output_part
 from pipeline.stores.lease import claimed, held
 from pipeline.stores.outputs import VIDEO_STORE, new_output
-from pipeline.stores.storage import check_place, consolidate, exists
+from pipeline.stores.storage import check_place, exists
 from pipeline.stores.video_store import (COMMITTED, create_video_store, lost_frames, resumed_mask,
                                          open_video_store)
 from stages.errors import InputError, InputTypeError
@@ -83,10 +83,8 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
         if resume:
             done = _resumable(url, attrs, n, tiles, graph)
         else:
-            group = create_video_store(url, centres=centres, hr_size=(height, width), tile_hr=tile_hr, tiles=tiles,
-                                       attrs={k: v for k, v in attrs.items() if k != "fps"}, fps=fps)
-            group[COMMITTED].attrs["graph"] = graph  # what made its blocks: a resume must be that graph
-            consolidate(url)  # the consolidated copy, which readers see, records it too
+            create_video_store(url, centres=centres, hr_size=(height, width), tile_hr=tile_hr, tiles=tiles,
+                               attrs={k: v for k, v in attrs.items() if k != "fps"}, fps=fps, graph=graph)
             done = np.zeros((n, *tiles), bool)
         starts = np.cumsum((0, *data.chunks[0]))
         blocks = [(b, ty, tx) for b in range(len(data.chunks[0])) for ty in range(tiles[0]) for tx in range(tiles[1])

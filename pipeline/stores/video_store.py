@@ -31,9 +31,11 @@ VIDEO_UNITS = "8-bit sRGB"
 
 
 def create_video_store(url: str, *, centres: list[int], hr_size: tuple[int, int], tile_hr: tuple[int, int],
-                       tiles: tuple[int, int], attrs: dict, fps: float | None = None) -> zarr.Group:
+                       tiles: tuple[int, int], attrs: dict, fps: float | None = None,
+                       graph: str | None = None) -> zarr.Group:
     """Write every array's metadata, ``frames`` and the attributes (state "writing"), and consolidate the
-    metadata. ``fps``: output frames per second of recording time (the spike rate over ``every``)."""
+    metadata. ``fps``: output frames per second of recording time (the spike rate over ``every``); ``graph``: the
+    token of the lazy graph whose blocks it holds (``committed``'s, which a resume compares)."""
     info = {"format_version": FORMAT_VERSION, "cscsr_version": __version__}
     if fps is not None:
         info["fps"] = fps
@@ -48,7 +50,8 @@ def create_video_store(url: str, *, centres: list[int], hr_size: tuple[int, int]
     group.create_array(FRAMES, shape=(n,), chunks=(max(n, 1),), dtype=np.int64, fill_value=0, dimension_names=("j",),
                        attributes={"units": "spike frame index, the centre of each output frame's window"})
     group.create_array(COMMITTED, shape=(n, *tiles), chunks=(1, 1, 1), dtype=np.uint8, fill_value=0,
-                       dimension_names=("j", "tile_y", "tile_x"), attributes={"units": "1 = tile written"})
+                       dimension_names=("j", "tile_y", "tile_x"),
+                       attributes={"units": "1 = tile written", **({"graph": graph} if graph else {})})
     group[FRAMES][:] = np.asarray(centres, np.int64)
     consolidate(url)
     return zarr.open_group(zarr_store(url, read_only=False), mode="r+")  # knows the consolidated copy
