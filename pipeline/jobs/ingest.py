@@ -158,10 +158,9 @@ class _Job:
     counts: np.ndarray  # the spike counts of its tasks, -1: not committed (of the store to resume, when checked)
 
 
-def task_frames_for(chunk: int, frame_bytes: int, asked: int | None = None) -> int:
-    """Frames per task: ``asked`` rounded up to whole chunks, else about :data:`BLOCK_BYTES` of packed frames."""
-    if asked is not None:
-        return chunk * -(-asked // chunk)
+def default_task_frames(chunk: int, frame_bytes: int) -> int:
+    """Frames per task without ``--task-frames``: whole chunks, about :data:`BLOCK_BYTES` of packed frames (a
+    ``--task-frames`` is rounded up to whole chunks by ``SpikeWrites.cut``)."""
     return chunk * max(1, BLOCK_BYTES // (chunk * frame_bytes))
 
 
@@ -192,7 +191,8 @@ def _prepare(src: str, dest: str, options: IngestOptions, *, parallel: bool, cli
                            options.layout, capture.n_frames, capture.height, packed_width(capture.width),
                            json.dumps(record), options.key)
     writes = CaptureWrites(dest, meta, capture.n_frames, chunk,
-                           task_frames_for(chunk, capture.height * packed_width(capture.width), asked), frames, cli=True)
+                           asked or default_task_frames(chunk, capture.height * packed_width(capture.width)), frames,
+                           cli=True)
     writes.given_task = options.task_frames
     counts = writes.resumable(resumed) if resumed is not None else np.full(writes.n_tasks, -1, np.int64)
     return _Job(capture, writes, writes.plan(), counts)

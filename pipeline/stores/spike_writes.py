@@ -170,39 +170,39 @@ def write_store(writes: SpikeWrites, bits, *, client, overwrite: bool, resume: b
     ``keep_partial``: a store left unfinished stays, for a resume; ``flag``: how the caller says ``--overwrite``.
     -> ``attrs`` (the store's final attributes), ``frames``, ``spikes``, ``tasks``, ``tasks_run``,
     ``tasks_skipped``. Raises :class:`SpikesIncomplete` (or the writes' own error) if a task fails."""
-    url, plan = writes.url, writes
+    url = writes.url
     with claimed(url), contextlib.ExitStack() as stack:  # one job per store, taken before the store is touched
         if resume:
             check_free(url)  # and no live lease (a job on a machine that shares no claim file with us)
         stack.enter_context(new_output(url, overwrite=overwrite, kind=SPIKE_STORE, flag=flag, resume=resume,
                                        keep_partial=keep_partial))
         if not resume:
-            stack.enter_context(plan.guarded())
+            stack.enter_context(writes.guarded())
         if callable(client):  # no task writes once a failed store is removed
             client = stack.enter_context(client())
         if resume:
-            counts = plan.resumable()  # again, under the claim
+            counts = writes.resumable()  # again, under the claim
             writer = SpikeStoreWriter.reopened(url)
         else:
-            writer = SpikeStoreWriter(url, plan.meta, plan.n_frames, chunk_frames=plan.chunk)
-            writer.add_array(COMMITTED, (plan.n_tasks,), (1,), np.int64, ("task",),
-                             {"units": COMMITTED_UNITS, "task_frames": plan.task_frames, **plan.record},
+            writer = SpikeStoreWriter(url, writes.meta, writes.n_frames, chunk_frames=writes.chunk)
+            writer.add_array(COMMITTED, (writes.n_tasks,), (1,), np.int64, ("task",),
+                             {"units": COMMITTED_UNITS, "task_frames": writes.task_frames, **writes.record},
                              fill_value=-1)
-            counts = np.full(plan.n_tasks, -1, np.int64)
+            counts = np.full(writes.n_tasks, -1, np.int64)
             if truth is not None:
-                declare_truth(writer, truth.centres, truth.size, float(plan.meta.fps), with_flow=truth.with_flow)
-        todo = [index for index in range(plan.n_tasks) if counts[index] < 0]
+                declare_truth(writer, truth.centres, truth.size, float(writes.meta.fps), with_flow=truth.with_flow)
+        todo = [index for index in range(writes.n_tasks) if counts[index] < 0]
         if todo:
-            to_write = sum(plan.frames_of(index) for index in todo)
+            to_write = sum(writes.frames_of(index) for index in todo)
             with held(url), progress_bar(title, to_write, enabled=progress) as advance:
-                counts[todo] = plan.run(bits, todo, advance, client)
+                counts[todo] = writes.run(bits, todo, advance, client)
         if truth is not None and writer.group.attrs.get("state") != "complete":
             with held(url):
                 computed(truth.graph, dict.fromkeys(truth.keys, 0), lambda frames: None, client)
         if writer.group.attrs.get("state") != "complete":
             writer.finish(spike_count=int(counts.sum()))
-    return {"attrs": dict(writer.group.attrs), "frames": plan.n_frames, "spikes": int(counts.sum()),
-            "tasks": plan.n_tasks, "tasks_run": len(todo), "tasks_skipped": plan.n_tasks - len(todo)}
+    return {"attrs": dict(writer.group.attrs), "frames": writes.n_frames, "spikes": int(counts.sum()),
+            "tasks": writes.n_tasks, "tasks_run": len(todo), "tasks_skipped": writes.n_tasks - len(todo)}
 
 
 def _write_task(bits: np.ndarray, url: str, start: int, index: int) -> np.ndarray:
