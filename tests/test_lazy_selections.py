@@ -275,6 +275,12 @@ def test_progress_reports_a_line_a_round_when_piped(recording, tmp_path, monkeyp
     lazy.to_video(hr, str(tmp_path / "hr.zarr"), progress=True)
     lines = [line for line in capfd.readouterr().err.splitlines() if line.startswith("to_video")]
     assert lines[-1].endswith(": 32 of 32 tasks") and len(lines) == 16  # 32 blocks (a frame's tile each), 2 a round
+    group = zarr.open_group(str(tmp_path / "hr.zarr"), mode="r+")  # frames 5-7's tiles lost: a resume makes them
+    group["committed"][5:] = 0
+    group.attrs["state"] = "writing"
+    lazy.to_video(hr, str(tmp_path / "hr.zarr"), resume=True, progress=True)
+    lines = [line for line in capfd.readouterr().err.splitlines() if line.startswith("to_video")]
+    assert [line.rsplit(": ", 1)[1] for line in lines] == [f"{n} of 32 tasks" for n in (22, 24, 26, 28, 30, 32)]
 
 
 def test_a_slice_of_hr_computes_only_its_windows(recording):

@@ -437,7 +437,8 @@ def test_to_spikes_refuses_bad_input_in_one_line_before_anything_is_written(tmp_
 def test_progress_counts_each_frame_written_once_on_a_client_or_dask_s_own_scheduler(on, client, tmp_path,
                                                                                       monkeypatch):
     """``progress=True``: a bar of the frames written, advanced as each task is written (spikes computed from a
-    scene, and a capture's frames written by ingest's tasks); a resume's bar holds only the frames left."""
+    scene, and a capture's frames written by ingest's tasks); a resume's bar holds every frame, those committed
+    before shown done from its start."""
     import contextlib
 
     from cscsr import lazy
@@ -446,8 +447,8 @@ def test_progress_counts_each_frame_written_once_on_a_client_or_dask_s_own_sched
     bars = []
 
     @contextlib.contextmanager
-    def recorded(description, total, *, unit="frames", enabled=True):
-        bars.append({"description": description, "total": total, "advanced": [], "enabled": enabled})
+    def recorded(description, total, *, done=0, unit="frames", enabled=True):
+        bars.append({"description": description, "total": total, "done": done, "advanced": [], "enabled": enabled})
         yield bars[-1]["advanced"].append
 
     monkeypatch.setattr(importlib.import_module("pipeline.stores.spike_writes"), "progress_bar", recorded)
@@ -470,7 +471,8 @@ def test_progress_counts_each_frame_written_once_on_a_client_or_dask_s_own_sched
     assert capture["total"] == 50 and capture["advanced"] == [10] * 5
     # the failed task not counted (nor, on dask's own scheduler, one that finished after the failure was raised)
     assert failed["total"] == N_FRAMES and 0 < sum(failed["advanced"]) <= written_first
-    assert resumed["total"] == sum(resumed["advanced"]) == N_FRAMES - written_first
+    assert failed["done"] == 0 and resumed["total"] == N_FRAMES and resumed["done"] == written_first
+    assert sum(resumed["advanced"]) == N_FRAMES - written_first
     assert store_files(tmp_path / "f.zarr") == store_files(tmp_path / "s.zarr")
 
 

@@ -1,5 +1,6 @@
 """Distributed reconstruction on a real LocalCluster(n_workers=2), real Zarr stores, real processes."""
 
+import contextlib
 import os
 import time
 
@@ -9,6 +10,7 @@ import pytest
 import zarr
 
 from pipeline.compute.hold import hold_environment
+import pipeline.jobs.reconstruct as reconstruct_job
 from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct
 from stages.reconstruction.methods import output_centres
 from pipeline.jobs.simulate import SimulateOptions, simulate
@@ -75,7 +77,7 @@ def test_reconstruction_agrees_with_the_truth(recording, client, tmp_path):
     assert np.corrcoef(frames.ravel(), truth.ravel())[0, 1] > 0.85
 
 
-def test_resume_after_a_killed_run(recording, client, tmp_path):
+def test_resume_after_a_killed_run(recording, client, tmp_path, monkeypatch):
     clean, killed = str(tmp_path / "clean.zarr"), str(tmp_path / "killed.zarr")
     options = ReconstructOptions(method="tfi", every=10, tile=16)  # 11 frames x 4 tiles
     reconstruct(recording, clean, options, client=client, progress=False)
@@ -90,9 +92,20 @@ def test_resume_after_a_killed_run(recording, client, tmp_path):
     assert 20 <= done_before < total, done_before
     assert zarr.open_group(killed, mode="r").attrs["state"] == "writing"  # not passing for complete
 
+    frames_before = int(zarr.open_group(killed, mode="r")["committed"][:].all(axis=(1, 2)).sum())
+    bars = []
+
+    @contextlib.contextmanager
+    def recorded(description, total, *, done=0, unit="frames", enabled=True):
+        bars.append({"total": total, "done": done, "advanced": []})
+        yield bars[-1]["advanced"].append
+
+    monkeypatch.setattr(reconstruct_job, "progress_bar", recorded)
     counts = reconstruct(recording, killed, ReconstructOptions(**{**options.__dict__, "resume": True}),
-                         client=client, progress=False)
+                         client=client, progress=True)
     assert counts["tasks_skipped"] == done_before and counts["tasks_run"] == total - done_before
+    # the bar holds every output frame, those committed before shown done from its start, each other one once
+    assert bars == [{"total": 11, "done": frames_before, "advanced": [1] * (11 - frames_before)}]
     resumed, clean_video = video(killed), video(clean)
     np.testing.assert_array_equal(resumed[0], clean_video[0])
     assert resumed[2]["state"] == "complete"

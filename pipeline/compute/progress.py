@@ -24,12 +24,14 @@ def is_quiet() -> bool:
 
 
 @contextlib.contextmanager
-def progress_bar(description: str, total: int, *, unit: str = "frames", enabled: bool = True) -> Iterator:
-    """Yield ``advance(n)``; draws a bar with count, rate and time left while enabled."""
+def progress_bar(description: str, total: int, *, done: int = 0, unit: str = "frames",
+                 enabled: bool = True) -> Iterator:
+    """Yield ``advance(n)``; draws a bar with count, rate and time left while enabled. ``done``: of ``total`` done
+    before (what a resume finds committed), shown from the start and not counted in the rate."""
     columns = [TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn(unit)]
     columns += [TransferSpeedColumn()] if unit == "bytes" else []
     columns += [TimeRemainingColumn()]
     console = Console(stderr=True)
     with Progress(*columns, console=console, disable=_quiet or not enabled, transient=not sys.stderr.isatty()) as bar:
-        task = bar.add_task(description, total=total)
+        task = bar.add_task(description, total=total, completed=done)
         yield lambda n: bar.advance(task, n)

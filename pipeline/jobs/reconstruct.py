@@ -232,7 +232,8 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
                   options.tile, scale, gain, int(done.sum()), done.size,
                   f"the cluster at {client.scheduler.address}" if client else
                   f"local clusters of {workers or 'a worker per core'} workers, {options.segment_tasks} tasks each")
-        with held(out), progress_bar(f"reconstruct {options.method}", len(centres), enabled=progress) as advance:
+        with held(out), progress_bar(f"reconstruct {options.method}", len(centres),
+                                     done=int(done.all(axis=(1, 2)).sum()), enabled=progress) as advance:
             if client:
                 if progress and not is_quiet():
                     show_dashboard_once(client)
@@ -257,10 +258,10 @@ def _check_output(out: str, options: ReconstructOptions) -> None:
 
 
 def _tally(outcomes: Iterable[Outcome], done: np.ndarray, advance) -> dict[int, str]:
-    """Count finished tiles per output frame (a frame is done when all its tiles are); -> {frame: error}."""
+    """Count finished tiles per output frame (a frame is done when all its tiles are; those ``done`` before are on
+    the bar already); -> {frame: error}."""
     failed = {}
     remaining = done.shape[1] * done.shape[2] - done.sum(axis=(1, 2))  # (frames,) tiles still to come
-    advance(int((remaining == 0).sum()))
     for outcome in outcomes:
         frames = range(outcome.start, outcome.stop)
         log.debug("output frames %d-%d, tile (%d, %d): %s", outcome.start, outcome.stop - 1, outcome.ty, outcome.tx,

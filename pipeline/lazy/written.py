@@ -98,7 +98,8 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
         total = (sum(1 for c in data.chunks[0] if c) if per_block else n) * tiles[0] * tiles[1]
         piped = progress and not sys.stderr.isatty()  # no bar to draw: a line every BLOCKS_AT_ONCE blocks
         failed, finished, finished_units = {}, 0, 0
-        with held(url), progress_bar(f"to_video {url}", to_run, unit="tasks", enabled=progress) as advance:
+        with held(url), progress_bar(f"to_video {url}", total, done=total - to_run, unit="tasks",
+                                     enabled=progress) as advance:
             def outcome(block: tuple[int, int, int], error: str | None = None) -> None:
                 nonlocal finished, finished_units
                 b, ty, tx = block
@@ -109,7 +110,8 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
                     finished_units += unit_of[block]  # as the bar: written ones
                 finished += 1
                 if piped and (finished % BLOCKS_AT_ONCE == 0 or finished == len(blocks)):
-                    print(f"to_video {url}: {finished_units} of {to_run} tasks", file=sys.stderr, flush=True)
+                    print(f"to_video {url}: {total - to_run + finished_units} of {total} tasks", file=sys.stderr,
+                          flush=True)
 
             if from_store is not None and client is not None:  # as the job runs it: the executor's window, each
                 # pass's one task made as it moves, the exposure computed (a cluster's restart forgets a held one)
