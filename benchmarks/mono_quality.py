@@ -1,17 +1,18 @@
-"""Held-out quality of mono weights (docs/training.md, `lite-mono`): 16 mono stores no training saw, scored by
-``cscsr evaluate`` beside TFP and TFI, each weights file given in the same run.
+"""Held-out quality of mono weights (docs/training.md, `lite-mono`), or with ``--cfa rggb`` of colour ones: 16 stores no
+training saw, scored by ``cscsr evaluate`` beside TFP and TFI, each weights file given in the same run.
 
 The stores: 256x256 centre crops of 8 pictures from test sets left out of training (BSD100 101085, 160068, 241048,
 41033; Set14 pepper and zebra; Urban100 img_005, img_051), each simulated twice, with subtract and with zero reset:
-``--cfa mono --scale 4 --frames 123 --motion random --truth-every 41 --seed 100+i``, brightness (alpha) alternating
+``--cfa CFA --scale 4 --frames 123 --motion random --truth-every 41 --seed 100+i``, brightness (alpha) alternating
 0.6 and 0.8 (with subtract reset 0.6 for even i; with zero reset 0.8), no noise: LR 64x64, x4, 3 truth frames each.
 
-    python benchmarks/mono_quality.py [--pictures TRAINING_DATA] [--weights FILE ...] [--work DIR] [--json]
+    python benchmarks/mono_quality.py [--cfa mono|rggb|...] [--pictures TRAINING_DATA] [--weights FILE ...]
+        [--work DIR] [--json]
 
 ``--pictures``: the training-data folder holding those test sets (README, Training; not distributed; default
 ``../shared/training-data`` beside the repository: skipped where it is not). ``--weights`` (repeatable): default
-the shipped ``lite-mono``. Prints the table of mean PSNR per reset, over all 16, and mean SSIM; ``--json``
-the same as JSON.
+the shipped ``lite-mono`` (``lite`` for a colour ``--cfa``). Prints the table of mean PSNR per reset, over all 16,
+and mean SSIM; ``--json`` the same as JSON, with each store's PSNR.
 """
 
 import argparse
@@ -38,7 +39,7 @@ def centre_crop(src: Path, dest: Path) -> None:
     iio.imwrite(dest, image[y : y + CROP, x : x + CROP])
 
 
-def stores(pictures: Path, work: Path) -> list[tuple[str, str, Path]]:
+def stores(pictures: Path, work: Path, cfa: str = "mono") -> list[tuple[str, str, Path]]:
     """(picture, reset, store) of the 16 stores, simulated once into ``work`` (kept: a later run reuses them)."""
     from pipeline.jobs.simulate import SimulateOptions, simulate
 
@@ -48,9 +49,9 @@ def stores(pictures: Path, work: Path) -> list[tuple[str, str, Path]]:
         if not crop.exists():
             centre_crop(pictures / name, crop)
         for reset in RESETS:
-            store = work / f"{i}-{reset}.zarr"
+            store = work / (f"{i}-{reset}.zarr" if cfa == "mono" else f"{i}-{reset}-{cfa}.zarr")
             if not store.exists():
-                options = SimulateOptions(scale=4, cfa="mono", frames=123, motion="random", truth_every=41,
+                options = SimulateOptions(scale=4, cfa=cfa, frames=123, motion="random", truth_every=41,
                                           seed=100 + i, reset=reset, brightness=ALPHAS[(i + RESETS.index(reset)) % 2])
                 simulate(str(crop), str(store), options, workers=1, progress=False)
             made.append((name, reset, store))
@@ -61,14 +62,16 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pictures", type=Path, default=ROOT.parent / "shared" / "training-data",
                         help="the training-data folder (its test sets)")
-    parser.add_argument("--weights", action="append", help="a mono weights file (repeat; default lite-mono)")
+    parser.add_argument("--cfa", default="mono", help="the stores' colour pattern (default mono)")
+    parser.add_argument("--weights", action="append", help="a weights file (repeat; default lite-mono, or lite)")
     parser.add_argument("--work", default="/tmp/cscsr-mono-quality", help="where the stores and scores go")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
     if not all((args.pictures / name).exists() for name in PICTURES):
         print(f"skipped: the test pictures are not under {args.pictures} (--pictures)")
         return
-    args.weights = args.weights or [str(ROOT / "cscsr" / "weights" / "cscsr-lite-mono.safetensors")]
+    shipped = "cscsr-lite-mono.safetensors" if args.cfa == "mono" else "cscsr-lite.safetensors"
+    args.weights = args.weights or [str(ROOT / "cscsr" / "weights" / shipped)]
     from distributed import Client, LocalCluster
 
     from pipeline.jobs.evaluate import evaluate
@@ -77,7 +80,7 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     scores: dict[str, dict[str, list]] = {}  # row -> reset -> [(psnr, ssim)]
     with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=":0") as cluster, Client(cluster) as client:
-        for name, reset, store in stores(args.pictures, work):
+        for name, reset, store in stores(args.pictures, work, args.cfa):
             for k, weights in enumerate(args.weights):
                 methods = ["tfp", "tfi", "cscsr"] if k == 0 else ["cscsr"]
                 rows = evaluate(str(store), methods, str(work / f"eval-{store.stem}-{k}"), weights=weights,
@@ -90,7 +93,7 @@ def main() -> None:
         every = [s for reset in RESETS for s in by_reset[reset]]
         table[label] = {**{f"{reset}_psnr": statistics.mean(p for p, _ in by_reset[reset]) for reset in RESETS},
                         "psnr": statistics.mean(p for p, _ in every), "ssim": statistics.mean(s for _, s in every),
-                        "stores": len(every)}
+                        "stores": len(every), "psnr_each": [p for p, _ in every]}
     if args.json:
         print(json.dumps(table, indent=1))
         return
