@@ -9,7 +9,9 @@ beside it (``git worktree``, default the last commit before #56's work), with th
 (b) the shipped ``lite`` network on a 64x64 LR region of it (48 output frames of 256x256).
 
 The runs alternate (reference first in odd repetitions, this tree first in even ones); the ratio is the median
-of the ratios within each repetition. Each run's video must be byte-equal to the reference's.
+of the ratios within each repetition. Each run's video must be byte-equal to the reference's, so both are given the
+gain (:data:`GAIN`): the automatic exposure's window moved after the reference (the recording's middle window, not
+its middle output frame's).
 Also measured, once per variant on a ``LocalCluster`` of 2 worker processes passed as ``client=``: the bytes
 moved between workers (the sum of each worker's ``transfer_outgoing_bytes_total``, Dask's transfer metric).
 And the lines of the code that executes jobs and graphs, here and in the reference.
@@ -40,8 +42,9 @@ ROOT = Path(__file__).resolve().parent.parent
 CACHE = Path("/tmp/cscsr_bench")
 REFERENCE = "9d5c293"  # the last commit before #56's one path
 GOAL_TIME, SIDE = 1.05, 256
-JOBS = {"tfp": ["--method", "tfp"],
-        "lite-64": ["--method", "cscsr", "--weights", "lite", "--region", "96:160,96:160"]}
+GAIN = 2.0  # about the recording's automatic exposure
+JOBS = {"tfp": ["--method", "tfp", "--gain", str(GAIN)],
+        "lite-64": ["--method", "cscsr", "--weights", "lite", "--region", "96:160,96:160", "--gain", str(GAIN)]}
 EXECUTING = ["pipeline/jobs/reconstruct.py", "pipeline/jobs/reconstruct_tasks.py", "pipeline/jobs/dry_run.py",
              "pipeline/compute/executor.py", "pipeline/lazy/video.py", "pipeline/lazy/written.py",
              "pipeline/lazy/windows.py"]  # the code that executes jobs and graphs
@@ -49,9 +52,9 @@ TRANSFERS = """
 import sys
 from distributed import Client, LocalCluster
 from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct
-store, out, method, weights, region = sys.argv[1:6]
+store, out, method, weights, region, gain = sys.argv[1:7]
 with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=":0") as cluster, Client(cluster) as client:
-    options = ReconstructOptions(method=method, weights=weights or None, region=region or None)
+    options = ReconstructOptions(method=method, weights=weights or None, region=region or None, gain=float(gain))
     reconstruct(store, out, options, client=client, progress=False)
     print(sum(client.run(lambda dask_worker: dask_worker.transfer_outgoing_bytes_total).values()))
 """
@@ -93,7 +96,7 @@ def job(code: Path, store: str, out: str, args: list[str]) -> float:
 def moved(code: Path, store: str, out: str, args: list[str]) -> int:
     options = dict(zip(args[::2], args[1::2]))
     result = subprocess.run([sys.executable, "-c", TRANSFERS, store, out, options["--method"],
-                             options.get("--weights", ""), options.get("--region", "")], check=True,
+                             options.get("--weights", ""), options.get("--region", ""), options["--gain"]], check=True,
                             env=environment(code), cwd=tempfile.gettempdir(), capture_output=True, text=True)
     return int(result.stdout.split()[-1])
 

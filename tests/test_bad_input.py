@@ -10,8 +10,8 @@ from tests.conftest import write_dat
 
 def assert_refused(result, *fragments):
     assert result.exit_code != 0
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1, result.stderr
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1, repr(result.stderr)  # no empty line either (a progress bar's, where stderr is piped)
     assert lines[0].startswith("error: ")
     for fragment in fragments:
         assert fragment in lines[0], lines[0]

@@ -52,9 +52,9 @@ CASES = {  # the job's options -> (windows' arguments, the stage)
     "tfp": dict(method="tfp", every=17, tile=16),  # 10 output frames of 3x4 tiles
     "tfp-part": dict(method="tfp", every=7, tile=16, start=30, stop="0.15s", region="8:40,16:48"),
     "tfi": dict(method="tfi", every=20, tile=24),
-    # output frames 80 and 100 of the whole run's 20, 40, ...: two blocks, cut where the whole run's batches of 4 are;
-    # two tiles (each reads the whole recording with the network's halo)
-    "lite-part": dict(method="cscsr", weights="lite", every=20, tile=16, start=80, stop=120, region="8:24,16:48"),
+    # output frames 80 to 140 of the whole run's 20, 40, ...: two blocks (80; 100 to 140), cut where the whole run's
+    # batches of 4 are; two tiles (each reads the whole recording with the network's halo)
+    "lite-part": dict(method="cscsr", weights="lite", every=20, tile=16, start=80, stop=160, region="8:24,16:48"),
 }
 
 
@@ -72,7 +72,8 @@ def test_to_video_writes_what_the_job_writes(recording, client, case, tmp_path):
     """The job (on the module's cluster, whose workers have the network loaded once) and the lazy stages (on dask's
     threaded scheduler) write the same bytes and record."""
     options = CASES[case]
-    reconstruct(recording, str(tmp_path / "job.zarr"), ReconstructOptions(**options), client=client, progress=False)
+    job_counts = reconstruct(recording, str(tmp_path / "job.zarr"), ReconstructOptions(**options), client=client,
+                             progress=False)
     hr = lazily(recording, **options)
     with threaded():
         counts = lazy.to_video(hr, str(tmp_path / "lazy.zarr"))
@@ -80,6 +81,9 @@ def test_to_video_writes_what_the_job_writes(recording, client, case, tmp_path):
     assert np.array_equal(job[0], made[0]) and np.array_equal(job[1], made[1])
     assert job[2] == made[2]  # the same record: method, weights and their hash, gain, part, source, state ...
     assert counts["frames"] == len(job[1]) and counts["tasks_skipped"] == 0
+    assert counts == job_counts  # in the same tasks: a block along time (a network's batch of frames) of a tile
+    with threaded():  # a resume of the job's store finds all of them committed
+        assert lazy.to_video(hr, str(tmp_path / "job.zarr"), resume=True)["tasks_skipped"] == counts["tasks_run"]
     assert hr.shape == job[0].shape and list(hr.coords["frame"].values) == list(job[1])
     assert np.array_equal(hr.coords["t"].values, job[1] / FPS)  # centre times in seconds
 

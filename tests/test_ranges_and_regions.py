@@ -101,6 +101,27 @@ def test_a_time_range_is_the_matching_frames_of_a_whole_run(recording, whole, cl
     assert attrs["fps"] == FPS / 7 and attrs["state"] == "complete"
 
 
+def test_the_automatic_exposure_is_the_recording_s_whatever_its_output_frames(recording, whole, client, tmp_path):
+    """Measured on the recording's middle window (centre 100 of 200 frames), not on its middle output frame (97 every
+    7, 102 every 41): the frame centred on 20 is the same bytes every 7 and every 41, and the lazy graph agrees."""
+    from cscsr import lazy
+
+    out = str(tmp_path / "every41.zarr")
+    reconstruct(recording, out, ReconstructOptions(every=41, tile=16), client=client, progress=False)
+    frames, centres, attrs = video(out)
+    assert list(centres) == [20, 61, 102, 143] and attrs["gain"] == video(whole["tfp"])[2]["gain"]
+    np.testing.assert_array_equal(frames[:1], matching_frames(whole["tfp"], centres[:1]))
+    assert float(lazy.windows(lazy.open_spikes(recording), every=13).coords["auto_gain"]) == attrs["gain"]
+    group = zarr.open_group(out, mode="r+")  # an output begun by a rule of before: resumed with the gain it records
+    group.attrs.update({"gain": attrs["gain"] * 1.25, "state": "writing"})
+    group["committed"][3] = 0
+    reconstruct(recording, out, ReconstructOptions(every=41, tile=16, resume=True), client=client, progress=False)
+    resumed, _, resumed_attrs = video(out)
+    assert resumed_attrs["gain"] == attrs["gain"] * 1.25 and resumed_attrs["state"] == "complete"
+    np.testing.assert_array_equal(resumed[:3], frames[:3])
+    assert resumed[3].mean() > frames[3].mean() + 5  # the last frame made again, brighter
+
+
 def test_a_range_near_the_recordings_ends_has_only_the_centres_a_window_fits_around(recording, whole, client,
                                                                                      tmp_path):
     """A range edge closer than W//2 = 20 frames to an end simply has no centre there."""

@@ -32,6 +32,9 @@ def progress_bar(description: str, total: int, *, done: int = 0, unit: str = "fr
     columns += [TransferSpeedColumn()] if unit == "bytes" else []
     columns += [TimeRemainingColumn()]
     console = Console(stderr=True)
-    with Progress(*columns, console=console, disable=_quiet or not enabled, transient=not sys.stderr.isatty()) as bar:
+    # nothing at all where stderr is no terminal (rich would still end the bar with an empty line), unless forced
+    # (FORCE_COLOR, rich's is_terminal)
+    with Progress(*columns, console=console, disable=_quiet or not enabled or not console.is_terminal,
+                  transient=not sys.stderr.isatty()) as bar:
         task = bar.add_task(description, total=total, completed=done)
         yield lambda n: bar.advance(task, n)

@@ -37,8 +37,7 @@ def plan_job(plan: Plan, part: Part, blocks: TileBlocks, done: np.ndarray, hr_si
     (whose fixed cost each segment pays too). Their time and bytes give the hours on 1, 8 and 64 such workers, this
     job's time on its workers, and the output's size (``pipeline.compute.estimate``)."""
     centres = part.centres
-    tasks = sum(1 for _ in blocks.units())  # a block of frames along time and a pass of its tiles (one on CPUs)
-    to_run = tasks if not done.any() else sum(1 for _ in blocks.units(done))
+    to_run, tasks = blocks.task_counts(done)
     job = (plan, part, blocks, hr_size)
     if client is not None:
         measured = _measured(client, *job, seconds=SAMPLE_SECONDS)

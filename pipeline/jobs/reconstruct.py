@@ -190,9 +190,10 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
         if client is None and scheduler_address(scheduler):  # a long-lived cluster: connect once, before any output
             client = stack.enter_context(dask_client(scheduler=scheduler))
         y0, y1, x0, x1 = part.region
+        found = _recorded_attrs(out) if options.resume else {}
         options, where, scale, method = prepared(  # the weights by where the network runs
-            options, client, meta.cfa, store.attrs.get("scale"), (y1 - y0, x1 - x0),
-            _recorded_attrs(out) if options.resume else {}, f"the recording {store.url}")
+            options, client, meta.cfa, store.attrs.get("scale"), (y1 - y0, x1 - x0), found,
+            f"the recording {store.url}")
         spec = method_spec(options, method, where)  # the job's blocks: the lazy graph's for the same options
         centres = part.centres
         grid = tile_grid(meta.height, meta.width, options.tile, method.halo, part.region)
@@ -205,14 +206,15 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
             # only one of our stores is replaced, kept aside until the new one is complete; a failed one stays
             stack.enter_context(new_output(out, overwrite=options.overwrite, kind=VIDEO_STORE,
                                            flag="--resume or --overwrite", resume=options.resume, keep_partial=True))
-        gain = options.gain or meta.gain
+        began = found.get("gain")  # a resume: the exposure it began with (an output from before a change of rule)
+        gain = options.gain or meta.gain or (began if isinstance(began, float) else None)
         if gain is None:  # one window: on the cluster if there is one, else here (not worth a cluster of its own)
             key, args = gain_task(recorded(store_url), store_identity(store), store.n_frames, meta.width,
-                                  options.window, options.every, meta.reset)  # the same gain for any part
+                                  options.window, meta.reset)  # the same gain for any part
             gain = result_of(client, store_gain, args, key) if client else store_gain(*args)
         # the spike store as workers find it, whatever their working directory (and as the output records it)
-        plan = Plan(recorded(store_url), out, options.method, method.weights, options.window, options.every, float(gain),
-                    scale, meta.cfa, meta.reset, options.tile, uuid.uuid4().hex, spec.precision, options.gpu_batch,
+        plan = Plan(recorded(store_url), out, options.method, method.weights, options.window, options.every,
+                    float(gain), scale, meta.cfa, meta.reset, options.tile, uuid.uuid4().hex, spec.precision, options.gpu_batch,
                     spec.backend, fast_gpu=spec.fast_gpu if options.method in NETWORKS else None,
                     **made_from(store, method.weights_sha256),  # what --resume checks beside the paths
                     start=part.start, stop=part.stop, region=part.region)
@@ -225,6 +227,7 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
             return plan_job(plan, part, blocks, done, hr_size, where, client=client, workers=workers,
                             store=store_url, segment_tasks=options.segment_tasks)
         done = _prepare_output(plan, options.resume, centres, blocks, hr_size, fps=meta.fps / options.every)
+        to_run, total = blocks.task_counts(done)
         work = functools.partial(run_blocks, blocks=blocks, out=plan.out, run=plan.run)
         log.debug("%s -> %s: %s%s, %d output frames x %d tiles of %d LR pixels (x%d), gain %.4g; %d of %d tiles "
                   "committed already; on %s", store_url, out, options.method,
@@ -244,8 +247,7 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
                                        preload=NETWORK_PRELOAD if options.method in NETWORKS else ())
             failed = _tally(outcomes, done, advance)
         finish_video(out, failed, len(centres))  # still under the claim
-    skipped = int(done.sum())
-    return {"frames": len(centres), "tasks_run": done.size - skipped, "tasks_skipped": skipped}
+    return {"frames": len(centres), "tasks_run": to_run, "tasks_skipped": total - to_run}
 
 
 def _check_output(out: str, options: ReconstructOptions) -> None:

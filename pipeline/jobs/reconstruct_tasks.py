@@ -23,7 +23,7 @@ from pipeline.stores.video_store import TileWriter, open_video_store
 from stages.capture.bits import pack_rows, unpack_rows
 from stages.errors import InputError
 from stages.reconstruction.colour import auto_gain
-from stages.reconstruction.methods import NETWORKS, Reconstructor, Window, classic, output_centres
+from stages.reconstruction.methods import NETWORKS, Reconstructor, Window, classic, middle_centre
 from stages.reconstruction.tfp import tfp_rate
 from stages.reconstruction.tiles import Tile
 
@@ -151,6 +151,15 @@ class TileBlocks:
             for k, tiles in enumerate(self.passes):
                 if done is None or not all(done[self.starts[b] : self.starts[b + 1], ty, tx].all() for ty, tx in tiles):
                     yield b, k
+
+    def task_counts(self, done: np.ndarray) -> tuple[int, int]:
+        """(tasks still to run, tasks in all): the job's tasks, a block along time and a pass of its tiles (one tile
+        on CPU workers), as :meth:`units` gives them; ``done`` (frames, tile rows, tile columns) committed."""
+        whole = np.logical_and.reduceat(done, self.starts[:-1], axis=0)  # (blocks, rows, columns): all frames in
+        finished = sum(int(np.logical_and.reduce([whole[:, ty, tx] for ty, tx in tiles]).sum())
+                       for tiles in self.passes)
+        total = len(self.frames) * len(self.passes)
+        return total - finished, total
 
     def read(self, b: int, k: int, key=None):
         """The task that reads and reconstructs every tile of pass ``k`` of block ``b`` along time, as ``key``
@@ -348,14 +357,13 @@ def tile_windows(spikes, url: str, centres, half: int, tile: Tile, cfa: str, res
     return windows
 
 
-def gain_task(url: str, identity: str, n_frames: int, width: int, window: int, every: int,
+def gain_task(url: str, identity: str, n_frames: int, width: int, window: int,
               reset: str) -> tuple[tuple[str], tuple]:
-    """(key, arguments of :func:`store_gain`) of the automatic exposure of the recording at ``url``: the middle
-    window of the whole recording's output frames, so every part of it is exposed alike."""
+    """(key, arguments of :func:`store_gain`) of the automatic exposure of the recording at ``url``: its middle window
+    (``methods.middle_centre``), so every part of it, and every ``--every``, is exposed alike."""
     from dask.base import tokenize
 
-    whole = output_centres(n_frames, window, every)
-    args = (url, identity, width, whole[len(whole) // 2], window, reset)
+    args = (url, identity, width, middle_centre(n_frames, window), window, reset)
     return (f"auto-gain-{tokenize(*args)}",), args
 
 

@@ -22,7 +22,7 @@ from stages.capture.bits import pack_rows
 from stages.errors import InputError, InputTypeError
 from stages.numbers import check_number
 from stages.reconstruction.colour import auto_gain
-from stages.reconstruction.methods import WINDOW, output_centres
+from stages.reconstruction.methods import WINDOW, middle_centre
 from stages.reconstruction.tfp import tfp_rate
 
 MARGIN = 32  # LR pixels kept around a region: the largest halo of a built-in method (the network's, HALO)
@@ -113,9 +113,9 @@ def windows(spikes: xr.DataArray, length: int = WINDOW, every: int = WINDOW, sta
                "bounds": list(chosen.box), "kept": list(around)})
     if attrs.get("gain") is None:  # the job's automatic exposure: the whole frame's middle window, made when needed
         if store is not None:  # the job's own task, reading it from the store
-            out.coords["auto_gain"] = ((), _store_gain(store, length, every))
+            out.coords["auto_gain"] = ((), _store_gain(store, length))
         elif chosen.whole:
-            out.coords["auto_gain"] = ((), _whole_recording_gain(spikes.data, length, every, attrs["reset"]))
+            out.coords["auto_gain"] = ((), _whole_recording_gain(spikes.data, length, attrs["reset"]))
     return out
 
 
@@ -190,22 +190,21 @@ def _windows_of(block: np.ndarray, *, starts: tuple[int, ...], centre0: int, cen
     return out
 
 
-def _store_gain(store: xr.DataArray, length: int, every: int) -> da.Array:
+def _store_gain(store: xr.DataArray, length: int) -> da.Array:
     """0-d lazy: the automatic exposure of the whole recording ``store``, by the job's own task and key."""
     from dask._task_spec import Task
 
     frames, _, width = store.shape
-    key, args = gain_task(store.attrs["store"], store.attrs["identity"], frames, width, length, every,
+    key, args = gain_task(store.attrs["store"], store.attrs["identity"], frames, width, length,
                           store.attrs["reset"])
     return da.Array({key: Task(key, store_gain, *args)}, key[0], chunks=(), dtype=np.float64,
                     meta=np.empty((), np.float64))
 
 
-def _whole_recording_gain(bits: da.Array, length: int, every: int, reset: str) -> da.Array:
+def _whole_recording_gain(bits: da.Array, length: int, reset: str) -> da.Array:
     """0-d lazy: the automatic exposure of the whole recording's middle window, whole frame (the job's rule, so
     every part of a recording is exposed alike)."""
-    whole = output_centres(bits.shape[0], length, every)
-    centre, half = whole[len(whole) // 2], length // 2
+    centre, half = middle_centre(bits.shape[0], length), length // 2
     window = bits[centre - half : centre + half + 1].rechunk(-1)
     return window.map_blocks(_gain_of, bits.shape[2], reset, drop_axis=(0, 1, 2), dtype=np.float64,
                              meta=np.empty((), np.float64))

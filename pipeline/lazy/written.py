@@ -27,7 +27,6 @@ from pipeline.stores.video_store import (COMMITTED, create_video_store, lost_fra
                                          open_video_store)
 from stages.errors import InputError, InputTypeError
 from stages.numbers import check_flag
-from stages.reconstruction.methods import NETWORKS
 
 BLOCKS_AT_ONCE = 256  # blocks to_video computes and writes a round (but a store's reconstruction on a cluster)
 
@@ -90,12 +89,15 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
         blocks = [(b, ty, tx) for b in range(len(data.chunks[0])) for ty in range(tiles[0]) for tx in range(tiles[1])
                   if data.chunks[0][b] and not done[starts[b]:starts[b + 1], ty, tx].all()]
         run = uuid.uuid4().hex
-        # the job's units: a task per frame and tile for a method that reconstructs one window at a time, a task
-        # per block (the network's batch of frames, one tile) for the network
-        per_block = attrs.get("method") in NETWORKS
-        unit_of = {block: 1 if per_block else data.chunks[0][block[0]] for block in blocks}
-        to_run = sum(unit_of.values())
-        total = (sum(1 for c in data.chunks[0] if c) if per_block else n) * tiles[0] * tiles[1]
+        # counted in the job's tasks (TileBlocks.task_counts): a block along time and a pass of its tiles, for a
+        # store's reconstruction (a share of the pass a tile), else a block
+        if from_store is not None:
+            to_run, total = from_store.task_counts(done)
+            share = {tile: 1 / len(tiles) for tiles in from_store.passes for tile in tiles}
+        else:
+            to_run, total = len(blocks), sum(1 for c in data.chunks[0] if c) * tiles[0] * tiles[1]
+            share = {}
+        unit_of = {block: share.get(block[1:], 1) for block in blocks}
         piped = progress and not sys.stderr.isatty()  # no bar to draw: a line every BLOCKS_AT_ONCE blocks
         failed, finished, finished_units = {}, 0, 0
         with held(url), progress_bar(f"to_video {url}", total, done=total - to_run, unit="tasks",
@@ -110,8 +112,8 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
                     finished_units += unit_of[block]  # as the bar: written ones
                 finished += 1
                 if piped and (finished % BLOCKS_AT_ONCE == 0 or finished == len(blocks)):
-                    print(f"to_video {url}: {total - to_run + finished_units} of {total} tasks", file=sys.stderr,
-                          flush=True)
+                    print(f"to_video {url}: {round(total - to_run + finished_units)} of {total} tasks",
+                          file=sys.stderr, flush=True)
 
             if from_store is not None and client is not None:  # as the job runs it: the executor's window, each
                 # pass's one task made as it moves, the exposure computed (a cluster's restart forgets a held one)

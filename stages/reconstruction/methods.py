@@ -26,6 +26,13 @@ def output_centres(n_frames: int, window: int, every: int) -> list[int]:
     return list(range(half, n_frames - half, every))
 
 
+def middle_centre(n_frames: int, window: int) -> int:
+    """The centre spike frame of the recording's middle window (of ``window`` frames, ``n_frames >= window``): where
+    the automatic exposure is measured, whatever the output frames (``every``, a part)."""
+    half = window // 2
+    return min(max(n_frames // 2, half), n_frames - 1 - half)
+
+
 @dataclass(frozen=True)
 class Window:
     """One reconstruction input: packed spikes of a (tile of a) window, and how to read them."""
