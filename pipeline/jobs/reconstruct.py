@@ -214,8 +214,8 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
             gain = result_of(client, store_gain, args, key) if client else store_gain(*args)
         # the spike store as workers find it, whatever their working directory (and as the output records it)
         plan = Plan(recorded(store_url), out, options.method, method.weights, options.window, options.every,
-                    float(gain), scale, meta.cfa, meta.reset, options.tile, uuid.uuid4().hex, spec.precision, options.gpu_batch,
-                    spec.backend, fast_gpu=spec.fast_gpu if options.method in NETWORKS else None,
+                    float(gain), scale, meta.cfa, meta.reset, options.tile, uuid.uuid4().hex, spec.precision,
+                    options.gpu_batch, spec.backend, fast_gpu=spec.fast_gpu if options.method in NETWORKS else None,
                     **made_from(store, method.weights_sha256),  # what --resume checks beside the paths
                     start=part.start, stop=part.stop, region=part.region)
         hr_size = ((y1 - y0) * scale, (x1 - x0) * scale)
