@@ -9,9 +9,10 @@ beside it (``git worktree``, default the last commit before #56's work), with th
 (b) the shipped ``lite`` network on a 64x64 LR region of it (48 output frames of 256x256).
 
 The runs alternate (reference first in odd repetitions, this tree first in even ones); the ratio is the median
-of the ratios within each repetition. Each run's video must be byte-equal to the reference's, so both are given the
-gain (:data:`GAIN`): the automatic exposure's window moved after the reference (the recording's middle window, not
-its middle output frame's).
+of the ratios within each repetition. Each run's video must equal the reference's, so both are given the gain
+(:data:`GAIN`: the automatic exposure's window moved after the reference, to the recording's middle window), byte for
+byte but for OpenCV's VNG tail (3bed0d8, after the reference: a pixel in 10^5 of TFP a level or two apart, within
+:data:`VNG_TAIL_LEVELS` and :data:`VNG_TAIL_SHARE`; reported).
 Also measured, once per variant on a ``LocalCluster`` of 2 worker processes passed as ``client=``: the bytes
 moved between workers (the sum of each worker's ``transfer_outgoing_bytes_total``, Dask's transfer metric).
 And the lines of the code that executes jobs and graphs, here and in the reference.
@@ -43,6 +44,7 @@ CACHE = Path("/tmp/cscsr_bench")
 REFERENCE = "9d5c293"  # the last commit before #56's one path
 GOAL_TIME, SIDE = 1.05, 256
 GAIN = 2.0  # about the recording's automatic exposure
+VNG_TAIL_LEVELS, VNG_TAIL_SHARE = 2, 1e-4  # the most a pixel, and the share of pixels, 3bed0d8's fix moves
 JOBS = {"tfp": ["--method", "tfp", "--gain", str(GAIN)],
         "lite-64": ["--method", "cscsr", "--weights", "lite", "--region", "96:160,96:160", "--gain", str(GAIN)]}
 EXECUTING = ["pipeline/jobs/reconstruct.py", "pipeline/jobs/reconstruct_tasks.py", "pipeline/jobs/dry_run.py",
@@ -128,10 +130,12 @@ def main() -> None:
                     seconds[label] = job(code, store, str(out), options)
                     times[label].append(seconds[label])
                 ratios.append(seconds["here"] / seconds["reference"])
-                same = np.array_equal(zarr.open_group(str(work / f"{name}-here.zarr"), mode="r")["video"][:],
-                                      zarr.open_group(str(work / f"{name}-reference.zarr"), mode="r")["video"][:])
-                if not same:
-                    raise SystemExit(f"{name}: the video differs from the reference's")
+                apart = np.abs(zarr.open_group(str(work / f"{name}-here.zarr"), mode="r")["video"][:].astype(np.int16)
+                               - zarr.open_group(str(work / f"{name}-reference.zarr"), mode="r")["video"][:])
+                share = float((apart > 0).mean())
+                if apart.max() > VNG_TAIL_LEVELS or share > VNG_TAIL_SHARE:
+                    raise SystemExit(f"{name}: the video differs from the reference's (at most {apart.max()} levels, "
+                                     f"{share:.2e} of the values)")
             transfers = {}
             for label, code in (("reference", reference), ("here", here)):
                 out = work / f"{name}-{label}-client.zarr"
@@ -139,14 +143,16 @@ def main() -> None:
                 transfers[label] = moved(code, store, str(out), options)
             results[name] = {"seconds_reference": median(times["reference"]), "seconds_here": median(times["here"]),
                              "ratio": median(ratios), "bytes_moved_reference": transfers["reference"],
-                             "bytes_moved_here": transfers["here"], "same_bytes": True}
+                             "bytes_moved_here": transfers["here"], "values_apart": share,
+                             "most_levels_apart": int(apart.max())}
     finally:
         shutil.rmtree(work, ignore_errors=True)
     rows = [[name, f"{r['seconds_reference']:.2f}", f"{r['seconds_here']:.2f}", f"{r['ratio']:.3f}",
              "PASS" if r["ratio"] <= GOAL_TIME else "FAIL", r["bytes_moved_reference"], r["bytes_moved_here"],
-             "PASS" if r["bytes_moved_here"] <= r["bytes_moved_reference"] else "FAIL"] for name, r in results.items()]
+             "PASS" if r["bytes_moved_here"] <= r["bytes_moved_reference"] else "FAIL",
+             f"{r['values_apart']:.1e} (at most {r['most_levels_apart']})"] for name, r in results.items()]
     print(markdown_table(["job (2 workers)", "reference s", "here s", "here/reference", f"<= {GOAL_TIME}",
-                          "bytes moved ref", "bytes moved here", "<= ref"], rows))
+                          "bytes moved ref", "bytes moved here", "<= ref", "values apart (levels)"], rows))
     counted = {"reference": lines(reference), "here": lines(here)}
     print(f"\nlines that execute jobs and graphs ({', '.join(EXECUTING)}): reference {counted['reference']}, "
           f"here {counted['here']}: {'PASS' if counted['here'] < counted['reference'] else 'FAIL'}")
