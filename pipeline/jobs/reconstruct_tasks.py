@@ -147,19 +147,23 @@ class TileBlocks:
     def units(self, done: np.ndarray | None = None) -> Iterator[tuple[int, int]]:
         """(block along time, pass) of every unit still to run: any of its frames' tiles not committed (``done``,
         (frames, tile rows, tile columns)); generated as consumed."""
+        finished = None if done is None else self._finished(done)
         for b in range(len(self.frames)):  # never empty (an empty part is refused before)
-            for k, tiles in enumerate(self.passes):
-                if done is None or not all(done[self.starts[b] : self.starts[b + 1], ty, tx].all() for ty, tx in tiles):
+            for k in range(len(self.passes)):
+                if finished is None or not finished[b, k]:
                     yield b, k
 
     def task_counts(self, done: np.ndarray) -> tuple[int, int]:
         """(tasks still to run, tasks in all): the job's tasks, a block along time and a pass of its tiles (one tile
         on CPU workers), as :meth:`units` gives them; ``done`` (frames, tile rows, tile columns) committed."""
-        whole = np.logical_and.reduceat(done, self.starts[:-1], axis=0)  # (blocks, rows, columns): all frames in
-        finished = sum(int(np.logical_and.reduce([whole[:, ty, tx] for ty, tx in tiles]).sum())
-                       for tiles in self.passes)
         total = len(self.frames) * len(self.passes)
-        return total - finished, total
+        return total - int(self._finished(done).sum()), total
+
+    def _finished(self, done: np.ndarray) -> np.ndarray:
+        """(blocks along time, passes) bool: every frame of every tile of the pass committed in ``done``."""
+        whole = np.logical_and.reduceat(done, self.starts[:-1], axis=0)  # (blocks, rows, columns): all frames in
+        return np.stack([np.logical_and.reduce([whole[:, ty, tx] for ty, tx in tiles]) for tiles in self.passes],
+                        axis=1)
 
     def read(self, b: int, k: int, key=None):
         """The task that reads and reconstructs every tile of pass ``k`` of block ``b`` along time, as ``key``

@@ -195,7 +195,7 @@ def write_store(writes: SpikeWrites, bits, *, client, overwrite: bool, resume: b
         if todo:
             to_write = sum(writes.frames_of(index) for index in todo)
             with held(url), progress_bar(title, writes.n_frames, done=writes.n_frames - to_write,
-                                                       enabled=progress) as advance:
+                                         enabled=progress) as advance:
                 counts[todo] = writes.run(bits, todo, advance, client)
         if truth is not None and writer.group.attrs.get("state") != "complete":
             with held(url):
