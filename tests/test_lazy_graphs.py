@@ -12,6 +12,7 @@
 """
 
 import os
+import pathlib
 import shutil
 import subprocess
 import sys
@@ -449,6 +450,8 @@ def test_bad_input_is_the_jobs_one_line_before_anything_is_written(recording, tm
         "more than the windows keep": lambda: lazy.apply(lazy.windows(spikes, region="16:32,16:32", margin=0),
                                                           lambda w: w, scale=4, halo=8),
         "hr must be": lambda: lazy.to_video(spikes, str(tmp_path / "out.zarr")),
+        "halo=3 is odd: the rggb colour pattern": lambda: lazy.apply(lazy.windows(spikes), lambda w: w, scale=4,
+                                                                       halo=3),
     }
     for message, call in refusals.items():
         with pytest.raises(InputError, match=message) as refused:
@@ -456,6 +459,8 @@ def test_bad_input_is_the_jobs_one_line_before_anything_is_written(recording, tm
         assert "\n" not in str(refused.value)
     with pytest.raises(InputTypeError, match="url must be"):
         lazy.open_spikes(None)
+    with pytest.raises(InputTypeError, match="progress must be True or False, got 'no'"):
+        lazy.to_video(lazy.tfp(lazy.windows(spikes)), str(tmp_path / "out.zarr"), progress="no")
     group = zarr.open_group(recording, mode="r+")
     group.attrs["state"] = "writing"
     try:
@@ -464,6 +469,44 @@ def test_bad_input_is_the_jobs_one_line_before_anything_is_written(recording, tm
     finally:
         group.attrs["state"] = "complete"
     assert not (tmp_path / "out.zarr").exists()
+
+
+def test_nothing_is_written_over_a_store_its_graph_reads_and_a_replaced_store_is_not_read(recording, tmp_path):
+    """``to_video(open_video(url), url, overwrite=True)`` set the store aside, then read the new, empty one: an
+    all-black video marked complete, the original gone. ``to_spikes`` over its own input, once the ``store``
+    attribute was dropped, failed half-way. The stores a graph reads are found in the graph itself: refused in one
+    line, nothing touched. And a video store replaced after ``open_video`` (another method at the same path) was
+    read as the new pixels under the old attributes: refused when read."""
+    video = str(tmp_path / "video.zarr")
+    with threaded():
+        lazy.to_video(lazy.tfp(lazy.windows(lazy.open_spikes(recording), every=50), tile=16), video)
+        before = stored(video)
+        hr = lazy.open_video(video)
+        hr.attrs.clear()
+        with pytest.raises(InputError, match=f"output {video} is the same as input {video}"):
+            lazy.to_video(hr, video, overwrite=True)
+        copy = str(tmp_path / "copy.zarr")
+        shutil.copytree(recording, copy)
+        spikes = lazy.open_spikes(copy)
+        spikes.attrs.pop("store")
+        with pytest.raises(InputError, match=f"output {copy} is the same as input {copy}"):
+            lazy.to_spikes(spikes, copy, overwrite=True)
+        assert sorted(os.listdir(tmp_path)) == ["copy.zarr", "video.zarr"]
+        assert all(np.array_equal(a, b) for a, b in zip(stored(video)[:2], before[:2]))
+        np.testing.assert_array_equal(lazy.open_spikes(copy).values, lazy.open_spikes(recording).values)
+        opened = lazy.open_video(video)
+        lazy.to_video(lazy.tfi(lazy.windows(lazy.open_spikes(recording), every=50), tile=16), video, overwrite=True)
+        with pytest.raises(InputError, match="is not the one this graph was opened on"):
+            opened.values
+
+
+def test_weights_may_be_a_path_object(recording, tmp_path):
+    from cscsr.weights.weights_io import default_weights
+
+    shipped = default_weights("lite")
+    win = lazy.windows(lazy.open_spikes(recording), every=100)
+    hr = lazy.reconstruct(win, weights=pathlib.Path(shipped), tile=32)
+    assert hr.attrs["weights"] == lazy.reconstruct(win, weights=str(shipped), tile=32).attrs["weights"]
 
 
 def test_the_margin_holds_every_built_in_halo():

@@ -7,6 +7,7 @@ recording; a crop of pixels gives the whole reconstruction's interior, at the re
 recording's gain; a written selection of ``hr`` reads back (``open_video``) as that selection.
 """
 
+import dataclasses
 import os
 import pathlib
 
@@ -153,13 +154,14 @@ def test_a_sliced_hr_is_written_with_its_region_and_read_back(recording, tmp_pat
     assert sorted(os.listdir(tmp_path / "pngs")) == [f"frame_{c:08d}.png" for c in (40, 60, 80)]
 
 
-@pytest.mark.parametrize("pick", ["repeated", "reversed", "gapped", "cut pixel"])
+@pytest.mark.parametrize("pick", ["repeated", "reversed", "gapped", "cut pixel", "cut colour cell"])
 def test_a_selection_of_hr_that_cannot_be_written_is_refused_before_anything_exists(recording, tmp_path, pick):
     hr = lazy.tfp(lazy.windows(lazy.open_spikes(recording), every=20), tile=16)
     selected, fragment = {"repeated": (hr.isel(t=[0, 0, 1]), "repeat"),
                           "reversed": (hr.isel(t=slice(None, None, -1)), "run backwards"),
                           "gapped": (hr.isel(t=[0, 2]), "skip output frames"),
-                          "cut pixel": (hr.isel(y=slice(3, 64)), "cuts through LR pixels (scale=4)")}[pick]
+                          "cut pixel": (hr.isel(y=slice(3, 64)), "cuts through LR pixels (scale=4)"),
+                          "cut colour cell": (hr.isel(y=slice(4, 132)), "LR y0 1, y1 33, odd: the rggb colour")}[pick]
     refused(lambda: lazy.to_video(selected, str(tmp_path / "out.zarr")), fragment)
     assert not os.listdir(tmp_path)
 
@@ -394,6 +396,43 @@ def test_dropped_or_moved_coordinates_are_refused_before_anything_exists(recordi
             "hr: the y coordinate is missing")
     refused(lambda: lazy.to_video(hr.drop_vars("gain"), str(tmp_path / "c.zarr")), "hr lacks its gain coordinate")
     assert not os.listdir(tmp_path)
+
+
+def test_a_selection_whose_coordinates_moved_together_is_read_at_them(recording):
+    """Frames 0..99 relabelled 100..199 (``frame`` and ``t`` moved alike, so they agree): the windows held frames
+    0..99's bits, and the output recorded 120, 140, 160. A store's spikes as it holds them are read from it at their
+    coordinates: the windows are frames 100..199's, rechunked or not."""
+    spikes = lazy.open_spikes(recording)
+    part = spikes.isel(t=slice(0, 100), x=slice(8, 40))
+    moved = part.assign_coords(frame=part.frame + 100, t=part.t + 100 / FPS)
+    truth = lazy.windows(spikes.isel(t=slice(100, 200), x=slice(8, 40)), every=20)
+    assert not np.array_equal(truth.values, lazy.windows(part, every=20).isel(t=slice(0, 3)).values)
+    for given in (moved, moved.chunk({"t": 7})):
+        win = lazy.windows(given, every=20)
+        assert win.frame.values.tolist() == truth.frame.values.tolist() == [120, 140, 160]
+        np.testing.assert_array_equal(win.values, truth.values)
+
+
+def test_a_selection_of_pixels_is_recorded_as_the_frame_s_edges_and_no_job_resumes_it(recording, client, tmp_path):
+    """The selected pixels stand for the frame's edges (a method's halo stops there), so near them the pixels differ
+    from the job's ``--region`` of the same part, whose halo reads beyond it. Both recorded the same attributes and
+    each resumed the other's store, mixing the two. The selection is recorded (``edges``): each refuses the other."""
+    from pipeline.jobs.reconstruct import reconstruct
+    from pipeline.jobs.reconstruct_plan import ReconstructOptions
+
+    spikes = lazy.open_spikes(recording)
+    selected, job = str(tmp_path / "selected.zarr"), str(tmp_path / "job.zarr")
+    hr = lazy.tfp(lazy.windows(spikes.isel(y=slice(8, 40), x=slice(16, 48)), every=20), tile=16)
+    lazy.to_video(hr, selected)
+    options = ReconstructOptions(method="tfp", every=20, tile=16, region="8:40,16:48")
+    reconstruct(recording, job, options, client=client, progress=False)
+    (ours, _, ours_attrs), (theirs, _, theirs_attrs) = stored(selected), stored(job)
+    assert ours_attrs["edges"] == [8, 40, 16, 48] and theirs_attrs["edges"] is None
+    assert ours_attrs["region"] == theirs_attrs["region"] == [8, 40, 16, 48]
+    assert not np.array_equal(ours, theirs)  # the pixels near the edges
+    refused(lambda: lazy.to_video(hr, job, resume=True), "(edges None -> [8, 40, 16, 48])")
+    with pytest.raises(InputError, match=r"\(edges \[8, 40, 16, 48\] -> None\)"):
+        reconstruct(recording, selected, dataclasses.replace(options, resume=True), client=client, progress=False)
 
 
 def test_spikes_computed_from_a_store_s_are_exposed_and_recorded_as_their_own(recording, tmp_path):

@@ -222,6 +222,11 @@ def test_a_picture_under_motion_is_the_job_s_scene_spikes_and_truth(motion, tmp_
             lazy.simulate(frames, **{**options, "seed": 4})
         with pytest.raises(InputError, match=r"frames are 60 of a camera path of 90 frames: .*frames=60\)"):
             lazy.simulate(frames.isel(t=slice(0, 60)), **options)
+        # nor the truth of another path: it was written, scored 4.5 dB lower, under the attributes of seed 3
+        other = lazy.open_frames(picture, frames=90, motion=motion, seed=4, speed=1.5, chunk_frames=16)
+        with pytest.raises(InputError, match="truth= is not the scene these spikes were simulated from"):
+            to_spikes(lazy.simulate(frames, **options), str(tmp_path / "other.zarr"), truth=other)
+        assert not (tmp_path / "other.zarr").exists()
 
 
 def test_a_folder_s_frames_rewritten_in_place_are_a_new_graph(tmp_path):

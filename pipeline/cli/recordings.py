@@ -183,9 +183,8 @@ def reconstruct(store: Annotated[str, typer.Argument(help="Spike store URL.")],
                                                                   "1500ms).")] = None,
                 stop: Annotated[Optional[str], typer.Option(help="Only output frames centred before this (spike "
                                                                  "frame or seconds).")] = None,
-                region: Annotated[Optional[str], typer.Option(help="Only this region, Y0:Y1,X0:X1 in LR pixels (X0 a "
-                                                                   "multiple of 8; even bounds for a Bayer "
-                                                                   "CFA).")] = None,
+                region: Annotated[Optional[str], typer.Option(help="Only this region, Y0:Y1,X0:X1 in LR pixels (even "
+                                                                   "bounds for a Bayer CFA).")] = None,
                 dry_run: Annotated[bool, typer.Option("--dry-run", help="Check everything, create nothing, and "
                                                                         "print the plan, priced by a few of its "
                                                                         "tasks run for real on its workers.")]

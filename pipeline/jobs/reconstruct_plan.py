@@ -161,6 +161,10 @@ class Plan:
     start: int | None = None
     stop: int | None = None
     region: tuple[int, int, int, int] | None = None
+    # the LR pixels (y0, y1, x0, x1) taken as the frame's edges, where lazy windows were made of a selection of the
+    # recording's pixels (a method's halo stops there); None: the recording's own frame (a job's halo reads beyond
+    # its --region): the two give other pixels near the region's edges, so neither resumes the other's output
+    edges: tuple[int, int, int, int] | None = None
 
     def attrs(self) -> dict:
         """What the output store records (and ``--resume`` checks)."""
@@ -170,7 +174,8 @@ class Plan:
                 "reset": self.reset, "tile_lr": self.tile, "source_identity": self.source_identity,
                 "source_shape": None if self.source_shape is None else list(self.source_shape),
                 "weights_sha256": self.weights_sha256, "start": self.start, "stop": self.stop,
-                "region": None if self.region is None else list(self.region)}
+                "region": None if self.region is None else list(self.region),
+                "edges": None if self.edges is None else list(self.edges)}
 
     def whole(self) -> dict:
         """The part an output from before ``start``/``stop``/``region`` were recorded holds: all of its recording

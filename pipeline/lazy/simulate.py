@@ -32,7 +32,7 @@ from pipeline.jobs.simulate_plan import CameraFrames, MOTIONS, SimulateOptions, 
 from pipeline.lazy.capture import capture_frames, check_unchanged
 from pipeline.lazy.frames import made_scene
 from pipeline.lazy.spikes import (as_spikes, check_here, check_spikes, distributed_client, python_words, selection,
-                                  url_text)
+                                  stores_read, url_text)
 from pipeline.stores.frame_sources import FrameSource
 from pipeline.stores.ground_truth import has_truth, write_truth
 from pipeline.stores.outputs import SPIKE_STORE, check_existing
@@ -97,13 +97,33 @@ def simulate(frames: xr.DataArray, *, scale: int = 4, cfa: str = "rggb", brightn
                          f"cscsr simulate's one --scale sets both")
     as_recorded = dataclasses.replace(options, motion=motion if motion in MOTIONS else None)
     meta = simulated_meta(as_recorded, height, width, source if isinstance(source, str) else "")
-    scene = frames.data
-    if not isinstance(scene, da.Array):  # in memory: checked now, then chunks of Dask's size, whole frames
-        check_intensities(np.asarray(scene), 0)
-        scene = da.from_array(scene, chunks=("auto", -1, -1, -1))
+    if not isinstance(frames.data, da.Array):  # in memory: checked now
+        check_intensities(np.asarray(frames.data), 0)
+    scene = _scene_array(frames)
     if made is None:
         scene = scene.rechunk({1: -1, 2: -1, 3: -1})  # whole frames per block
-    return as_spikes(fired_spikes(scene, options, height, width, made), {**meta.attrs(), "frames": n_frames})
+    spikes = fired_spikes(scene, options, height, width, made)
+    _SCENE_OF[spikes.name] = _scene_named(frames)
+    while len(_SCENE_OF) > SCENES_KEPT:
+        del _SCENE_OF[next(iter(_SCENE_OF))]
+    return as_spikes(spikes, {**meta.attrs(), "frames": n_frames})
+
+
+SCENES_KEPT = 256  # the latest simulations whose scene to_spikes(truth=) checks its truth against
+_SCENE_OF: dict[str, tuple[str, str]] = {}  # simulated spikes' array name -> their scene (:func:`_scene_named`)
+
+
+def _scene_array(frames: xr.DataArray) -> da.Array:
+    """``frames``' scene as a dask array: as it is, or (in memory) in chunks of Dask's size, whole frames."""
+    return frames.data if isinstance(frames.data, da.Array) else da.from_array(frames.data, chunks=("auto", -1, -1, -1))
+
+
+def _scene_named(frames: xr.DataArray) -> tuple[str, str]:
+    """What names ``frames``' content where a name can: (``made``, the name ``lazy.open_frames`` gives from its
+    source, motion and seed), (``memory``, Dask's hash of the array's bytes), else (``dask``, the graph's name: the
+    same content in other chunks has another)."""
+    kind = "made" if made_scene(frames.data) is not None else "dask" if isinstance(frames.data, da.Array) else "memory"
+    return kind, _scene_array(frames).name
 
 
 def _check_camera_path(attrs: dict, seed: int, n_frames: int) -> None:
@@ -199,8 +219,9 @@ def _checked_writes(spikes, url, chunk_frames, task_frames, overwrite, resume) -
     if (meta.height, meta.width) != (height, width):
         raise InputError(f"spikes are {height}x{width} pixels, but their attributes record "
                          f"{meta.height}x{meta.width}: keep the attrs of the spikes they were computed from")
-    # never over the store they are read from, nor what that was made from
-    check_apart(url, *(place for name in (READ_FROM, "source") if isinstance(place := spikes.attrs.get(name), str)))
+    # never over a store they are read from, nor what that was made from
+    check_apart(url, *(place for name in (READ_FROM, "source") if isinstance(place := spikes.attrs.get(name), str)),
+                *stores_read(spikes.data))
     check_here([url], spikes.data)  # a memory:// store is this process's alone
     if resume and not exists(url):
         raise InputError(f"cannot resume: {url} does not exist")
@@ -239,6 +260,11 @@ def _checked_truth(truth, spikes: xr.DataArray, url: str, resumed: SpikeStore | 
     if frames[:3] != (n, scale * height, scale * width):
         raise InputError(f"truth= must be the scene the spikes were simulated from, ({n}, {scale * height}, "
                          f"{scale * width}, rgb) at scale {scale}, got {frames}")
+    scene = _SCENE_OF.get(spikes.data.name)  # spikes as lazy.simulate gave them: the frames it was given
+    given = _scene_named(truth)  # told apart where both are named by their content: made scenes, arrays in memory
+    if scene is not None and scene[0] in ("made", "memory") and given[0] == scene[0] and given != scene:
+        raise InputError("truth= is not the scene these spikes were simulated from (lazy.simulate was given other "
+                         "frames: another picture, camera path, seed or content): give simulate's own frames")
     centres = output_centres(n, WINDOW, int(spikes.attrs["truth_every"]))
     if not centres:
         raise InputError(f"truth=: {n} frames hold no {WINDOW}-frame window centre to draw the truth at")

@@ -214,7 +214,21 @@ def check_coordinates(array: xr.DataArray, names: tuple[str, ...], what: str, gi
                          f"gives")
 
 
-class _PackedFrames:
+class StoreReader:
+    """What ``da.from_array`` reads a store's array through (:class:`_PackedFrames`, ``written._StoredVideo``): it
+    knows the store's ``url``, so that an output is never written over a store its graph reads (:func:`stores_read`)."""
+
+    url: str
+
+
+def stores_read(data: da.Array) -> list[str]:
+    """The stores ``data``'s graph reads through a :class:`StoreReader` (``da.from_array`` holds it in a layer of
+    its own, ``original-<name>``), whatever attributes the lazy arrays kept."""
+    return [held.url for name, layer in data.__dask_graph__().layers.items() if name.startswith("original-")
+            for held in layer.values() if isinstance(held, StoreReader)]
+
+
+class _PackedFrames(StoreReader):
     """A spike store's packed frames as dask reads them, a block at a time (``da.from_array``): every block through
     :func:`pipeline.stores.spike_store.read_frames`, which refuses a lost or damaged chunk. Pickled as its URL (workers open
     the store once per process)."""

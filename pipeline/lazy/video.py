@@ -12,6 +12,7 @@ options. Nothing is computed before ``to_video`` or ``.compute()``, but for the 
 
 import contextlib
 import dataclasses
+import os
 from collections.abc import Callable
 
 import dask
@@ -24,7 +25,7 @@ from dask.highlevelgraph import HighLevelGraph, Layer, MaterializedLayer
 from pipeline.compute.cluster import GPU, GPU_SHARE
 from pipeline.jobs.reconstruct_plan import Plan, ReconstructOptions
 from pipeline.jobs.reconstruct_tasks import MethodSpec, TileBlocks, block_frames, cropped, cut
-from pipeline.lazy.spikes import distributed_client, python_words
+from pipeline.lazy.spikes import distributed_client, python_words, url_text
 from pipeline.lazy.windows import PackedReads, check_windows
 from stages.capture.bits import pack_rows, unpack_rows
 from stages.errors import InputError, InputTypeError
@@ -79,8 +80,8 @@ def tfi(win: xr.DataArray, *, gain: float | None = None, scale: int | None = Non
     return reconstruct(win, method="tfi", gain=gain, scale=scale, tile=tile)
 
 
-def reconstruct(win: xr.DataArray, *, method: str = "cscsr", weights: str | None = None, tile: int | None = None,
-                precision: str = "fp32", backend: str = "torch", gain: float | None = None,
+def reconstruct(win: xr.DataArray, *, method: str = "cscsr", weights: str | os.PathLike | None = None,
+                tile: int | None = None, precision: str = "fp32", backend: str = "torch", gain: float | None = None,
                 scale: int | None = None) -> xr.DataArray:
     """Every window reconstructed by ``method`` (tfp, tfi, cscsr, cscsr-ensemble) as the job does it: (t, y, x, rgb)
     uint8 at ``scale`` (default the recording's, else 4), a block per (the job's task of frames, tile). ``weights``:
@@ -88,6 +89,7 @@ def reconstruct(win: xr.DataArray, *, method: str = "cscsr", weights: str | None
     ``gain``: default the recording's, else the job's automatic exposure. Lazy."""
     win = check_windows(win)
     check_text("method", method)
+    weights = url_text(weights, "weights") if isinstance(weights, os.PathLike) else weights
     options = ReconstructOptions(method=method, every=win.attrs["every"], window=win.attrs["window"], gain=gain,
                                  scale=scale, tile=tile, weights=weights, precision=precision, backend=backend)
     with python_words():
@@ -111,6 +113,9 @@ def apply(win: xr.DataArray, func: Callable, *, scale: int, halo: int = 0, tile:
         raise InputTypeError(f"func must be a function of a window, got {func!r}")
     check_number("scale", scale, at_least=1, integer=True)
     check_number("halo", halo, at_least=0, integer=True)
+    if halo % 2 and (cfa := win.attrs["cfa"]) != "mono":
+        raise InputError(f"halo={halo} is odd: the {cfa} colour pattern repeats every 2 pixels, so an odd halo would "
+                         f"give func windows of differing colour phase; give an even halo")
     if tile is not None:
         with python_words():
             ReconstructOptions(tile=tile).check()
@@ -162,7 +167,8 @@ def _reconstructed(win: xr.DataArray, spec: MethodSpec, built: Reconstructor, sc
                 cfa, attrs["reset"], tile, "", spec.precision, most, spec.backend,
                 spec.fast_gpu if spec.method in NETWORKS else None,
                 source_identity=attrs.get("identity"), source_shape=(attrs["frames"], height, width),
-                weights_sha256=built.weights_sha256, start=attrs["start"], stop=attrs["stop"], region=region)
+                weights_sha256=built.weights_sha256, start=attrs["start"], stop=attrs["stop"], region=region,
+                edges=None if (by0, by1, bx0, bx1) == (0, height, 0, width) else (by0, by1, bx0, bx1))
     # what a job's output records, and its frame rate: output frames per second of recording
     recorded = {**plan.attrs(), "source": attrs.get("store"), "fps": float(attrs["fps"]) / attrs["every"]}
     del recorded["gain"]  # a coordinate: lazy where it is the automatic exposure

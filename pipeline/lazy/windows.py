@@ -79,9 +79,14 @@ def windows(spikes: xr.DataArray, length: int = WINDOW, every: int = WINDOW, sta
         raise InputError(f"region={y0}:{y1},{x0}:{x1} is outside the selected pixels (y {by0}:{by1}, x {bx0}:{bx1})")
     around = (max(y0 - margin, by0), min(y1 + margin, by1), max(max(x0 - margin, 0) // 8 * 8, bx0),
               min(x1 + margin, bx1))
+    store = _store_spikes(spikes)
+    if store is not None and not _as_stored(spikes.data, store.data):  # computed from the store's: not its record
+        store, attrs = None, {k: v for k, v in attrs.items() if k not in ("store", "identity")}
+    # a store's spikes as it holds them (a selection, rechunked or not) are its bits at their coordinates, read from
+    # it: a selection whose coordinates were moved gives the frames and pixels they name, as the output records
+    bits = spikes.data if store is None else _as_read(store.data, chosen)
     first, last = part.centres[0] - half, part.centres[-1] + half + 1  # the spike frames the windows read
-    read = spikes.data[first - chosen.f0:last - chosen.f0, around[0] - by0:around[1] - by0,
-                       around[2] - bx0:around[3] - bx0]
+    read = bits[first - chosen.f0:last - chosen.f0, around[0] - by0:around[1] - by0, around[2] - bx0:around[3] - bx0]
     # blocks of ``every`` frames from the first window's start: a window's centre each (a slice computes only its
     # windows), several where there are more than WINDOW_BLOCKS windows (the graph stays bounded), at least half a
     # window long (dask's overlap reads ``half`` frames of each neighbour)
@@ -95,10 +100,7 @@ def windows(spikes: xr.DataArray, length: int = WINDOW, every: int = WINDOW, sta
                           meta=np.empty((0, 0, 0, 0), bool), starts=tuple(int(s) for s in starts),
                           centre0=int(centres[0]), centre1=int(centres[-1]), every=every, half=half, align_arrays=False,
                           name=f"windows-{tokenize(read.name, starts, centres[0], centres[-1], every, half)}")
-    store = _store_spikes(spikes)
-    if store is not None and not _as_stored(spikes.data, store.data):  # computed from the store's: not its record
-        store, attrs = None, {k: v for k, v in attrs.items() if k not in ("store", "identity")}
-    if store is not None and _as_read(store.data, chosen).name == spikes.data.name:  # nothing between store and here
+    if store is not None:  # nothing between store and here: the blocks read their tiles from it
         attrs = {**attrs, "reads": PackedReads(store.attrs["store"], store.attrs["identity"], data.name, data.chunks,
                                                part.centres[0], every)}
     fps = float(attrs["fps"])

@@ -16,15 +16,15 @@ from dask.base import tokenize
 from pipeline.compute.executor import computed
 from pipeline.compute.progress import progress_bar
 from pipeline.jobs.reconstruct_tasks import finish_video, run_blocks, write_block
-from pipeline.lazy.spikes import (check_coordinates, check_here, check_times, distributed_client, run_of,
-                                  url_text)
+from pipeline.lazy.spikes import (StoreReader, check_coordinates, check_here, check_times, distributed_client,
+                                  run_of, stores_read, url_text)
 from pipeline.lazy.video import VIDEO_DIMS, tile_blocks
 from pipeline.lazy.windows import _output_part
 from pipeline.stores.lease import claimed, held
 from pipeline.stores.outputs import VIDEO_STORE, new_output
-from pipeline.stores.storage import check_place, exists
-from pipeline.stores.video_store import (COMMITTED, create_video_store, lost_frames, resumed_mask,
-                                         open_video_store)
+from pipeline.stores.storage import check_apart, exists, open_group
+from pipeline.stores.video_store import (COMMITTED, VIDEO, create_video_store, lost_frames, resumed_mask,
+                                         open_video_store, video_identity)
 from stages.errors import InputError, InputTypeError
 from stages.numbers import check_flag
 
@@ -53,11 +53,12 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
     url = url_text(url)
     check_flag("overwrite", overwrite)
     check_flag("resume", resume)
+    check_flag("progress", progress)
     if resume and overwrite:
         raise InputError("resume=True and overwrite=True contradict each other: choose one")
     if resume and not exists(url):
         raise InputError(f"cannot resume: {url} does not exist")
-    check_place(url)
+    check_apart(url, hr.attrs.get("source"), *stores_read(hr.data))
     check_here([url, hr.attrs.get("source")], hr.data)
     if resume:
         _open_to_resume(url)
@@ -174,6 +175,11 @@ def _selected_part(hr: xr.DataArray) -> dict:
                 raise InputError(f"hr is a selection of HR {dim} {a}:{b}, which cuts through LR pixels (scale={scale}):"
                                  f" select whole ones ({dim} a multiple of {scale} at both ends)")
             box += [a // scale, b // scale]
+        cfa = attrs.get("cfa")
+        if cfa not in (None, "mono") and (odd := [f"{dim} {v}" for dim, v in zip(("y0", "y1", "x0", "x1"), box)
+                                                  if v % 2]):
+            raise InputError(f"hr is a selection of LR {', '.join(odd)}, odd: the {cfa} colour pattern repeats every 2 "
+                             f"pixels and a region of it starts and ends on even ones (HR multiples of {2 * scale})")
         changed["region"] = box
     return {k: v for k, v in changed.items() if attrs.get(k) != v}
 
@@ -232,6 +238,7 @@ def _written(data: da.Array, url: str, run: str) -> da.Array:
                     tuple((1,) * len(c) for c in data.chunks), meta=np.empty((0, 0, 0, 0), np.int64))
 
 
+STORED = "video-"  # the name of the array open_video reads; "original-" + it: its layer holding the _StoredVideo
 STORE_ONLY = ("gain", "format_version", "cscsr_version", "state")  # attributes of a store, not of the hr it holds
 
 
@@ -251,7 +258,9 @@ def open_video(url) -> xr.DataArray:
         raise InputError(f"video store {url} has lost data: {lost}: make it again")
     video, frames = group["video"], np.asarray(group["frames"][:], np.int64)
     n, height, width, _ = video.shape
-    data = da.from_array(video, chunks=video.chunks, asarray=True, fancy=False, name=f"video-{tokenize(url, attrs)}")
+    identity = video_identity(group)
+    data = da.from_array(_StoredVideo(url, identity, video.shape), chunks=video.chunks, asarray=False, fancy=False,
+                         meta=np.empty((0, 0, 0, 0), np.uint8), name=f"{STORED}{tokenize(url, identity)}")
     scale, region, every, fps = (attrs.get(k) for k in ("scale", "region", "every", "fps"))
     y0, x0 = (region[0] * scale, region[2] * scale) if region and isinstance(scale, int) else (0, 0)
     coords = {"frame": ("t", frames), "y": np.arange(y0, y0 + height), "x": np.arange(x0, x0 + width)}
@@ -263,3 +272,25 @@ def open_video(url) -> xr.DataArray:
         coords["gain"] = ((), float(attrs["gain"]))
     return xr.DataArray(data, dims=VIDEO_DIMS, name="video", coords=coords,
                         attrs={k: v for k, v in attrs.items() if k not in STORE_ONLY})
+
+
+class _StoredVideo(StoreReader):
+    """A video store's ``video`` as dask reads it, a block at a time (``da.from_array``), each read refused if the
+    store at ``url`` is no longer the one opened (``video_identity``: gone, or replaced by another reconstruction;
+    its metadata read again: a few milliseconds a block)."""
+
+    ndim, dtype = 4, np.dtype(np.uint8)
+
+    def __init__(self, url: str, identity: str, shape: tuple[int, ...]):
+        self.url, self.identity, self.shape = url, identity, shape
+
+    def __getitem__(self, key: tuple[slice, ...]) -> np.ndarray:
+        try:
+            group = open_group(self.url, "video store")
+            same = video_identity(group) == self.identity
+        except (InputError, KeyError):
+            same = False
+        if not same:
+            raise InputError(f"video store {self.url} is not the one this graph was opened on (it was replaced, "
+                             f"written again or removed since): open it again")
+        return group[VIDEO][key]

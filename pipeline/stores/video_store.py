@@ -12,6 +12,7 @@ as the coordinate of ``video``); only the group's attributes change after, which
 """
 
 import asyncio
+import hashlib
 import json
 import math
 from collections.abc import Sequence
@@ -224,6 +225,17 @@ def video_array(url: str) -> zarr.Array:
     if VIDEO not in group:
         raise InputError(f"{url} is a Zarr group without a '{VIDEO}' array (j, hr_y, hr_x, c: frames of 8-bit RGB)")
     return group[VIDEO]
+
+
+def video_identity(group: zarr.Group) -> str:
+    """What names a finished video store and no other that could differ from it: a SHA-256 of what its writer
+    recorded (the group's and ``committed``'s attributes: method, weights, source and its identity, the part, the
+    graph) and the ``video`` array's shape and chunks. No chunk is read. Two stores recording the same are the same
+    reconstruction of the same recording, and so the same bytes (outputs do not depend on workers or chunking)."""
+    described = json.dumps({"attrs": dict(group.attrs), "committed": dict(group[COMMITTED].attrs)
+                            if COMMITTED in group else None, "shape": group[VIDEO].shape,
+                            "chunks": group[VIDEO].chunks}, sort_keys=True, default=str)
+    return hashlib.sha256(described.encode()).hexdigest()
 
 
 def is_video_store(group: zarr.Group) -> bool:

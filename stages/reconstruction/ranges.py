@@ -7,9 +7,8 @@ at or after it (``ceil(seconds * fps)``, in exact decimal arithmetic: ``0.1s`` a
 range ``[start, stop)`` holds the output frames whose centre lies in it (the centres of the whole recording).
 
 A region ``Y0:Y1,X0:X1`` is in LR pixels, half-open like a Python slice, an end left out meaning the frame's
-edge (``:,256:512``). It starts on a packed byte column (``X0`` a multiple of 8: spikes are stored 8 pixels to a
-byte along x) and, for a Bayer CFA, on even rows and columns with an even size, so that it sees the frame's
-colour phase.
+edge (``:,256:512``). For a Bayer CFA it starts on even rows and columns and has an even size, so that it sees the
+frame's colour phase.
 """
 
 import math
@@ -21,7 +20,6 @@ from stages.errors import InputError, InputTypeError
 UNITS = {"s": Fraction(1), "ms": Fraction(1, 1000)}
 _TIME = re.compile(r"(?P<number>\d+(?:\.\d*)?|\.\d+)\s*(?P<unit>[a-zA-Zµ]*)")
 _BOUND = re.compile(r"\d*")
-PACKED = 8  # pixels per byte along x: a read starts on a byte column
 
 
 def parse_time(name: str, value) -> int | Fraction | None:
@@ -124,8 +122,9 @@ def parse_region(value) -> tuple[int | None, int | None, int | None, int | None]
 
 def region(value, height: int, width: int, cfa: str) -> tuple[int, int, int, int]:
     """(y0, y1, x0, x1) of ``--region`` (parsed or not; None: the whole frame), checked against a frame of
-    ``height`` x ``width`` LR pixels under ``cfa``: inside it, not empty or reversed, starting on a byte column
-    and, for a Bayer CFA, on even rows and columns with an even size."""
+    ``height`` x ``width`` LR pixels under ``cfa``: inside it, not empty or reversed and, for a Bayer CFA, on even
+    rows and columns with an even size (a tile reads its spikes from any column: ``reconstruct_tasks.tile_windows``
+    shifts the packed bytes)."""
     bounds = parse_region(value)
     if bounds is None:
         return 0, height, 0, width
@@ -139,11 +138,8 @@ def region(value, height: int, width: int, cfa: str) -> tuple[int, int, int, int
             raise InputError(f"{shown} is reversed: its {axis} end before they start")
         if b == a:
             raise InputError(f"{shown} is empty: it holds no {axis}")
-    if x0 % PACKED:
-        raise InputError(f"{shown}: X0 {x0} is not a multiple of {PACKED}: spikes are packed {PACKED} pixels to a "
-                         f"byte along x, and a region starts on a byte column (0, 8, 16, ...)")
     if cfa != "mono":
-        for label, bound in (("Y0", y0), ("Y1", y1), ("X1", x1)):
+        for label, bound in (("Y0", y0), ("Y1", y1), ("X0", x0), ("X1", x1)):
             if bound % 2:
                 raise InputError(f"{shown}: {label} {bound} is odd: the {cfa} CFA repeats every 2 pixels, so a "
                                  f"region starts on even rows and columns and has an even size")

@@ -31,7 +31,7 @@ class Tile:
 def tile_grid(height: int, width: int, tile: int, halo: int,
               region: tuple[int, int, int, int] | None = None) -> list[list[Tile]]:
     """Rows of tiles of at most ``tile`` x ``tile`` LR pixels (``tile`` a multiple of 8) of a ``height`` x
-    ``width`` frame, or of its ``region`` (y0, y1, x0, x1; starting on even rows and byte columns): tiles
+    ``width`` frame, or of its ``region`` (y0, y1, x0, x1; on even rows and columns for a Bayer CFA): tiles
     cut inside the region from its corner, their halo read from outside it where the frame has pixels."""
     top, bottom, left, right = region or (0, height, 0, width)
     rows = []
