@@ -89,16 +89,49 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("give the command to run after `--` (or --print-job-script)")
     if args.gpus_per_job < 1:
         parser.error(f"--gpus-per-job must be >= 1, got {args.gpus_per_job}")
+    if args.jobs < 1:
+        parser.error(f"--jobs must be >= 1, got {args.jobs}")
 
     with make_cluster(gpu=args.gpu, gpus_per_job=args.gpus_per_job, partition=args.partition, account=args.account,
                       walltime=args.walltime, interface=args.interface) as cluster:
         if args.print_job_script:
             print(cluster.job_script())
             return 0
+        if refused := refused_submission(cluster.job_script()):
+            print(f"error: sbatch refuses the worker job ({refused}): the command was not run", file=sys.stderr)
+            return 1
         cluster.scale(jobs=args.jobs)
+        if unsubmitted := wait_for_submission(cluster, args.jobs):
+            print(f"error: {unsubmitted} of {args.jobs} worker jobs not submitted within {SUBMIT_SECONDS} s (sbatch "
+                  f"failed: the lines above say why): the command was not run", file=sys.stderr)
+            return 1
         print(f"scheduler {cluster.scheduler_address}, dashboard {cluster.dashboard_link}", file=sys.stderr)
         env = dict(os.environ, DASK_SCHEDULER_ADDRESS=cluster.scheduler_address)
         return subprocess.call(command, env=env)
+
+
+SUBMIT_SECONDS = 120  # for every worker job to be given a SLURM job id (sbatch answers in seconds)
+
+
+def refused_submission(script: str) -> str | None:
+    """What ``sbatch --test-only`` says against the job script (a partition, account or --gres SLURM does not
+    have), or None if it would take it: a submission that fails later is only logged by dask-jobqueue, and the
+    command then waited for workers that were never asked for."""
+    done = subprocess.run(["sbatch", "--test-only"], input=script, capture_output=True, text=True)
+    said = (done.stderr or done.stdout).strip().splitlines()
+    return None if done.returncode == 0 else (said[-1] if said else f"exit status {done.returncode}")
+
+
+def wait_for_submission(cluster, jobs: int) -> int:
+    """How many of the ``jobs`` worker jobs have no SLURM job id after :data:`SUBMIT_SECONDS` (0: all submitted)."""
+    import time
+
+    deadline = time.monotonic() + SUBMIT_SECONDS
+    while True:
+        submitted = sum(1 for job in list(cluster.workers.values()) if getattr(job, "job_id", None))
+        if submitted >= jobs or time.monotonic() > deadline:
+            return max(jobs - submitted, 0)
+        time.sleep(0.5)
 
 
 if __name__ == "__main__":

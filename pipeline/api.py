@@ -36,7 +36,7 @@ class Written:
     """What a job wrote.
 
     ``url``: the store (or, for ``evaluate``, the folder) written. ``attrs``: the store's attributes as
-    written (shape, CFA, gain, ``spike_count``, ... of a spike store; ``method``, ``frames``, ``state`` ... of
+    written (shape, CFA, gain, ``spike_count``, ... of a spike store; ``method``, ``every``, ``state`` ... of
     a video store). ``counts``: what the job did (``reconstruct``: ``frames``, ``tasks_run``,
     ``tasks_skipped``; ``ingest``/``simulate``: ``frames``, ``spikes``). ``rows``: ``evaluate``'s summary,
     one dict per method (``method``, ``psnr``, ``ssim``, ``frames``, ``seconds_per_image``).
@@ -54,10 +54,24 @@ def _options(kind, job: str, given: dict):
     names = [f.name for f in dataclasses.fields(kind)]
     if unknown := [name for name in given if name not in names]:
         raise TypeError(f"{job}() got an unknown option {unknown[0]!r}: expected some of {', '.join(names)}")
-    options = kind(**{name: os.fspath(value) if isinstance(value, os.PathLike) else value
-                      for name, value in given.items()})
+    options = kind(**{name: _plain(value) for name, value in given.items()})
     options.check()
     return options
+
+
+def _plain(value):
+    """An option as the command line would give it: a path (``os.PathLike``) as a string, a numpy number
+    (``np.int64(41)``, what arithmetic on arrays gives) as Python's, within tuples and lists too (it passed the
+    checks and then failed to be recorded: "Object of type int64 is not JSON serializable")."""
+    import numpy as np
+
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, (tuple, list)):
+        return type(value)(_plain(item) for item in value)
+    return value
 
 
 def _path(job: str, name: str, value) -> str:
@@ -85,8 +99,14 @@ def _checked(job: str, *, client=None, workers=None, scheduler=None, progress=Fa
         if client.status != "running":
             raise InputError(f"{job}(): client is {client.status}, not running: pass a connected Client, "
                              "or leave client out")
-    check_workers(workers, scheduler)
     check_text("scheduler", scheduler, optional=True)
+    if scheduler is not None and not scheduler.strip():
+        raise InputError(f"{job}(): scheduler is empty: give an address (tcp://HOST:8786), or leave it out")
+    if client is not None and (workers is not None or scheduler is not None):
+        given = f"workers={workers!r}" if workers is not None else f"scheduler={scheduler!r}"
+        raise InputError(f"{job}(): client= and {given} contradict each other: the job runs on the client's "
+                         f"cluster: give one")
+    check_workers(workers, scheduler)
     check_flag("progress", progress)
 
 
@@ -175,7 +195,7 @@ def reconstruct(store: str, out: str, *, client=None, workers: int | None = None
 
 def evaluate(store: str, methods: str | Iterable[str] = ("tfp", "tfi"), out: str = "evaluation", *,
              weights: str | None = None, client=None, workers: int | None = None, scheduler: str | None = None,
-             progress: bool = False, overwrite: bool = False, videos: dict | None = None) -> Written:
+             progress: bool = False, overwrite: bool = False, videos: dict | None = None, **unknown) -> Written:
     """PSNR / SSIM of ``methods`` (a list, or ``"tfp,tfi"``) against a simulated store's truth, as ``cscsr
     evaluate``: the reconstructions, ``metrics.csv``, ``summary.csv`` and ``comparison.png`` in the folder
     ``out`` (an existing one is refused unless ``overwrite``, and replaced only if it is an evaluation);
@@ -183,6 +203,9 @@ def evaluate(store: str, methods: str | Iterable[str] = ("tfp", "tfi"), out: str
     ``--video NAME=URL``: your own method's output, scored alike)."""
     from pipeline.jobs.evaluate import evaluate as run
 
+    if unknown:  # as the other jobs name theirs
+        known = "weights, client, workers, scheduler, progress, overwrite, videos"
+        raise TypeError(f"evaluate() got an unknown option {next(iter(unknown))!r}: expected some of {known}")
     store, out = _path("evaluate", "store", store), _path("evaluate", "out", out)
     weights = None if weights is None else _path("evaluate", "weights", weights)
     _checked("evaluate", client=client, workers=workers, scheduler=scheduler, progress=progress)
@@ -199,4 +222,4 @@ def evaluate(store: str, methods: str | Iterable[str] = ("tfp", "tfi"), out: str
         videos = {name: _path("evaluate", f"videos[{name!r}]", url) for name, url in videos.items()}
     rows = run(store, names, out, weights=weights, workers=workers, scheduler=scheduler, client=client,
                progress=progress, overwrite=overwrite, videos=videos)
-    return Written(str(out), {}, {"methods": len(rows)}, tuple(rows))
+    return Written(str(out), {}, {"methods": len(rows) - len(videos or {}), "videos": len(videos or {})}, tuple(rows))

@@ -91,6 +91,23 @@ def test_without_a_client_dask_configuration_names_the_scheduler(capture, client
     assert len(ran) == 2 and {task["worker"] for task in ran} <= set(client.scheduler_info()["workers"])
 
 
+@pytest.mark.parametrize("how", ["environment", "dask-config"])
+def test_workers_and_a_scheduler_the_configuration_names_contradict(capture, cli, tmp_path, monkeypatch, how):
+    """The configuration's scheduler counts as ``--scheduler``, which ``--workers`` contradicts: it won, silently
+    (``--workers 1`` ran on, or failed to reach, that scheduler). One line, nothing made, CLI and API alike."""
+    src, _, _ = capture
+    address, by = "tcp://127.0.0.1:9", "DASK_SCHEDULER_ADDRESS" if how == "environment" else "scheduler-address"
+    monkeypatch.delenv("DASK_SCHEDULER_ADDRESS", raising=False)
+    if how == "environment":
+        monkeypatch.setenv("DASK_SCHEDULER_ADDRESS", address)
+    said = f"workers.1 and the scheduler .*{by}.* names \\({address}\\) contradict each other"
+    with dask.config.set({"scheduler-address": address} if how == "dask-config" else {}):
+        with pytest.raises(InputError, match=said):
+            ingest(src, str(tmp_path / "a.zarr"), height=HEIGHT, width=WIDTH, workers=1)
+        result = cli("reconstruct", str(tmp_path / "a.zarr"), str(tmp_path / "b.zarr"), "--workers", "1")
+    assert result.exit_code == 1 and "contradict each other" in result.stderr and not list(tmp_path.iterdir())
+
+
 def test_simulate_and_evaluate_with_a_given_client(client, tmp_path):
     iio.imwrite(tmp_path / "scene.png", picture("astronaut", 64))
     store = str(tmp_path / "sim.zarr")
@@ -104,6 +121,33 @@ def test_simulate_and_evaluate_with_a_given_client(client, tmp_path):
     assert scored.url == str(tmp_path / "evaluation") and [row["method"] for row in scored.rows] == ["tfp", "tfi"]
     assert all(row["frames"] == 1 and 10 < row["psnr"] < 60 and 0 < row["ssim"] <= 1 for row in scored.rows)
     assert {"metrics.csv", "summary.csv", "comparison.png"} <= {p.name for p in (tmp_path / "evaluation").iterdir()}
+    assert scored.counts == {"methods": 2, "videos": 0}
+
+    # numpy numbers, what arithmetic on arrays gives, are the numbers they hold: they passed the checks and then
+    # failed to be recorded ("Object of type int64 is not JSON serializable")
+    again = simulate(str(tmp_path / "scene.png"), str(tmp_path / "numpy.zarr"), scale=np.int64(4),
+                     frames=np.int64(41), motion="static", seed=np.int64(0), client=client)
+    assert again.attrs == {**made.attrs, "source": again.attrs["source"]} and type(again.attrs["scale"]) is int
+    video = reconstruct(store, str(tmp_path / "numpy-video.zarr"), method="tfp", every=np.int64(41),
+                        region=tuple(np.array([0, 8, 0, 16])), client=client)
+    assert video.attrs["every"] == 41 and video.attrs["region"] == [0, 8, 0, 16]
+
+
+def test_a_client_and_workers_or_a_scheduler_contradict(client, tmp_path):
+    """``client=`` with ``workers=`` or ``scheduler=``: ``reconstruct`` and ``evaluate`` ran on the client, the
+    others silently ignored (a dead address included), and ``simulate`` named a ``--scheduler`` nobody gave."""
+    for job, args in ((simulate, ("scene.png", str(tmp_path / "s.zarr"))),
+                      (reconstruct, ("spikes.zarr", str(tmp_path / "v.zarr"))),
+                      (evaluate, ("spikes.zarr", "tfp", str(tmp_path / "e")))):
+        with pytest.raises(InputError, match=r"\(\): client= and workers=2 contradict each other"):
+            job(*args, client=client, workers=2)
+        with pytest.raises(InputError, match=r"client= and scheduler='tcp://127.0.0.1:1' contradict each other"):
+            job(*args, client=client, scheduler="tcp://127.0.0.1:1")
+        with pytest.raises(InputError, match=r"\(\): scheduler is empty"):
+            job(*args, scheduler="")
+    with pytest.raises(TypeError, match="unknown option 'every': expected some of weights, client"):
+        evaluate("spikes.zarr", "tfp", str(tmp_path / "e"), every=10)
+    assert not list(tmp_path.iterdir())
 
 
 def test_import_cscsr_imports_neither_the_pipeline_nor_dask():

@@ -113,6 +113,16 @@ def test_unreadable_url(cli, tmp_path, source):
     assert not out.exists()
 
 
+@pytest.mark.parametrize("kind", ["a named pipe (FIFO)", "a folder"])
+def test_a_capture_that_is_no_regular_file_is_named_as_such(cli, tmp_path, kind):
+    """A named pipe was read as "capture is empty: no complete frame" (and a reader of a pipe can wait for ever)."""
+    capture = tmp_path / "c.dat"
+    os.mkfifo(capture) if kind.startswith("a named pipe") else capture.mkdir()
+    assert_refused(cli("ingest", capture, tmp_path / "s.zarr", "--height", 8, "--width", 16),
+                   f"capture {capture} is {kind}, not a regular file")
+    assert not (tmp_path / "s.zarr").exists()
+
+
 def test_unknown_extension_and_missing_store(cli, tmp_path):
     (tmp_path / "c.avi").write_bytes(b"x")
     assert_refused(cli("ingest", tmp_path / "c.avi", tmp_path / "s.zarr"), "unknown capture type .avi")

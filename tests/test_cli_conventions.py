@@ -4,7 +4,8 @@
 import re
 import urllib.request
 
-from pipeline.compute.cluster import dashboard_link, dask_client
+from pipeline.compute.cluster import dask_client
+from pipeline.compute.executor import dashboard_link
 from tests.conftest import integrate_and_fire, smooth_rate, write_dat
 
 
@@ -26,6 +27,47 @@ def test_a_local_clusters_dashboard_link_serves_the_dashboard():
             status, page = response.status, response.read().decode()
     assert status == 200 and "<html" in page.lower() and "bokeh" in page.lower()
     assert "needs bokeh" not in page
+
+
+def test_flags_are_shown_taking_no_value(cli):
+    """Typer showed ``--flip <bool>``, and ``--flip true`` is then refused: a flag takes no value."""
+    for command, flag in (("ingest", "--flip"), ("reconstruct", "--resume"), ("watch", "--once"),
+                          ("train", "--resume")):
+        shown = cli(command, "--help").stdout
+        assert flag in shown and "<bool>" not in shown and "<int>" in shown, command
+
+
+def test_cscsr_alone_prints_its_help(cli_process):
+    """Asked for, not a mistake: the help on standard output, status 0 (it was Click's usage error, status 2)."""
+    alone = cli_process()
+    assert (alone.returncode, alone.stderr) == (0, "") and "Usage: cscsr [OPTIONS] COMMAND" in alone.stdout
+
+
+def test_a_scheduler_without_a_dashboard_gets_no_link(tmp_path):
+    """``dask scheduler --no-dashboard`` still lists a dashboard service, whose page answers 404: its link was
+    printed all the same."""
+    import json
+    import os
+    import subprocess
+    import sys
+    import time
+
+    from distributed import Client
+
+    address_file = tmp_path / "scheduler.json"
+    scheduler = subprocess.Popen([os.path.join(os.path.dirname(sys.executable), "dask"), "scheduler", "--host",
+                                  "127.0.0.1", "--port", "0", "--scheduler-file", str(address_file), "--no-dashboard"],
+                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.time() + 60
+        while not address_file.exists() and time.time() < deadline:
+            time.sleep(0.2)
+        with Client(json.loads(address_file.read_text())["address"], timeout=10) as client:
+            assert "dashboard" in client.scheduler_info()["services"]  # listed all the same
+            assert dashboard_link(client) is None
+    finally:
+        scheduler.terminate()
+        scheduler.wait(30)
 
 
 def test_one_task_is_one_task_in_the_result_line(cli, tmp_path):

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import importlib.metadata
 import importlib.util
+import os
 import re
 import shlex
 import subprocess
@@ -150,6 +151,31 @@ def test_slurm_script_prints_its_job_script_and_needs_a_command():
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 2
     assert "after `--`" in done.stderr
+
+
+@pytest.mark.parametrize("sbatch", ["refuses", "takes"])
+def test_slurm_script_runs_the_command_only_once_its_jobs_are_submitted(tmp_path, sbatch):
+    """An ``sbatch`` that refused the jobs (a partition SLURM lacks) was only logged by dask-jobqueue: the command
+    ran all the same, waited for workers never asked for, and the script ended in a traceback. Now one line,
+    status 1, the command not run; with an ``sbatch`` that takes them, the command runs on their scheduler."""
+    pytest.importorskip("dask_jobqueue")
+    bin_folder = tmp_path / "bin"
+    bin_folder.mkdir()
+    said = ('echo "sbatch: error: invalid partition specified: gpux" >&2; exit 1' if sbatch == "refuses"
+            else 'echo "Submitted batch job 42"')
+    for name, body in (("sbatch", f"cat > /dev/null\n{said}"), ("scancel", "exit 0")):
+        (bin_folder / name).write_text(f"#!/bin/sh\n{body}\n")
+        (bin_folder / name).chmod(0o755)
+    done = subprocess.run([sys.executable, str(SLURM_SCRIPT), "--jobs", "2", "--partition", "gpux", "--",
+                           sys.executable, "-c", "import os; print('ran on', os.environ['DASK_SCHEDULER_ADDRESS'])"],
+                          capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "PATH": f"{bin_folder}{os.pathsep}{os.environ['PATH']}"})
+    if sbatch == "refuses":
+        assert done.returncode == 1 and "ran on" not in done.stdout, done.stdout
+        assert done.stderr.strip().splitlines()[-1] == ("error: sbatch refuses the worker job (sbatch: error: invalid "
+                                                        "partition specified: gpux): the command was not run")
+    else:
+        assert done.returncode == 0 and done.stdout.startswith("ran on tcp://"), done.stderr[-2000:]
 
 
 # --- Kubernetes (Dask operator) ---------------------------------------------------------

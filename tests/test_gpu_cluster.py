@@ -190,10 +190,13 @@ def serving(address: str, **options) -> tuple[threading.Thread, threading.Event,
     return thread, stop, failures
 
 
-def test_a_node_with_two_gpus_serves_two_pinned_workers_until_stopped(scheduler):
+def test_a_node_with_two_gpus_serves_two_pinned_workers_until_stopped(scheduler, caplog, monkeypatch):
     cluster, client = scheduler
+    monkeypatch.setattr("pipeline.compute.cluster.visible_gpus", lambda: 0)  # this machine's CPU torch, for sure
     thread, stop, failures = serving(cluster.scheduler_address, gpus=2, name_prefix="node")
     client.wait_for_workers(2, timeout=60)
+    # more GPUs than torch sees: served (a node's environment may hide them from here), and said
+    assert "--gpus 2, but torch sees 0 CUDA devices here: these workers advertise GPUs they do not have" in caplog.text
     assert advertised(client) == {"node-0": ({GPU: 1}, GPU_TASKS_IN_FLIGHT), "node-1": ({GPU: 1}, GPU_TASKS_IN_FLIGHT)}
     assert device_of_each_worker(client) == {"node-0": "0", "node-1": "1"}
     assert {w["memory_limit"] for w in client.scheduler_info()["workers"].values()} == {4 * 2**30}

@@ -182,6 +182,8 @@ def test_precision_refusals(cli, wide, fp32_on_mixed, tmp_path):
                    "--precision must be fp32 or bf16")
     assert_refused(cli("reconstruct", wide, out, "--method", "cscsr", "--gpu-batch", 0, "--workers", 1),
                    "--gpu-batch must be >= 1")
+    assert_refused(cli("reconstruct", wide, out, "--method", "tfp", "--gpu-batch", 4, "--workers", 1),
+                   "--gpu-batch is for the network (--method cscsr or cscsr-ensemble); tfp has no network passes")
     assert not out.exists()
     out.mkdir()
     assert_refused(cli("reconstruct", wide, out, "--method", "tfp", "--precision", "bf16", "--overwrite",

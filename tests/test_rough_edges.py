@@ -171,8 +171,8 @@ def edited_copy(store: str, folder, attrs: dict | None = None, channels: int | N
     ({"scale": 0}, "scale 0 is not a whole number >= 1"),
     ({"window": -41}, "window -41 is not a whole number >= 1"),
     ({"every": 0}, "every 0 is not a whole number >= 1"),
-    ({"region": [0, 8, 40, 64]}, "region 0:8,40:64 is not inside the recording's 32x16 frame"),
-    ({"region": [0, 4, 8, 32]}, "region 0:4,8:32 at x4 is 96x16 HR, but 'video' frames are 96x32"),
+    ({"region": [0, 8, 40, 64]}, "region 0:8,40:64 is not inside the recording's 16x32 frame"),
+    ({"region": [0, 4, 8, 32]}, "region 0:4,8:32 at x4 is 16x96 HR, but 'video' frames are 32x96"),
 ])
 def test_nonsense_video_store_attributes_are_refused_in_one_line(video_store, cli, tmp_path, attrs, named):
     store = edited_copy(video_store, tmp_path, attrs)

@@ -74,7 +74,8 @@ def test_the_watcher_refuses_a_raw_capture_whose_cfa_is_stated_nowhere(tmp_path,
     (inbox / "mono.json").write_text(json.dumps({"height": 16, "width": 16, "cfa": "mono"}))
     settled(inbox)
     counts = watch_once(str(inbox), str(outbox), options, client)
-    assert counts["processed"] == 1 and counts["refused"] == 1  # bare: refused before, not logged again
+    assert counts["processed"] == 1 and counts["skipped"] == 1 and counts["refused"] == 0  # bare: refused before,
+    # handled: not logged again
     assert zarr.open_group(str(outbox / "spikes" / "mono.zarr"), mode="r").attrs["cfa"] == "mono"
     assert states(outbox)["mono"][0] == "done"
 

@@ -102,6 +102,9 @@ def test_a_resumed_run_ends_where_an_uninterrupted_one_does(tmp_path, two_steps,
         train(options, tmp_path / "split", log=lambda line: None)
     with pytest.raises(InputError, match="other options"):
         train(TrainOptions(steps=6, **{**TINY, "batch": 3}), tmp_path / "split", resume=True, log=lambda line: None)
+    said = []  # a resume to fewer steps than were run: it said nothing and simulated a pool for no step
+    train(TrainOptions(steps=2, **TINY), tmp_path / "split", resume=True, log=said.append)
+    assert said == ["already at step 4 of --steps 2: nothing to train (give more --steps to go on)"]
 
 
 def test_a_resumed_run_may_anneal_with_a_shorter_decay(tmp_path, four_steps):

@@ -45,17 +45,19 @@ def test_bad_input_is_recorded_and_never_stops_the_others(tmp_path, client, cli)
     drop(inbox, "truncated.dat", reds[:100_001], REDS)
     drop(inbox, "nonsense.dat", reds, "{height: tall")
     drop(inbox, "wrongtype.dat", reds, {**REDS, "height": "250"})
+    drop(inbox, "badfps.dat", reds, {**REDS, "fps": -1})  # said as the sidecar's field, not as an option --fps
     drop(inbox, "notes.txt", b"hello")
     drop(inbox, "sneaky.dat", reds, {**REDS, "name": "../../escaped"})
     settled(inbox)
     drop(inbox, "growing.dat", reds[:50_000], REDS)  # just landed: left for a later pass
 
     counts = watch_once(str(inbox), str(outbox), WatchOptions(tile=128), client)
-    assert counts == {"processed": 2, "waiting": 1, "skipped": 0, "refused": 4}
+    assert counts == {"processed": 2, "waiting": 1, "skipped": 0, "refused": 5}
     got = states(outbox)
     assert got["good"][:3] == ("done", 0, 1)
     assert got["truncated"][:2] == ("failed", 1) and "12500" in got["truncated"][3]  # names the frame size
     assert "not JSON" in got["nonsense"][3] and "height must be int" in got["wrongtype"][3]
+    assert got["badfps"][3] == "sidecar badfps.json: fps must be > 0, got -1.0"
     assert "unknown kind of file 'notes.txt'" in got["notes"][3]
     assert "unsafe name '../../escaped'" in got["../../escaped"][3]
     assert "growing" not in got
@@ -66,9 +68,10 @@ def test_bad_input_is_recorded_and_never_stops_the_others(tmp_path, client, cli)
 
     settled(inbox)  # the growing file stopped growing: taken now (and refused: 50,000 bytes is not whole frames)
     again = watch_once(str(inbox), str(outbox), WatchOptions(tile=128), client)
-    assert again == {"processed": 1, "waiting": 0, "skipped": 2, "refused": 4}  # good and truncated: handled
+    assert again == {"processed": 1, "waiting": 0, "skipped": 7, "refused": 0}  # good, truncated and the 5 refused
+    # before: handled
     assert states(outbox)["good"][2] == 1 and states(outbox)["growing"][0] == "failed"  # done once, not twice
-    assert len(Ledger(outbox).rows()) == 7  # one row per recording, however many passes
+    assert len(Ledger(outbox).rows()) == 8  # one row per recording, however many passes
 
     result = cli("status", outbox)
     assert result.exit_code == 0 and "good" in result.stdout and "done" in result.stdout
@@ -150,6 +153,11 @@ def test_a_second_watcher_is_refused_and_intervals_parse(tmp_path, cli):
     with pytest.raises(InputError, match="30s, 10m or 1h"):
         parse_interval("soon")
     assert cli("status", tmp_path / "inbox").exit_code == 1  # no ledger there
+    both = cli("watch", tmp_path / "inbox", tmp_path / "fresh", "--once", "--interval", "5m", "--workers", 1)
+    assert both.exit_code == 1 and both.stderr.strip() == ("error: --once and --interval 5m contradict each other: "
+                                                           "--once makes one pass, --interval passes again and "
+                                                           "again: give one")
+    assert not (tmp_path / "fresh").exists()
 
 
 def _ledger_state(outbox, name):

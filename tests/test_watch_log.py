@@ -64,7 +64,9 @@ def test_the_watcher_logs_one_timestamped_line_per_event(tmp_path, cli):
 
 def test_a_pass_that_refused_every_recording_exits_non_zero(tmp_path, cli):
     """``watch --once`` for cron: a pass that refused everything it found says so in one line and exits 1 (it exited
-    0); one that took a recording beside a refused one ends as usual (the test above)."""
+    0); one that took a recording beside a refused one ends as usual (the test above). A refusal is said once: a
+    later pass that finds nothing new ends as usual (it exited 1 on every pass, pointing at lines it did not
+    print, so cron alerted every few minutes for ever), and one that refuses a new recording says so again."""
     inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
     inbox.mkdir()
     drop(inbox, "nonsense.npy", tiny_capture(1), "{height: tall")
@@ -76,7 +78,13 @@ def test_a_pass_that_refused_every_recording_exits_non_zero(tmp_path, cli):
     *logged, last = result.stderr.strip().splitlines()
     assert last == f"error: every recording in {inbox} was refused (2): see the lines above, or cscsr status {outbox}"
     assert [level for level, message in records("\n".join(logged))] == ["ERROR", "ERROR", "INFO"]  # each, the pass
-    assert cli(*watch_args(inbox, outbox)).exit_code == 1  # refused before: still nothing taken
+    again = cli(*watch_args(inbox, outbox))  # refused before: handled, nothing new
+    assert again.exit_code == 0 and "error" not in again.stderr, again.stderr
+    drop(inbox, "broken.npy", tiny_capture(3), "{width: wide")
+    settled(inbox)
+    newly = cli(*watch_args(inbox, outbox))
+    assert newly.exit_code == 1 and newly.stderr.strip().splitlines()[-1].startswith(
+        f"error: every recording in {inbox} was refused (1)")
 
 
 def test_a_retry_is_a_warning_and_log_file_takes_the_lines(tmp_path, cli, monkeypatch):

@@ -83,6 +83,8 @@ def train(options: TrainOptions, out: str | os.PathLike, *, resume: bool = False
     if resume_from == out:
         log(f"resumed at step {step} from the portable checkpoint in {out} (close to, not bit-exactly, "
             "where the run was: its Adam moments were stored in bfloat16)")
+    if step >= options.steps:  # nothing to train: said, and no pool simulated for it
+        log(f"already at step {step} of --steps {options.steps}: nothing to train (give more --steps to go on)")
     for group in optimiser.param_groups:  # the schedule scales the configured rate, not a restored one
         group["lr"] = options.learning_rate
         group.pop("initial_lr", None)
@@ -93,7 +95,7 @@ def train(options: TrainOptions, out: str | os.PathLike, *, resume: bool = False
             schedule.step()
     validation = validation_batches(options)
     pool = None
-    if options.pool:
+    if options.pool and step < options.steps:
         log(f"simulating a pool of {options.pool} clips")
         pool = clip_pool(options)
     batches = _prefetch(step, options, pool, pictures)

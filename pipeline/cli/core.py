@@ -23,16 +23,29 @@ from stages.capture.sps100 import LAYOUTS
 USAGE_ERROR = next(kind for kind in typer.BadParameter.__mro__ if kind.__name__ == "UsageError")
 
 
+def _flags_take_no_value(display_type_rich):
+    """Typer's help shows a flag (``--flip``, ``--resume``) as ``--flip <bool>``, as if it took a value, which
+    ``--flip true`` then refuses: a flag is shown with no type."""
+    @functools.wraps(display_type_rich)
+    def shown(self, ctx):
+        return None if getattr(self, "is_flag", False) else display_type_rich(self, ctx)
+    return shown
+
+
+if hasattr(typer.core, "TyperOption") and hasattr(typer.core.TyperOption, "display_type_rich"):
+    typer.core.TyperOption.display_type_rich = _flags_take_no_value(typer.core.TyperOption.display_type_rich)
+
+
 @contextlib.contextmanager
 def usage_in_one_line(group: typer.Context | None = None):
     """A usage error (an unknown option or command, a value of the wrong type, a missing or extra argument)
     answered as every other bad input: ``error: <one line>`` on standard error and exit status 1, rather than
-    Click's usage block with status 2. ``cscsr`` alone still prints the help."""
+    Click's usage block with status 2. ``cscsr`` alone prints the help, status 0: asked for, not a mistake."""
     try:
         yield
     except USAGE_ERROR as error:
         if type(error).__name__ == "NoArgsIsHelpError":
-            raise
+            raise typer.Exit(0) from None  # the help was printed as the error was made (Typer's rich help)
         err.print(f"error: {usage_message(error, group)}", markup=False, highlight=False, soft_wrap=True)
         raise typer.Exit(1) from None
 

@@ -1,6 +1,9 @@
 """Commands on the network, its weights and the test set: model-info, train, export-weights, make-testset, evaluate-testset."""
 
+import contextlib
+import dataclasses
 import os
+import re
 from typing import Annotated, Optional
 
 import typer
@@ -77,9 +80,25 @@ def train(context: typer.Context,
                            synthesis=synthesis, channels_last=channels_last,
                            checkpoint_every=checkpoint_every, validate_every=validate_every,
                            validation_clips=validation_clips)
+    with option_words(TrainOptions):  # "lr_side must be even" -> "--lr-side must be even"
+        options.check()
     final = run(options, out, resume=resume, log=lambda line: stdout.print(line, highlight=False),
                 command=command_line(context))
     stdout.print(f"weights: {final}")
+
+
+@contextlib.contextmanager
+def option_words(options_class):
+    """An error of ``options_class.check()`` that begins with a field's name (the Python API's words) said as the
+    command's option: ``lr_side must be even`` -> ``--lr-side must be even``."""
+    from stages.errors import InputError
+
+    try:
+        yield
+    except InputError as error:
+        fields = "|".join(field.name for field in dataclasses.fields(options_class))
+        said = re.sub(rf"^({fields})\b", lambda match: "--" + match.group(1).replace("_", "-"), str(error))
+        raise type(error)(said) from None
 
 
 @command("export-weights")

@@ -232,7 +232,7 @@ def show_plan(plan: dict, as_json: bool) -> None:
     y0, y1, x0, x1 = plan["region"]
     rows = {"output frames": f"{plan['frames']} (centres at spike frames {plan['spike_frames']}, every "
                              f"{plan['every']}; part [{plan['start']}, {plan['stop']}))",
-            "region": f"{y0}:{y1},{x0}:{x1} LR -> {plan['hr_width']}x{plan['hr_height']} HR (x{plan['scale']})",
+            "region": f"{y0}:{y1},{x0}:{x1} LR -> {plan['hr_height']}x{plan['hr_width']} HR (x{plan['scale']})",
             "method": f"{plan['method']} on {plan['runs_on']}"
                       + (f", weights {plan['weights']}" if plan["weights"] else ""),
             "tile": f"{plan['tile_lr']} LR ({plan['tiles_per_frame']} per frame)",

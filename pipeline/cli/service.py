@@ -12,11 +12,15 @@ from stages.reconstruction.methods import WINDOW
 from pipeline.cli.core import CFA_CHOICES, METHOD_CHOICES, Scheduler, Workers, command, send_logs, stdout
 
 
+DEFAULT_INTERVAL = "10m"  # between a watcher's passes
+
+
 @command()
 def watch(context: typer.Context,
           inbox: Annotated[str, typer.Argument(help="Where recordings land (any URL).")],
           outbox: Annotated[str, typer.Argument(help="Local folder for outputs and the ledger.")],
-          interval: Annotated[str, typer.Option(help="Time between passes: 30s, 10m, 1h.")] = "10m",
+          interval: Annotated[Optional[str], typer.Option(help="Time between passes: 30s, 10m, 1h (default: "
+                                                           "10m).")] = None,
           once: Annotated[bool, typer.Option("--once", help="One pass, then exit (for cron).")] = False,
           method: Annotated[str, typer.Option(metavar=METHOD_CHOICES, help="Reconstruction method.")] = "tfp",
           weights: Annotated[Optional[str], typer.Option(help="Network weights for cscsr.")] = None,
@@ -47,7 +51,12 @@ def watch(context: typer.Context,
                            IngestOptions(height, width, cfa, fps, flip, reset=reset))
     check_workers(workers, scheduler)
     options.check()  # before OUTBOX is created
-    seconds = parse_interval(interval)
+    if once and interval is not None:
+        from stages.errors import InputError
+
+        raise InputError(f"--once and --interval {interval} contradict each other: --once makes one pass, --interval "
+                         f"passes again and again: give one")
+    seconds = parse_interval(interval or DEFAULT_INTERVAL)
     if log_file is not None:
         check_log_file(log_file, inbox, outbox)
         send_logs(context, log_file)

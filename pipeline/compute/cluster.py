@@ -69,15 +69,21 @@ def most_workers() -> int:
 
 
 def check_workers(workers: int | None, scheduler: str | None = None) -> None:
-    """Refuse a ``--workers`` outside 1..:func:`most_workers` (None: one per core), and with a ``--scheduler``
-    named too (a local cluster of our own, and a running one: the workers were silently ignored); every
-    command that takes ``--workers`` calls this before it creates any output."""
+    """Refuse a ``--workers`` outside 1..:func:`most_workers` (None: one per core), and with a scheduler named
+    too, by ``--scheduler`` or, as it counts for one, ``DASK_SCHEDULER_ADDRESS`` or Dask's ``scheduler-address``
+    (a local cluster of our own, and a running one: the workers were silently ignored); every command that
+    takes ``--workers`` calls this before it creates any output."""
     if workers is not None:
         check_number("--workers", workers, at_least=1, at_most=most_workers(), integer=True,
                      why=f"at most {WORKERS_PER_CORE} per core and {MOST_WORKERS} in all")
         if scheduler is not None:
             raise InputError(f"--workers {workers} and --scheduler {scheduler} contradict each other: --workers "
                              f"starts a local cluster of its own, --scheduler runs on the one there: give one")
+        if named := scheduler_address(None):
+            by = ("DASK_SCHEDULER_ADDRESS" if os.environ.get("DASK_SCHEDULER_ADDRESS")
+                  else "Dask's scheduler-address setting")
+            raise InputError(f"--workers {workers} and the scheduler {by} names ({named}) contradict each other: "
+                             f"--workers starts a local cluster of its own: leave --workers out, or unset {by}")
 
 
 def scheduler_address(scheduler: str | None) -> str | None:
@@ -362,7 +368,12 @@ def serve_workers(scheduler: str, *, memory_limit: str | int | None = "4GiB", gp
         check_number("--nthreads", nthreads, at_least=1, integer=True)
     if death_timeout is not None:
         check_number("--death-timeout", death_timeout, above=0)
-    gpus = visible_gpus() if gpus is None else gpus
+    seen = visible_gpus()
+    if gpus is not None and gpus > seen:  # told, not refused: a GPU node's environment may hide them from here
+        _log.warning("--gpus %d, but torch sees %d CUDA device%s here: these workers advertise GPUs they do not "
+                     "have, and the network's tasks (GPU workers get the full weights by default) will run on "
+                     "the CPU", gpus, seen, "" if seen == 1 else "s")
+    gpus = seen if gpus is None else gpus
     specs = gpu_worker_specs(max(gpus, 1), gpus, _devices(gpus))
     memory = _memory_limit(memory_limit, len(specs))
     check_scheduler(scheduler)
@@ -482,8 +493,3 @@ class _QuietWorkerLogs(WorkerPlugin):
             signal.signal(signal.SIGINT, lambda signum, frame: None)  # Python's: processes it starts get the default
 
 
-def dashboard_link(client: Client) -> str | None:
-    """The dashboard URL when the scheduler serves one (it needs bokeh)."""
-    with contextlib.suppress(Exception):
-        return client.dashboard_link if "dashboard" in client.scheduler_info().get("services", {}) else None
-    return None

@@ -241,11 +241,33 @@ def _on_a_local_cluster(run, items: list, workers: int | None, show_dashboard: b
 _DASHBOARDS_SHOWN: "weakref.WeakSet" = weakref.WeakSet()  # the clients whose dashboard link is printed already
 
 
+def dashboard_link(client) -> str | None:
+    """The dashboard URL when the scheduler serves one (it needs bokeh; ``dask scheduler --no-dashboard`` still
+    lists the service, its HTTP server answering 404 there: asked once, ``DASHBOARD_TIMEOUT`` at most; one that
+    does not answer from here is shown all the same, a browser elsewhere may reach it)."""
+    import urllib.error
+    import urllib.request
+
+    with contextlib.suppress(Exception):
+        if "dashboard" not in client.scheduler_info().get("services", {}):
+            return None
+        link = client.dashboard_link
+        try:
+            urllib.request.urlopen(link, timeout=DASHBOARD_TIMEOUT).close()
+        except urllib.error.HTTPError as error:
+            return None if error.code == 404 else link
+        except (OSError, ValueError):
+            pass
+        return link
+    return None
+
+
+DASHBOARD_TIMEOUT = 2.0  # seconds the dashboard's page has to answer before its link is shown unchecked
+
+
 def show_dashboard_once(client) -> None:
     """Print ``client``'s dashboard link on standard error (never mixed with results on stdout), once per client:
     jobs that share a client (the demo's, evaluate's methods) do not repeat it."""
-    from pipeline.compute.cluster import dashboard_link
-
     if client not in _DASHBOARDS_SHOWN:
         _DASHBOARDS_SHOWN.add(client)
         if link := dashboard_link(client):

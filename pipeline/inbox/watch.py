@@ -37,7 +37,6 @@ import json
 import logging
 import os
 import re
-import stat
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -51,7 +50,7 @@ from pipeline.jobs.ingest import IngestOptions, capture_fields, ingest
 from pipeline.inbox.ledger import Ledger
 from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct, reconstructor
 from pipeline.stores.spike_store import open_spike_store
-from pipeline.stores.storage import check_apart, exists, is_local, resolve
+from pipeline.stores.storage import check_apart, exists, is_local, local_kind, resolve
 from pipeline.stores.video_store import open_video_store
 from stages.reconstruction.cfa import check_cfa
 from stages.errors import InputError, describe
@@ -166,10 +165,6 @@ def _base(entry: dict) -> str:
     return entry["name"].rstrip("/").rsplit("/", 1)[-1]
 
 
-FILE_TYPES = ((stat.S_ISREG, "a regular file"), (stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a named pipe (FIFO)"),
-              (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"))
-
-
 def _odd(fs, root: str, entry: dict | None, *, store: bool) -> str | None:
     """Why an INBOX entry as listed (a recording, or the sidecar beside one) is not what its name says it is, in
     one line; None if it is, or if nothing is there. A ``NAME.zarr`` recording (``store``) is a folder of folders
@@ -182,7 +177,7 @@ def _odd(fs, root: str, entry: dict | None, *, store: bool) -> str | None:
     local = isinstance(fs, LocalFileSystem)
     path = entry["name"].rstrip("/")
     name = os.path.relpath(path, root) if local else path[len(root.rstrip("/")) + 1 :]
-    what = _type_of(path) if local else ("a folder" if entry.get("type") == "directory" else "a regular file")
+    what = local_kind(path) if local else ("a folder" if entry.get("type") == "directory" else "a regular file")
     if what is None:
         return None  # gone since the listing
     if store and what != "a folder":
@@ -193,21 +188,10 @@ def _odd(fs, root: str, entry: dict | None, *, store: bool) -> str | None:
         for folder, dirs, files in os.walk(path):  # as _leaves walks: a link to a folder is not followed
             for inner in files:
                 inside = os.path.join(folder, inner)
-                if (what := _type_of(inside)) not in ("a regular file", None):
+                if (what := local_kind(inside)) not in ("a regular file", None):
                     return (f"{os.path.relpath(inside, root)} is {what}, not a regular file: refused (a Zarr "
                             f"store holds folders and regular files only)")
     return None
-
-
-def _type_of(path: str) -> str | None:
-    """What a local path is (:data:`FILE_TYPES`; a link is what it leads to), in words; None if nothing is there."""
-    try:
-        mode = os.stat(path).st_mode
-    except FileNotFoundError:
-        return "a link to nothing" if os.path.lexists(path) else None
-    except OSError as error:  # a loop of links, a path too long, ...
-        return f"unreadable ({describe(error)})"
-    return next((what for is_type, what in FILE_TYPES if is_type(mode)), "neither a file nor a folder")
 
 
 def _leaves(root: str, path: str) -> str | None:
@@ -287,6 +271,10 @@ def _sidecar(fs, path: str) -> tuple[dict, str | None]:
             return {}, f"sidecar {name}: unknown field {key!r} (known: {', '.join(SIDECAR_FIELDS)})"
         if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
             return {}, f"sidecar {name}: {key} must be {getattr(kind, '__name__', 'a number')}, got {value!r}"
+    try:  # its values as ingest checks them, said as the sidecar's fields, not as options nobody gave
+        IngestOptions(**{k: v for k, v in values.items() if k != "name"}).check()
+    except InputError as error:
+        return {}, f"sidecar {name}: " + re.sub(r"--([a-z]+)-([a-z]+)", r"\1_\2", str(error)).replace("--", "")
     return {**values, "_modified": _modified(fs, fs.info(path))}, None
 
 
@@ -432,9 +420,10 @@ def watch_once(inbox: str, outbox: str, options: WatchOptions, client) -> dict:
         if ledger.get(refusal) is None:
             ledger.record_refusal(refusal, candidate.name, candidate.url, problem)
             log.error("%s: failed: %s (%s)", candidate.name, problem, candidate.url)
-        else:
+            counts["refused"] += 1
+        else:  # handled before, as a recording done is: a --once pass of nothing new is no failure
             log.debug("%s: skipped: refused before (%s)", candidate.name, candidate.url)
-        counts["refused"] += 1
+            counts["skipped"] += 1
 
     for candidate in discover(inbox):
         if candidate.problem:
@@ -519,10 +508,11 @@ def watch(inbox: str, outbox: str, options: WatchOptions, *, once: bool, interva
 
 
 def check_not_all_refused(counts: dict, inbox: str, outbox: str) -> None:
-    """End a ``--once`` pass that refused every recording it found (none processed, settling or handled before) with
-    one line and exit status 1, so that cron or a scheduler sees it; one that refused some and took others ends as
-    usual (the ledger and the log name the refused ones)."""
-    if counts["refused"] and not (counts["processed"] or counts["waiting"] or counts["skipped"]):
+    """End a ``--once`` pass that refused every recording new to it (none processed or settling; those handled by
+    earlier passes, refusals included, are not new) with one line and exit status 1, so that cron or a scheduler
+    sees it, once; one that refused some and took others ends as usual (the ledger and the log name the refused
+    ones)."""
+    if counts["refused"] and not (counts["processed"] or counts["waiting"]):
         raise InputError(f"every recording in {inbox} was refused ({counts['refused']}): see the lines above, or "
                          f"cscsr status {outbox}")
 

@@ -89,8 +89,8 @@ def checked_videos(videos: dict, store, truth, truth_frames, methods: list[str])
         region = attrs.get("region") or [0, store.shape[1], 0, store.shape[2]]
         crop = [side * scale for side in region] if isinstance(scale, int) else [0, height, 0, width]
         if video.shape[1:3] != (crop[1] - crop[0], crop[3] - crop[2]) or crop[1] > height or crop[3] > width:
-            raise InputError(f"--video {name}={url} is {video.shape[2]}x{video.shape[1]} HR at scale "
-                             f"{scale}, region {region}; the truth is {width}x{height}: give a video at the truth's "
+            raise InputError(f"--video {name}={url} is {video.shape[1]}x{video.shape[2]} HR at scale "
+                             f"{scale}, region {region}; the truth is {height}x{width}: give a video at the truth's "
                              f"scale")
         checked[name] = (video, at, tuple(crop))
     return checked

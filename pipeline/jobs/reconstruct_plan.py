@@ -97,6 +97,9 @@ class ReconstructOptions:
                              f"no weights to load: leave --weights out")
         if self.gpu_batch is not None and self.gpu_batch < 1:
             raise InputError(f"--gpu-batch must be >= 1, got {self.gpu_batch}")
+        if self.gpu_batch is not None and self.method not in NETWORKS:
+            raise InputError(f"--gpu-batch is for the network (--method cscsr or cscsr-ensemble); {self.method} has "
+                             f"no network passes to batch: leave --gpu-batch out")
         if self.fast_gpu and (self.method not in NETWORKS or self.backend != "torch"):
             raise InputError("--fast-gpu is for the network on torch (--method cscsr or cscsr-ensemble, --backend "
                              "torch)")
@@ -220,7 +223,7 @@ def _short(digest: str | None) -> str:
 
 
 def _frames(shape) -> str:
-    return "unknown shape" if not shape else f"{shape[0]} frames of {shape[2]}x{shape[1]}"
+    return "unknown shape" if not shape else f"{shape[0]} frames of {shape[1]}x{shape[2]}"
 
 
 def tile_blocks(grid: list[list[Tile]], per_task: int) -> list[tuple[tuple[int, int], ...]]:

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.stores.storage import check_not_empty, resolve, unreachable
+from pipeline.stores.storage import check_not_empty, check_regular_file, resolve, unreachable
 from stages.capture.spike_arrays import binary_to_packed, check_spike_array_header
 from stages.capture import sps100
 from stages.capture.dat import DatLayout
@@ -303,6 +303,7 @@ def open_capture(url: str, *, height: int | None, width: int | None, flip: bool 
     """The reader for a capture, with the declared sizes checked: chosen by ``layout`` (a raw layout of
     :data:`stages.capture.sps100.LAYOUTS`, whatever the file's name), else by its extension."""
     check_not_empty(url)
+    check_regular_file(url, "capture")  # a named pipe's reader waits for a writer; a folder is no capture
     suffix = _suffix(url)
     if layout is not None:
         sps100.check_layout(layout)

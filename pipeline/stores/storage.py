@@ -13,6 +13,7 @@ import math
 import os
 import posixpath
 import re
+import stat
 import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -135,6 +136,28 @@ def _botocore_connection(error: BaseException) -> bool:
 
 def is_local(url: str) -> bool:
     return isinstance(resolve(url)[0], LocalFileSystem)
+
+
+FILE_TYPES = ((stat.S_ISREG, "a regular file"), (stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a named pipe (FIFO)"),
+              (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"))
+
+
+def local_kind(path: str) -> str | None:
+    """What a local path is (:data:`FILE_TYPES`; a link is what it leads to), in words; None if nothing is there."""
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return "a link to nothing" if os.path.lexists(path) else None
+    except OSError as error:  # a loop of links, a path too long, ...
+        return f"unreadable ({describe(error)})"
+    return next((what for is_type, what in FILE_TYPES if is_type(mode)), "neither a file nor a folder")
+
+
+def check_regular_file(url: str, what: str) -> None:
+    """Refuse, in one line, a local ``url`` that is there but is no regular file (a folder, a named pipe, whose
+    reader would wait for a writer, a device), without opening it; nothing for other places, or nothing there."""
+    if is_local(url) and (kind := local_kind(resolve(url)[1])) not in (None, "a regular file"):
+        raise InputError(f"{what} {url} is {kind}, not a regular file: give the file itself")
 
 
 def exists(url: str) -> bool:

@@ -165,11 +165,11 @@ def _region_outside(attrs: dict, video_shape: tuple) -> str | None:
     y0, y1, x0, x1 = region
     frame = source[1:] if isinstance(source, list) and len(source) == 3 and all(map(_whole, source)) else None
     if not (0 <= y0 < y1 and 0 <= x0 < x1) or (frame and (y1 > frame[0] or x1 > frame[1])):
-        where = f"the recording's {frame[1]}x{frame[0]} frame" if frame else "a frame"
+        where = f"the recording's {frame[0]}x{frame[1]} frame" if frame else "a frame"
         return f"region {y0}:{y1},{x0}:{x1} is not inside {where}"
     if _whole(scale) and tuple(video_shape[1:3]) != ((y1 - y0) * scale, (x1 - x0) * scale):
-        return (f"region {y0}:{y1},{x0}:{x1} at x{scale} is {(x1 - x0) * scale}x{(y1 - y0) * scale} HR, but '{VIDEO}' "
-                f"frames are {video_shape[2]}x{video_shape[1]}")
+        return (f"region {y0}:{y1},{x0}:{x1} at x{scale} is {(y1 - y0) * scale}x{(x1 - x0) * scale} HR, but '{VIDEO}' "
+                f"frames are {video_shape[1]}x{video_shape[2]}")
     return None
 
 
@@ -247,7 +247,7 @@ def describe_video_store(url: str, group: zarr.Group) -> str:
     a spike store: ``URL is a video store (N frames of WxH RGB, method M, state S)``."""
     attrs = group.attrs
     n, height, width = group[VIDEO].shape[:3]
-    return (f"{url} is a video store ({n} frames of {width}x{height} RGB, method {attrs.get('method')}, "
+    return (f"{url} is a video store ({n} frames of {height}x{width} RGB, method {attrs.get('method')}, "
             f"state {attrs.get('state')})")
 
 
@@ -259,8 +259,11 @@ def committed_mask(group: zarr.Group) -> np.ndarray:
 def resumed_mask(group: zarr.Group, url: str, expected: dict, found: dict, shape: tuple[int, int, int]) -> np.ndarray:
     """The commit mask of the video store ``group`` at ``url`` to resume, refused in one line unless what it records
     (``found``, as the caller reads it) is ``expected`` and its ``committed`` is of ``shape`` (output frames, tile
-    rows, tile columns): the ``reconstruct`` job's and ``lazy.to_video``'s check."""
-    changed = [k for k in expected if found.get(k) != expected[k]]
+    rows, tile columns): the ``reconstruct`` job's and ``lazy.to_video``'s check. Its ``source`` may be spelled
+    otherwise (moved, a copy, a link, ``file://``) where the store records the recording's identity, the same."""
+    identity = expected.get("source_identity")
+    moved = identity is not None and group.attrs.get("source_identity") == identity  # the same recording, elsewhere
+    changed = [k for k in expected if found.get(k) != expected[k] and not (k == "source" and moved)]
     if changed or group[COMMITTED].shape != shape:
         what = ", ".join(f"{k} {found.get(k)!r} -> {expected[k]!r}" for k in changed) or "layout"
         raise InputError(f"cannot resume {url}: it was made with other parameters ({what})")

@@ -127,10 +127,10 @@ def test_sidecar_fps_1e400_is_recorded_as_failed_and_nothing_stored(cli, tmp_pat
         os.utime(inbox / name, (past, past))
     unchanged = fingerprint(inbox)
     result = cli("watch", inbox, outbox, "--once", "--settle", 0, "--workers", 1)
-    assert result.exit_code == 0, result.stderr
+    assert result.exit_code == 1, result.stderr  # refused as its sidecar is read: every recording of the pass
     rows = json.loads(cli("status", outbox, "--json").stdout)  # one JSON list
     assert [(r["name"], r["state"]) for r in rows] == [("rec", "failed")]
-    assert "fps must be a finite number, got inf" in rows[0]["error"]
+    assert rows[0]["error"] == "sidecar rec.json: fps must be a finite number, got inf"
     stored = [p.relative_to(outbox) for p in outbox.rglob("rec*")]  # a spike store would be spikes/rec.zarr
     assert not stored  # no spike store, no video
     assert fingerprint(inbox) == unchanged

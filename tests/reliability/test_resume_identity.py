@@ -102,6 +102,24 @@ def test_resume_refuses_another_recording_at_the_same_path(client, cli, tmp_path
     assert files(out) == before  # untouched: still the interrupted output, not marked complete
 
 
+@pytest.mark.parametrize("spelled", ["a copy", "a link", "file://"])
+def test_resume_takes_the_same_recording_under_another_name(client, tmp_path, spelled):
+    """A store moved or copied, a link to it, or its path as a ``file://`` URL: the same recording (its identity
+    recorded), which ``--resume`` refused as "made with other parameters (source ...)"; it finishes with the bytes
+    of an uninterrupted run. A store from before identities is still resumed on its path alone (above)."""
+    store, out = write_recording(tmp_path / "rec.zarr", seed=1), str(tmp_path / "out.zarr")
+    interrupted(store, out, TFP, client)
+    elsewhere = str(tmp_path / "elsewhere.zarr")
+    if spelled == "a copy":
+        shutil.copytree(store, elsewhere)
+    elif spelled == "a link":
+        os.symlink(store, elsewhere)
+    else:
+        elsewhere = f"file://{store}"
+    resumed_equals_clean(elsewhere, out, TFP, client, tmp_path)
+    assert zarr.open_group(out, mode="r").attrs["source"] == store  # the record kept as it was made
+
+
 def test_identity_names_the_recording_not_the_run(tmp_path):
     """The same recording written twice has the same identity (outputs stay bit-identical run to run), and a
     copy keeps it; another recording has another."""

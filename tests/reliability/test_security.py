@@ -118,7 +118,8 @@ def test_a_local_cluster_listens_on_loopback_only_dashboard_included():
     nannies) is bound to 127.0.0.1, and the dashboard link says where it really is."""
     import psutil
 
-    from pipeline.compute.cluster import dashboard_link, dask_client
+    from pipeline.compute.cluster import dask_client
+    from pipeline.compute.executor import dashboard_link
 
     def listening(process):
         return {(c.laddr.ip, c.laddr.port) for c in process.net_connections(kind="inet") if c.status == psutil.CONN_LISTEN}

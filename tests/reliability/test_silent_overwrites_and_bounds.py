@@ -206,20 +206,20 @@ def test_an_unfinished_video_store_with_a_committed_tile_lost_is_damaged(cli, tm
 # --- train: numbers refused in one line before OUT exists ---------------------------------------------
 
 @pytest.mark.parametrize("args,fragment", [
-    (["--learning-rate", "nan"], "learning_rate must be >= 0, got nan"),  # was refused by Adam after OUT existed
-    (["--learning-rate", "-1"], "learning_rate must be >= 0, got -1.0"),
-    (["--learning-rate", "inf"], "learning_rate must be a finite number, got inf"),  # trained to a NaN checkpoint
-    (["--learning-rate", "0"], "learning_rate must be > 0, got 0.0: at 0 the run would ship its random initial "
+    (["--learning-rate", "nan"], "--learning-rate must be >= 0, got nan"),  # was refused by Adam after OUT existed
+    (["--learning-rate", "-1"], "--learning-rate must be >= 0, got -1.0"),
+    (["--learning-rate", "inf"], "--learning-rate must be a finite number, got inf"),  # trained to a NaN checkpoint
+    (["--learning-rate", "0"], "--learning-rate must be > 0, got 0.0: at 0 the run would ship its random initial "
                                "weights untrained"),
-    (["--learning-rate", "1"], "learning_rate must be <= 0.1 (Adam moves every weight by up to the rate"),
+    (["--learning-rate", "1"], "--learning-rate must be <= 0.1 (Adam moves every weight by up to the rate"),
     (["--batch", "100000"], "batch 100000 of LR 32x32 clips needs at least 1,562.5 GiB for one step"),
     (["--lr-side", "100000"], "batch 8 of LR 100000x100000 clips needs at least"),
-    (["--lr-side", "33"], "lr_side must be even and >= 16, got 33"),
-    (["--pool", "-1"], "pool must be >= 0, got -1"),  # was truthy: a pool of no clips
+    (["--lr-side", "33"], "--lr-side must be even and >= 16, got 33"),
+    (["--pool", "-1"], "--pool must be >= 0, got -1"),  # was truthy: a pool of no clips
     (["--pool", "1000000000"], "pool 1000000000 of LR 32x32 clips needs at least"),
-    (["--batch", "0"], "batch must be >= 1, got 0"),
-    (["--validation-clips", "0"], "validation_clips must be >= 1, got 0"),  # a mean of no clips: NaN PSNR lines
-    (["--seed", "-1"], "seed must be >= 0, got -1"),  # numpy refused it after OUT existed, the option unnamed
+    (["--batch", "0"], "--batch must be >= 1, got 0"),
+    (["--validation-clips", "0"], "--validation-clips must be >= 1, got 0"),  # a mean of no clips: NaN PSNR lines
+    (["--seed", "-1"], "--seed must be >= 0, got -1"),  # numpy refused it after OUT existed, the option unnamed
     (["--threads", "0"], "--threads must be >= 1, got 0"),  # was taken for "every core"
     (["--threads", "-3"], "--threads must be >= 1, got -3"),  # torch's RuntimeError
 ])
