@@ -148,6 +148,29 @@ def test_to_spikes_writes_the_job_s_truth_and_evaluate_scores_a_lazy_video_besid
     assert not (tmp_path / "bad.zarr").exists()
 
 
+def test_evaluate_refuses_a_video_at_another_scale_and_labels_a_region_as_it_scores_it(job, tmp_path, monkeypatch):
+    """A x2 video of a x4 store was scored against the truth's top-left quarter (12 dB, no error); a region's
+    panel in comparison.png was labelled with the PSNR of its black-padded frame, not the one metrics.csv has."""
+    from cscsr import lazy
+    import pipeline.jobs.evaluate as evaluation
+    from pipeline.jobs.evaluate import evaluate
+
+    _, _, store = job
+    with dask.config.set(scheduler="threads"):
+        windows = lazy.windows(open_spikes(store), every=41)
+        lazy.to_video(lazy.tfp(windows, scale=2), str(tmp_path / "x2.zarr"))
+        lazy.to_video(lazy.tfp(lazy.windows(open_spikes(store), every=41, region="0:4,4:12")),
+                      str(tmp_path / "part.zarr"))
+    with pytest.raises(InputError, match=r"x2.zarr is at scale 2, and the truth at scale 4 \(32x48 HR\)"):
+        evaluate(store, [], str(tmp_path / "refused"), videos={"x2": str(tmp_path / "x2.zarr")}, workers=1)
+    assert not (tmp_path / "refused").exists()
+    labels = []
+    original = evaluation.labelled
+    monkeypatch.setattr(evaluation, "labelled", lambda image, text: labels.append(text) or original(image, text))
+    (row,) = evaluate(store, [], str(tmp_path / "scored"), videos={"part": str(tmp_path / "part.zarr")}, workers=1)
+    assert row["frames"] == 1 and labels[1] == f"part: {row['psnr']:.2f} dB this frame"  # one truth frame: its own
+
+
 def test_open_frames_of_the_job_s_source_writes_the_job_s_store_spikes_and_truth(job, tmp_path):
     """``cscsr simulate`` of a folder of as many frames as spike frames is ``to_spikes(simulate(open_frames(folder)),
     truth=open_frames(folder))``: every chunk of spikes and truth, the attributes (the source's place included)."""

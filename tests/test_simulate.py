@@ -215,7 +215,45 @@ def test_bad_sources(cli, tmp_path):
     assert_refused(cli("simulate", tmp_path / "one.png", out, "--workers", 1), "give --motion")
     assert_refused(cli("simulate", tmp_path / "odd.png", out, "--motion", "static", "--workers", 1), "not divisible by 2*scale = 8")
     assert_refused(cli("simulate", tmp_path / "none.mp4", out, "--workers", 1), "none.mp4")
+    assert_refused(cli("simulate", tmp_path / "odd.png", out, "--motion", "static", "--cfa", "mono", "--scale", 8,
+                       "--workers", 1), "scale")
     assert not out.exists()
+
+
+def test_a_folder_of_frames_of_two_sizes_is_one_line_of_bad_input(cli, tmp_path):
+    """Found as frame 1 is read, in a task: it was "SpikesIncomplete: to_spikes ...: fix the cause and call
+    to_spikes again with resume=True", the Python API's advice, which the command cannot follow."""
+    (tmp_path / "mixed").mkdir()
+    iio.imwrite(tmp_path / "mixed" / "a.png", picture("camera", 64))
+    iio.imwrite(tmp_path / "mixed" / "b.png", picture("camera", 32))
+    result = cli("simulate", tmp_path / "mixed", tmp_path / "s.zarr", "--workers", 1)
+    assert_refused(result, "mixed: frame 1 has shape (32, 32")
+    assert "resume" not in result.stderr and "SpikesIncomplete" not in result.stderr
+    assert not (tmp_path / "s.zarr").exists()
+
+
+def test_evaluate_refuses_a_truth_smaller_than_ssim_s_window_before_any_reconstruction(cli, tmp_path):
+    """An 8x8 scene: scikit-image's "win_size exceeds image extent ... at least 7x7" came after every method ran."""
+    iio.imwrite(tmp_path / "tiny.png", picture("camera", 8))
+    assert cli("simulate", tmp_path / "tiny.png", tmp_path / "tiny.zarr", "--motion", "static", "--workers", 1
+               ).exit_code == 0
+    assert_refused(cli("evaluate", tmp_path / "tiny.zarr", "--out", tmp_path / "ev", "--workers", 1),
+                   "its truth frames are 8x8 HR pixels, smaller than SSIM's 11x11 window")
+    assert not (tmp_path / "ev").exists()
+
+
+def test_a_mono_sensor_takes_any_lr_size(cli, tmp_path):
+    """A Bayer cell is 2x2 LR pixels, a mono pixel one: a 60x60 picture at x4 is a 15x15 mono recording (it was
+    refused as "not divisible by 2*scale = 8 (mono Bayer cells ...)"), and gets its ground truth."""
+    iio.imwrite(tmp_path / "odd.png", picture("camera", 60))
+    out = tmp_path / "mono.zarr"
+    done = cli("simulate", tmp_path / "odd.png", out, "--motion", "random", "--frames", 41, "--cfa", "mono",
+               "--workers", 1)
+    assert done.exit_code == 0, done.stderr
+    store = open_spike_store(str(out))
+    assert store.shape == (41, 15, 15) and store.attrs["cfa"] == "mono" and store.group["truth"].shape[1:3] == (60, 60)
+    assert_refused(cli("simulate", tmp_path / "odd.png", tmp_path / "rggb.zarr", "--motion", "static", "--workers", 1),
+                   "not divisible by 2*scale = 8 (a rggb cell of 2x2 LR pixels is 8x8 HR pixels)")
 
 
 def test_a_zarr_source_without_video_names_the_video_stores_dimensions(cli, tmp_path):

@@ -122,7 +122,8 @@ def simulate(src: Annotated[str, typer.Argument(help="A video, a folder of frame
              brightness: Annotated[float, typer.Option(help="Brightness coefficient alpha.")] = 0.6,
              threshold: Annotated[float, typer.Option(help="Firing threshold theta.")] = 1.0,
              frames: Annotated[int, typer.Option(help="Spike frames to simulate (>= 41).")] = WINDOW,
-             motion: Annotated[Optional[str], typer.Option(help="For one image: static or random (known flow).")] = None,
+             motion: Annotated[Optional[str], typer.Option(help="For one image, which needs it: static or random "
+                                                                    "(known flow); a video brings its own.")] = None,
              seed: Annotated[int, typer.Option(help="Seed of every random choice.")] = 0,
              noise: Annotated[str, typer.Option(help="none or realistic (shot noise, threshold mismatch, dark current).")] = "none",
              reset: Annotated[str, typer.Option(help="zero (the paper) or subtract (real sensors).")] = "zero",
@@ -270,7 +271,7 @@ def evaluate(store: Annotated[str, typer.Argument(help="Simulated spike store (w
 
     rows = run(store, [m.strip() for m in methods.split(",") if m.strip()], out_dir, weights=weights,
                workers=workers, scheduler=scheduler, overwrite=overwrite, videos=parse_videos(video))
-    table = Table(title=f"{store}: against ground truth ({rows[0]['frames']} frames)")
+    table = Table(title=f"{store}: against ground truth ({counted(rows[0]['frames'], 'frame')})")
     for column in ("method", "PSNR (dB)", "SSIM", "s / image"):
         table.add_column(column, justify="left" if column == "method" else "right")
     for row in rows:

@@ -23,7 +23,7 @@ from pipeline.stores.spike_store import open_spike_store, store_identity
 from pipeline.stores.storage import check_apart, resolve
 from pipeline.stores.video_store import FRAMES, VIDEO, lost_frames, open_video_store
 from stages.errors import InputError
-from stages.measures.metrics import psnr, ssim
+from stages.measures.metrics import SSIM_SIDE, psnr, ssim
 from stages.reconstruction.methods import METHODS, NETWORKS, WINDOW, output_centres
 from stages.measures.montage import labelled, side_by_side
 
@@ -40,7 +40,7 @@ def check_methods(methods: list[str], weights: str | None = None, videos: dict |
             raise InputError(f"--methods names {method} twice")
     if weights is not None and not set(methods) & set(NETWORKS):
         raise InputError(f"--weights is for the network (cscsr or cscsr-ensemble in --methods); {', '.join(methods)} "
-                         f"have no weights to load: leave --weights out")
+                         f"{'has' if len(methods) == 1 else 'have'} no weights to load: leave --weights out")
 
 
 def parse_videos(texts: list[str] | None) -> dict[str, str]:
@@ -85,13 +85,19 @@ def checked_videos(videos: dict, store, truth, truth_frames, methods: list[str])
                              f"{int(store.attrs.get('truth_every', WINDOW))} frames with window {WINDOW} (the truth's)")
         at = np.searchsorted(frames, truth_frames)
         height, width = truth.shape[1:3]
-        scale = attrs.get("scale")
+        scale, truth_scale = attrs.get("scale"), height // store.shape[1]  # the truth: the store's frames x scale
+        if isinstance(scale, int) and scale != truth_scale:  # else its crop "fits" in a corner of the truth
+            raise InputError(f"--video {name}={url} is at scale {scale}, and the truth at scale {truth_scale} "
+                             f"({height}x{width} HR): give a video at the truth's scale (--scale {truth_scale})")
         region = attrs.get("region") or [0, store.shape[1], 0, store.shape[2]]
         crop = [side * scale for side in region] if isinstance(scale, int) else [0, height, 0, width]
         if video.shape[1:3] != (crop[1] - crop[0], crop[3] - crop[2]) or crop[1] > height or crop[3] > width:
             raise InputError(f"--video {name}={url} is {video.shape[1]}x{video.shape[2]} HR at scale "
                              f"{scale}, region {region}; the truth is {height}x{width}: give a video at the truth's "
                              f"scale")
+        if min(video.shape[1:3]) < SSIM_SIDE:
+            raise InputError(f"--video {name}={url} is {video.shape[1]}x{video.shape[2]} HR, smaller than SSIM's "
+                             f"{SSIM_SIDE}x{SSIM_SIDE} window: give a larger region")
         checked[name] = (video, at, tuple(crop))
     return checked
 
@@ -113,6 +119,9 @@ def _checked_evaluation(store_url: str, methods: list[str], weights: str | None,
     every = int(store.attrs.get("truth_every", WINDOW))
     if list(truth_frames) != output_centres(store.n_frames, WINDOW, every)[: len(truth_frames)] or not len(truth_frames):
         raise InputError(f"{store_url}: truth frames {list(truth_frames)[:4]}... are not the {WINDOW}-frame window centres {WINDOW // 2}, {WINDOW // 2}+{every}, ...")
+    if min(truth.shape[1:3]) < SSIM_SIDE:  # scikit-image's own error came after every reconstruction
+        raise InputError(f"{store_url}: its truth frames are {truth.shape[1]}x{truth.shape[2]} HR pixels, smaller than "
+                         f"SSIM's {SSIM_SIDE}x{SSIM_SIDE} window: evaluate scores frames of at least that size")
     options = {method: ReconstructOptions(method=method, every=every, weights=weights if method in NETWORKS else None)
                for method in methods}  # into OUT, claimed new by evaluate: never over an existing store
     for method in methods:
@@ -169,7 +178,8 @@ def _evaluate(store_url: str, truth, truth_frames, options: dict, methods: list[
     _write_csv(f"{root}/metrics.csv", fs, [row for name in names for row in scores[name][1]])
     _write_csv(f"{root}/summary.csv", fs, rows)
     write_image(f"{str(out_dir).rstrip('/')}/comparison.png",
-                comparison_picture(truth, truth_frames, {name: shown[name] for name in names}))
+                comparison_picture(truth, truth_frames, {name: shown[name] for name in names},
+                                   {name: scores[name][1][len(truth_frames) // 2]["psnr"] for name in names}))
     return rows
 
 
@@ -203,12 +213,15 @@ def _in_frame(frames: list[np.ndarray], size: tuple[int, int], origin: tuple[int
     return placed
 
 
-def comparison_picture(truth, truth_frames, videos: dict) -> np.ndarray:
+def comparison_picture(truth, truth_frames, videos: dict, scored: dict | None = None) -> np.ndarray:
     """The truth and every video side by side at the middle truth frame, each under its label and its PSNR
-    there (``videos``: label -> frames at the truth frames, as a video store holds them)."""
+    there (``videos``: label -> frames at the truth frames, as a video store holds them; ``scored``: label -> its
+    PSNR there where it is not the whole frame's, a region's as ``metrics.csv`` has it)."""
     middle = len(truth_frames) // 2
+    scored = scored or {}
     pictures = [labelled(truth[middle], f"truth (frame {truth_frames[middle]})")]
-    pictures += [labelled(video[middle], f"{label}: {psnr(video[middle], truth[middle]):.2f} dB this frame")
+    pictures += [labelled(video[middle], f"{label}: "
+                          f"{scored.get(label, psnr(video[middle], truth[middle])):.2f} dB this frame")
                  for label, video in videos.items()]
     return side_by_side(*pictures)
 

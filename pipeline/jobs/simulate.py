@@ -33,7 +33,7 @@ from pipeline.stores.frame_sources import open_frame_source
 from pipeline.stores.ground_truth import write_flow, write_truth
 from pipeline.stores.outputs import SPIKE_STORE, check_existing
 from pipeline.stores.spike_store import chunk_frames_for
-from pipeline.stores.spike_writes import SpikeWrites, Truth, write_store
+from pipeline.stores.spike_writes import SpikesIncomplete, SpikeWrites, Truth, write_store
 from pipeline.stores.storage import check_apart, recorded
 from stages.capture.bits import unpacked_bits
 from stages.errors import InputError
@@ -68,10 +68,15 @@ def simulate(src: str, dest: str, options: SimulateOptions = SimulateOptions(), 
     logging.getLogger("cscsr.simulate").debug(  # cscsr --verbose
         "%s -> %s: %d frames of %dx%d LR (x%d HR), cfa %s, chunks of %d frames; on %s", src, dest, options.frames,
         height, width, options.scale, options.cfa, chunk, on)
-    written = write_store(SpikeWrites(dest, meta, options.frames, chunk, None), bits,
-                          client=lambda: dask_client(workers=workers, scheduler=scheduler), overwrite=options.overwrite,
-                          resume=False, truth=truth, progress=progress, title=f"simulate {src}", keep_partial=False,
-                          flag="--overwrite")
+    try:
+        written = write_store(SpikeWrites(dest, meta, options.frames, chunk, None), bits,
+                              client=lambda: dask_client(workers=workers, scheduler=scheduler),
+                              overwrite=options.overwrite, resume=False, truth=truth, progress=progress,
+                              title=f"simulate {src}", keep_partial=False, flag="--overwrite")
+    except SpikesIncomplete as error:  # the store is gone (a job is not resumed): the cause alone, if it is bad input
+        if isinstance(error.__cause__, InputError):  # a frame of another size found as it is read, ...
+            raise InputError(str(error.__cause__)) from None
+        raise
     return written["attrs"]
 
 

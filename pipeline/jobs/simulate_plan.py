@@ -103,10 +103,13 @@ def check_options(options: SimulateOptions, source: FrameSource) -> tuple[int, i
     check_number("--deform", options.deform, at_least=0)
     if options.chunk_frames is not None:  # 0 must not mean "the default"
         check_number("--chunk-frames", options.chunk_frames, at_least=1, integer=True)
+    if cfa == "mono" and (source.height % options.scale or source.width % options.scale):  # any LR size
+        raise InputError(f"frame size {source.height}x{source.width} is not divisible by --scale {options.scale} "
+                         f"(an LR pixel is {options.scale}x{options.scale} HR pixels)")
     multiple = 2 * options.scale
-    if source.height % multiple or source.width % multiple:
-        raise InputError(f"frame size {source.height}x{source.width} is not divisible by 2*scale = {multiple} "
-                         f"({cfa} Bayer cells of {options.scale}x{options.scale} HR pixels)")
+    if cfa != "mono" and (source.height % multiple or source.width % multiple):
+        raise InputError(f"frame size {source.height}x{source.width} is not divisible by 2*scale = {multiple} (a "
+                         f"{cfa} cell of 2x2 LR pixels is {multiple}x{multiple} HR pixels)")
     return source.height // options.scale, source.width // options.scale
 
 

@@ -21,8 +21,12 @@ def psnr(estimate: np.ndarray, truth: np.ndarray) -> float:
     return float(peak_signal_noise_ratio(np.asarray(truth), np.asarray(estimate), data_range=255))
 
 
+SSIM_SIDE = 11  # the side of SSIM's Gaussian window (sigma 1.5, truncated at 3.5 sigma): the least image it scores
+
+
 def ssim(estimate: np.ndarray, truth: np.ndarray) -> float:
-    """SSIM of uint8 images (scikit-image, Gaussian-weighted as in Wang et al. 2004)."""
+    """SSIM of uint8 images (scikit-image, Gaussian-weighted as in Wang et al. 2004), at least
+    :data:`SSIM_SIDE` pixels a side."""
     from skimage.metrics import structural_similarity
 
     channel_axis = 2 if np.ndim(truth) == 3 else None
