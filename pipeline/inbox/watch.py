@@ -274,7 +274,7 @@ def _sidecar(fs, path: str) -> tuple[dict, str | None]:
     try:  # its values as ingest checks them, said as the sidecar's fields, not as options nobody gave
         IngestOptions(**{k: v for k, v in values.items() if k != "name"}).check()
     except InputError as error:
-        return {}, f"sidecar {name}: " + re.sub(r"--([a-z]+)-([a-z]+)", r"\1_\2", str(error)).replace("--", "")
+        return {}, f"sidecar {name}: " + re.sub(r"--([a-z][a-z-]*)", lambda m: m[1].replace("-", "_"), str(error))
     return {**values, "_modified": _modified(fs, fs.info(path))}, None
 
 

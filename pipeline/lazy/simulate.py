@@ -99,11 +99,10 @@ def simulate(frames: xr.DataArray, *, scale: int = 4, cfa: str = "rggb", brightn
     meta = simulated_meta(as_recorded, height, width, source if isinstance(source, str) else "")
     if not isinstance(frames.data, da.Array):  # in memory: checked now
         check_intensities(np.asarray(frames.data), 0)
-    scene = _scene_array(frames)
-    if made is None:
-        scene = scene.rechunk({1: -1, 2: -1, 3: -1})  # whole frames per block
+    given = _scene_array(frames)  # in memory: hashed once, here
+    scene = given if made is not None else given.rechunk({1: -1, 2: -1, 3: -1})  # whole frames per block
     spikes = fired_spikes(scene, options, height, width, made)
-    _SCENE_OF[spikes.name] = _scene_named(frames)
+    _SCENE_OF[spikes.name] = _scene_named(frames, given)
     while len(_SCENE_OF) > SCENES_KEPT:
         del _SCENE_OF[next(iter(_SCENE_OF))]
     return as_spikes(spikes, {**meta.attrs(), "frames": n_frames})
@@ -118,12 +117,12 @@ def _scene_array(frames: xr.DataArray) -> da.Array:
     return frames.data if isinstance(frames.data, da.Array) else da.from_array(frames.data, chunks=("auto", -1, -1, -1))
 
 
-def _scene_named(frames: xr.DataArray) -> tuple[str, str]:
+def _scene_named(frames: xr.DataArray, scene: da.Array | None = None) -> tuple[str, str]:
     """What names ``frames``' content where a name can: (``made``, the name ``lazy.open_frames`` gives from its
     source, motion and seed), (``memory``, Dask's hash of the array's bytes), else (``dask``, the graph's name: the
-    same content in other chunks has another)."""
+    same content in other chunks has another). ``scene``: their :func:`_scene_array`, if made already."""
     kind = "made" if made_scene(frames.data) is not None else "dask" if isinstance(frames.data, da.Array) else "memory"
-    return kind, _scene_array(frames).name
+    return kind, (_scene_array(frames) if scene is None else scene).name
 
 
 def _check_camera_path(attrs: dict, seed: int, n_frames: int) -> None:
