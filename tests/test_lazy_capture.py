@@ -231,6 +231,38 @@ def test_damage_in_the_frames_is_refused_naming_its_offset_when_read(client, tmp
         lazy.open_capture(tmp_path / "d.dat", layout="sps100")
 
 
+def test_layout_dat_reads_raw_frames_whatever_the_name_but_an_array_file(tmp_path):
+    """"--layout dat reads any name as .dat frames": raw frames named .npy were refused as a .npy array; a real
+    .npy (told by its first bytes) still is."""
+    frames = (np.random.default_rng(1).random((3, 8, 16)) < 0.5).astype(np.uint8)
+    raw = np.packbits(frames, axis=-1, bitorder="little").tobytes()
+    (tmp_path / "raw.npy").write_bytes(raw)
+    np.testing.assert_array_equal(lazy.open_capture(tmp_path / "raw.npy", layout="dat", height=8, width=16).values,
+                                  frames.astype(bool))
+    np.save(tmp_path / "real.npy", frames)
+    with pytest.raises(InputError, match=r"real.npy is a .npy array: leave (--)?layout out"):
+        lazy.open_capture(tmp_path / "real.npy", layout="dat", height=8, width=16)
+
+
+def test_spike_values_other_than_0_and_1_remove_the_new_store_as_ingest_does(client, cli, tmp_path):
+    """A 2 at frame 5 of a .npy: to_spikes left the store and said "call to_spikes again with resume=True", which
+    finds the 2 again, and a fixed file is then refused as another capture; ``cscsr ingest`` removed its store.
+    Now each way removes it, in one line naming the value and where it is."""
+    frames = (np.random.default_rng(0).random((40, 16, 24)) < 0.3).astype(np.uint8)
+    frames[5, 3, 4] = 2
+    np.save(tmp_path / "two.npy", frames)
+    said = "spike values must be 0 or 1: found 2 at frame 5, row 3, column 4"
+    for on in ("threads", "client"):
+        with dask.config.set(scheduler=client if on == "client" else "threads"):
+            with pytest.raises(CaptureDamaged, match=said):
+                lazy.to_spikes(lazy.open_capture(tmp_path / "two.npy"), tmp_path / "lazy.zarr", chunk_frames=8)
+        assert not (tmp_path / "lazy.zarr").exists()
+    for workers in ([], ["--workers", 1]):
+        result = cli("-q", "ingest", tmp_path / "two.npy", tmp_path / "job.zarr", *workers)
+        assert result.exit_code == 1 and result.stderr.strip().splitlines() == [f"error: {said}"], result.stderr
+        assert not (tmp_path / "job.zarr").exists()
+
+
 def test_bad_input_is_refused_in_one_line_in_python_words_and_nothing_is_written(tmp_path):
     write_dat(tmp_path / "c.dat", np.zeros((4, 8, 16), np.uint8))
     (tmp_path / "cut.dat").write_bytes((tmp_path / "c.dat").read_bytes()[:-3])

@@ -52,6 +52,15 @@ def _open(url: str):
     return fs, path
 
 
+ARRAY_MAGIC = (b"\x93NUMPY", b"PK\x03\x04", b"PK\x05\x06")  # how a .npy and a .npz (a zip) begin
+
+
+def _is_array_file(url: str) -> bool:
+    """Whether the file at ``url`` begins as a ``.npy`` or ``.npz`` does (one read of its first bytes)."""
+    fs, path = _open(url)
+    return fs.cat_file(path, start=0, end=6).startswith(ARRAY_MAGIC)
+
+
 def _why_absent(fs, path: str, url: str) -> str:
     """Why ``exists`` said no: fsspec's HTTP filesystem answers False for a host it cannot reach too
     (its ``info`` raises FileNotFoundError *from* the connection error), so ask about the cause."""
@@ -307,7 +316,7 @@ def open_capture(url: str, *, height: int | None, width: int | None, flip: bool 
     suffix = _suffix(url)
     if layout is not None:
         sps100.check_layout(layout)
-        if suffix in (".npy", ".npz"):
+        if suffix in (".npy", ".npz") and _is_array_file(url):  # by its bytes: a raw capture may have any name
             raise InputError(f"--layout {layout} names a raw capture's layout, and {url} is a {suffix} array: leave "
                              f"--layout out")
     if key is not None and (layout is not None or suffix != ".npz"):  # before anything is read or created

@@ -4,10 +4,11 @@ import os
 
 import imageio.v3 as iio
 import numpy as np
+from fsspec.implementations.local import LocalFileSystem
 
 from pipeline.stores.outputs import IMAGE_MAGIC, new_output
 from pipeline.stores.storage import resolve
-from stages.errors import InputError
+from stages.errors import InputError, describe
 
 IMAGE_SUFFIXES = tuple(IMAGE_MAGIC)  # the images we read and write
 
@@ -43,6 +44,10 @@ def write_image(url: str, image: np.ndarray, *, overwrite: bool = True) -> None:
     fs, path = resolve(url)
     encoded = iio.imwrite("<bytes>", image, extension=image_suffix(url))
     with new_output(url, overwrite=overwrite, kind=image_suffix(url)):  # only an image replaces an image
-        fs.makedirs(fs._parent(path), exist_ok=True)
-        with fs.open(path, "wb") as handle:
-            handle.write(encoded)
+        if isinstance(fs, LocalFileSystem):  # an object store has no folders (and s3fs would make a bucket)
+            fs.makedirs(fs._parent(path), exist_ok=True)
+        try:
+            with fs.open(path, "wb") as handle:
+                handle.write(encoded)
+        except FileNotFoundError as error:  # no such bucket: said of the output
+            raise InputError(f"cannot write {url}: {describe(error)}") from None

@@ -32,7 +32,7 @@ import uuid
 from fsspec.implementations.local import LocalFileSystem
 
 from pipeline.stores.storage import check_place, resolve
-from stages.errors import InputError
+from stages.errors import InputError, describe
 
 FILENAME = "lease.json"
 HEARTBEAT = 5.0  # seconds between renewals
@@ -207,6 +207,8 @@ def _claimed_remote(url: str, fs, path: str, record: dict):
     with _remote_claims:
         try:
             write("create")
+        except FileNotFoundError as error:  # no such bucket (or container): said of the output, not of a read
+            raise InputError(f"cannot write {url}: {describe(error)}") from None
         except FileExistsError:
             other = read()
             if _live(other) is not None:

@@ -57,8 +57,9 @@ HEAD_BYTES = 2 * FRAME_BYTES + HALF_BYTES  # what finding the first whole frame 
 
 
 class CaptureDamaged(InputError):
-    """A capture's packets do not follow its layout (a packet dropped or corrupted): one line naming the first
-    bad packet's byte offset in the capture."""
+    """A capture's content is not what its format says: packets that do not follow its layout (a packet dropped or
+    corrupted: one line naming the first bad packet's byte offset), or an array's spike values other than 0 and 1
+    (``spike_arrays``). Found as its frames are read, and found again by any resume: the new store is removed."""
 
 
 def check_layout(name: str) -> str:
