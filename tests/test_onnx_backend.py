@@ -103,3 +103,18 @@ def test_backend_refusals(cli, wide, tmp_path, args, fragment):
     out = tmp_path / "out.zarr"
     assert_refused(cli("reconstruct", wide, out, *args, "--workers", 1), fragment)
     assert not out.exists()
+
+
+def test_weights_with_assembled_motion_are_refused_before_any_work(cli, wide, tmp_path):
+    """Their export fails in ONNX Runtime (an Unsqueeze of axis 4): every task failed, a 25-line traceback, and a
+    store of blank frames was left. Refused in one line, nothing made; torch runs them."""
+    from cscsr.network.config import named
+    from cscsr.network.model import CSCSR
+    from cscsr.weights.weights_io import save_weights
+
+    weights = tmp_path / "assembled.safetensors"
+    save_weights(CSCSR(named("lite").ablate(motion="assembled")), weights)
+    out = tmp_path / "out.zarr"
+    assert_refused(cli("reconstruct", wide, out, "--method", "cscsr", "--backend", "onnx", "--weights", weights,
+                       "--workers", 1), "--backend onnx runs the joint-motion network only")
+    assert not out.exists()

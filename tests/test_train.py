@@ -1,7 +1,9 @@
 """Training on clips simulated on the fly: reproducible clips, a falling loss, resumable checkpoints."""
 
 import json
+import os
 import shutil
+import stat
 
 import numpy as np
 import pytest
@@ -102,9 +104,15 @@ def test_a_resumed_run_ends_where_an_uninterrupted_one_does(tmp_path, two_steps,
         train(options, tmp_path / "split", log=lambda line: None)
     with pytest.raises(InputError, match="other options"):
         train(TrainOptions(steps=6, **{**TINY, "batch": 3}), tmp_path / "split", resume=True, log=lambda line: None)
-    said = []  # a resume to fewer steps than were run: it said nothing and simulated a pool for no step
-    train(TrainOptions(steps=2, **TINY), tmp_path / "split", resume=True, log=said.append)
+    said = []  # a resume to fewer steps than were run: it said nothing, simulated a pool for no step, and wrote
+    before = resumed.read_bytes()  # its weights file again, recording the options of the call that trained nothing
+    train(TrainOptions(steps=2, **{**TINY, "precision": "bf16"}), tmp_path / "split", resume=True, log=said.append)
     assert said == ["already at step 4 of --steps 2: nothing to train (give more --steps to go on)"]
+    assert resumed.read_bytes() == before
+    mask = os.umask(0)
+    os.umask(mask)
+    for written in (resumed, tmp_path / "split" / "checkpoint.safetensors"):  # safetensors wrote them 0600
+        assert stat.S_IMODE(written.stat().st_mode) == 0o666 & ~mask, written
 
 
 def test_a_resumed_run_may_anneal_with_a_shorter_decay(tmp_path, four_steps):
@@ -180,7 +188,7 @@ def test_export_weights_from_a_checkpoint(tmp_path, cli, two_steps):
     assert all(torch.equal(a, b) for a, b in zip(exported.state_dict().values(), final.state_dict().values()))
     assert cli("export-weights", tmp_path, tmp_path / "x.safetensors").exit_code == 1
     result = cli("export-weights", two_steps, tmp_path / "carried", "--portable", "--half")
-    assert result.exit_code == 0 and "after 2 steps in 1 parts" in result.stdout
+    assert result.exit_code == 0 and "after 2 steps in 1 part" in result.stdout
     assert [p.name for p in (tmp_path / "carried").iterdir()] == ["checkpoint.part-1-of-1.safetensors"]
 
 

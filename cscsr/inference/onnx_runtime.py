@@ -50,6 +50,10 @@ class OnnxNetwork:
 
     def __init__(self, model: torch.nn.Module):
         check_available()
+        if getattr(getattr(model, "config", None), "motion", "joint") != "joint":  # refused before any work
+            raise InputError("--backend onnx runs the joint-motion network only: these weights estimate motion per "
+                             "channel (--motion assembled), whose export ONNX Runtime cannot run (an Unsqueeze of "
+                             "axis 4); use --backend torch")
         self.model = model
         self.sessions: dict[tuple, object] = {}
         self._weights: str | None = None  # the SHA-256 of the model's tensors, once a graph is looked up

@@ -126,12 +126,13 @@ def train(options: TrainOptions, out: str | os.PathLike, *, resume: bool = False
             log(f"step {step}/{options.steps}  loss {entry['loss']:.4f}  val {score:.2f} dB (TFP base {base:.2f} dB)"
                 f"  {rate:.2f} samples/s")
         if stopping:
-            log(f"stopped at step {step} of {options.steps}: the time budget of {options.time_budget:.0f} s is "
+            log(f"stopped at step {step} of {options.steps}: the time budget of {options.time_budget:g} s is "
                 f"nearly spent; --resume continues")
             break
     batches.close()
     final = out / f"cscsr-{options.config}.safetensors"
-    save_weights(model, final, **_about(step, options, command))
+    if seen or not final.exists():  # a resume with nothing to train leaves the run's file (and its record) alone
+        save_weights(model, final, **_about(step, options, command))
     return final
 
 
@@ -164,7 +165,7 @@ def _about(step: int, options: TrainOptions, command: str) -> dict:
             "data": f"simulated on the fly{f' by the torch synthesis on {options.device}' if options.on_device_synthesis else ''}"
                     ": dead leaves "
                     f"({options.dead_leaves:.0%} of clips) and "
-                    + (f"the pictures in {', '.join(options.picture_folders())} (sequences of frames with their own motion)"
+                    + (f"the pictures in {', '.join(options.picture_folders())} (stills along random camera paths, runs of consecutive frames with their own motion)"
                         if options.pictures else
                        f"scikit-image pictures ({', '.join(TRAIN_PICTURES)})") + ", random camera paths, alpha 0.6-1.0, both resets, "
                     "realistic noise on half, "

@@ -14,6 +14,7 @@ import torch
 
 from cscsr.network.model import CSCSR
 from cscsr.training.training_options import TrainOptions
+from cscsr.weights.weights_io import readable
 from stages.errors import InputError
 
 
@@ -38,6 +39,7 @@ def save_checkpoint(path: Path, model: CSCSR, optimiser: torch.optim.Optimizer, 
     partial = path.with_suffix(".partial")
     try:
         save_file(tensors, str(partial), metadata=metadata)
+        readable(partial)
         os.replace(partial, path)  # a killed run never leaves half a checkpoint
     except BaseException:  # an interrupt (Ctrl-C, SIGTERM) mid-save: nothing half-written left behind either
         partial.unlink(missing_ok=True)

@@ -54,6 +54,15 @@ def save_weights(model, path: str | os.PathLike, storage: str = "float32", **abo
             value = stored
         tensors[name] = value.contiguous()
     save_file(tensors, str(path), metadata=metadata)
+    readable(path)
+
+
+def readable(path: str | os.PathLike) -> None:
+    """Give a file safetensors wrote (mode 0600, as its temporary file is) the mode any new file gets here (0644
+    under the usual umask): weights and checkpoints are read by other users, containers and workers."""
+    mask = os.umask(0)
+    os.umask(mask)
+    os.chmod(path, 0o666 & ~mask)
 
 
 def annotate(source: str | os.PathLike, dest: str | os.PathLike, **about: str) -> None:
@@ -62,6 +71,7 @@ def annotate(source: str | os.PathLike, dest: str | os.PathLike, **about: str) -
 
     metadata = {**read_metadata(source), **{k: str(v) for k, v in about.items()}}
     save_file(load_file(str(source)), str(dest), metadata=metadata)
+    readable(dest)
 
 
 def resolve_weights(path: str | os.PathLike) -> Path:

@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 import typer
 
 from rich.table import Table
-from pipeline.cli.core import Scheduler, Workers, command, command_line, show_table, stdout
+from pipeline.cli.core import Scheduler, Workers, command, command_line, counted, show_table, stdout
 
 
 @command("model-info")
@@ -60,7 +60,8 @@ def train(context: typer.Context,
           threads: Annotated[Optional[int], typer.Option(help="Torch threads (default: every core).")] = None,
           channels_last: Annotated[bool, typer.Option("--channels-last", help="Convolutions on NHWC tensors (the "
                                                       "same training within rounding; may change on --resume).")] = False,
-          resume: Annotated[bool, typer.Option("--resume", help="Continue from OUT/checkpoint.safetensors (exact), "
+          resume: Annotated[bool, typer.Option("--resume", help="Continue from OUT/checkpoint.safetensors (to float "
+                                                       "rounding), "
                                                        "or from the parts of a portable checkpoint in OUT.")] = False):
     """Train the CSCSR network on clips simulated on the fly; resumable."""
     import torch
@@ -119,7 +120,7 @@ def export_weights(folder: Annotated[str, typer.Argument(help="A cscsr train fol
     check_apart(dest, os.path.join(folder, "checkpoint.safetensors"))  # the file it reads (DEST may sit beside it)
     if portable:
         step, parts = export_portable(folder, dest, weights="float16" if half else "float32", overwrite=overwrite)
-        stdout.print(f"{dest}: the checkpoint after {step} steps in {len(parts)} parts")
+        stdout.print(f"{dest}: the checkpoint after {counted(step, 'step')} in {counted(len(parts), 'part')}")
         return
     step = run(folder, dest, storage="float16" if half else "float32", overwrite=overwrite)
     stdout.print(f"{dest}: weights after {step} steps")
