@@ -165,7 +165,8 @@ def _about(step: int, options: TrainOptions, command: str) -> dict:
             "data": f"simulated on the fly{f' by the torch synthesis on {options.device}' if options.on_device_synthesis else ''}"
                     ": dead leaves "
                     f"({options.dead_leaves:.0%} of clips) and "
-                    + (f"the pictures in {', '.join(options.picture_folders())} (stills along random camera paths, runs of consecutive frames with their own motion)"
+                    + (f"the pictures in {', '.join(options.picture_folders())} (stills along random camera paths, "
+                       "runs of consecutive frames with their own motion)"
                         if options.pictures else
                        f"scikit-image pictures ({', '.join(TRAIN_PICTURES)})") + ", random camera paths, alpha 0.6-1.0, both resets, "
                     "realistic noise on half, "
