@@ -60,9 +60,16 @@ def save_weights(model, path: str | os.PathLike, storage: str = "float32", **abo
 def readable(path: str | os.PathLike) -> None:
     """Give a file safetensors wrote (mode 0600, as its temporary file is) the mode any new file gets here (0644
     under the usual umask): weights and checkpoints are read by other users, containers and workers."""
-    mask = os.umask(0)
+    os.chmod(path, 0o666 & ~_UMASK)
+
+
+def _umask() -> int:
+    mask = os.umask(0)  # read by setting it: done once, at import, before a training's threads start
     os.umask(mask)
-    os.chmod(path, 0o666 & ~mask)
+    return mask
+
+
+_UMASK = _umask()
 
 
 def annotate(source: str | os.PathLike, dest: str | os.PathLike, **about: str) -> None:
