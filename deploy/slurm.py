@@ -117,7 +117,10 @@ def refused_submission(script: str) -> str | None:
     """What ``sbatch --test-only`` says against the job script (a partition, account or --gres SLURM does not
     have), or None if it would take it: a submission that fails later is only logged by dask-jobqueue, and the
     command then waited for workers that were never asked for."""
-    done = subprocess.run(["sbatch", "--test-only"], input=script, capture_output=True, text=True)
+    try:
+        done = subprocess.run(["sbatch", "--test-only"], input=script, capture_output=True, text=True)
+    except FileNotFoundError:
+        return "no sbatch command here: run this on a SLURM login node"
     said = (done.stderr or done.stdout).strip().splitlines()
     return None if done.returncode == 0 else (said[-1] if said else f"exit status {done.returncode}")
 
