@@ -164,3 +164,37 @@ def test_workers_and_a_named_scheduler_contradict_each_other(cli, small_dat, tmp
                  ("watch", tmp_path, tmp_path / "out", "--once")):
         assert_refused(cli(*args, *both), "--workers 1 and --scheduler tcp://127.0.0.1:1 contradict each other")
         assert not (tmp_path / "out.zarr").exists() and not (tmp_path / "out").exists()
+
+
+def test_options_that_would_be_ignored_or_that_are_no_rate_are_refused(cli, small_dat, tmp_path):
+    """--speed and --deform shape the random camera path alone: with a static picture or a video they were ignored
+    without a word. An --fps below 1 is a frame period given for the rate (5e-05 s at 20 kHz): it was recorded, and
+    every time (--start 2.5s, the video's t) came out 10^8 times too long. Each refused before anything is made, in
+    the CLI and in the Python API's words."""
+    import imageio.v3 as iio
+
+    from cscsr import lazy
+    from stages.errors import InputError
+
+    picture, folder = tmp_path / "p.png", tmp_path / "video"
+    iio.imwrite(picture, np.zeros((32, 32, 3), np.uint8))
+    folder.mkdir()
+    for i in range(2):
+        iio.imwrite(folder / f"{i}.png", np.full((32, 32, 3), 60 * i, np.uint8))
+    out = tmp_path / "out.zarr"
+    for args, words in (
+            (("simulate", picture, out, "--motion", "static", "--speed", 1),
+             "--speed applies to the random camera path (--motion random) only, not to --motion static"),
+            (("simulate", folder, out, "--deform", 0.5, "--speed", 1),
+             "--speed and --deform apply to the random camera path (--motion random) only, not to a video's own"),
+            (("simulate", picture, out, "--motion", "random", "--fps", 5e-5),
+             "--fps must be >= 1 spike frame a second, got 5e-05: it is a rate, not a frame period"),
+            (("ingest", small_dat, out, "--height", 8, "--width", 16, "--fps", 0.5), "--fps must be >= 1"),
+            (("ingest", small_dat, out, "--height", 8, "--width", 16, "--fps", 0), "--fps must be > 0, got 0")):
+        assert_refused(cli(*args), words)
+        assert not out.exists()
+    assert cli("simulate", picture, out, "--motion", "random", "--speed", 0.2, "--frames", 41).exit_code == 0
+    with pytest.raises(InputError, match=r"^speed applies to the random camera path \(motion random\) only"):
+        lazy.open_frames(picture, frames=41, motion="static", speed=1.0)
+    with pytest.raises(InputError, match=r"^fps must be >= 1 spike frame a second, got 0.5"):
+        lazy.simulate(lazy.open_frames(picture, frames=41, motion="random"), fps=0.5)

@@ -129,8 +129,10 @@ def simulate(src: Annotated[str, typer.Argument(help="A video, a folder of frame
              reset: Annotated[str, typer.Option(help="zero (the paper) or subtract (real sensors).")] = "zero",
              interp: Annotated[str, typer.Option(help="Frame interpolation: flow or linear.")] = "flow",
              truth_every: Annotated[int, typer.Option(help="Ground truth every K frames from frame 20.")] = WINDOW,
-             speed: Annotated[float, typer.Option(help="Random motion: typical HR pixels per frame.")] = 0.5,
-             deform: Annotated[float, typer.Option(help="Random motion: local deformation, HR pixels.")] = 0.0,
+             speed: Annotated[Optional[float], typer.Option(help="--motion random: typical HR pixels per frame "
+                                                                 "(default 0.5).")] = None,
+             deform: Annotated[Optional[float], typer.Option(help="--motion random: local deformation, HR pixels "
+                                                                  "(default 0).")] = None,
              fps: Annotated[float, typer.Option(help="Spike frames per second.")] = 20000.0,
              chunk_frames: Annotated[Optional[int], typer.Option(help="Frames per time chunk (default ~4 MiB).")] = None,
              workers: Workers = None, scheduler: Scheduler = None,

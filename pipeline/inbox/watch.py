@@ -49,7 +49,7 @@ from pipeline.jobs.export import export_mp4
 from pipeline.jobs.ingest import IngestOptions, capture_fields, ingest
 from pipeline.inbox.ledger import Ledger
 from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct, reconstructor
-from pipeline.stores.spike_store import open_spike_store
+from pipeline.stores.spike_store import check_fps, open_spike_store
 from pipeline.stores.storage import check_apart, exists, is_local, local_kind, resolve
 from pipeline.stores.video_store import open_video_store
 from stages.reconstruction.cfa import check_cfa
@@ -92,7 +92,7 @@ class WatchOptions:
         for name in ("height", "width"):
             if getattr(self.defaults, name) is not None:
                 check_number(f"--{name}", getattr(self.defaults, name), at_least=1, integer=True)
-        check_number("--fps", self.defaults.fps, above=0)
+        check_fps("--fps", self.defaults.fps)
         if self.defaults.cfa is not None:
             check_cfa(self.defaults.cfa)
         check_reset(self.defaults.reset)

@@ -48,7 +48,7 @@ from pipeline.compute.hold import hold_point
 from pipeline.stores.lease import check_free
 from pipeline.stores.outputs import SPIKE_STORE, check_existing
 from pipeline.compute.progress import is_quiet
-from pipeline.stores.spike_store import (CODEC_LEVEL, COMMITTED, WRITE_CONFIG, SpikeMeta, SpikeStore,
+from pipeline.stores.spike_store import (CODEC_LEVEL, COMMITTED, WRITE_CONFIG, SpikeMeta, SpikeStore, check_fps,
                                   chunk_frames_for, ingest_task_arrays, open_spike_store)
 from pipeline.stores.spike_writes import SpikesIncomplete, SpikeWrites, write_packed, write_store
 from pipeline.stores.storage import check_apart, exists, recorded, remove
@@ -91,7 +91,7 @@ class IngestOptions:
             if getattr(self, name) is not None:
                 check_number(f"--{name}", getattr(self, name), integer=True)
         check_text("--cfa", self.cfa)
-        check_number("--fps", self.fps, above=0)
+        check_fps("--fps", self.fps)
         check_flag("--flip", self.flip)
         check_number("--head-columns", self.head_columns, integer=True)
         check_text("--key", self.key, optional=True)

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.stores.frame_sources import FrameSource
-from pipeline.stores.spike_store import SpikeMeta
+from pipeline.stores.spike_store import SpikeMeta, check_fps
 from pipeline.stores.storage import resolve
 from stages.errors import InputError
 from stages.numbers import check_flag, check_number, check_text
@@ -49,8 +49,8 @@ class SimulateOptions:
     reset: str = "zero"
     interp: str = "flow"
     truth_every: int = WINDOW
-    speed: float = 0.5  # random motion: typical HR pixels per spike frame
-    deform: float = 0.0  # random motion: local deformation amplitude, HR pixels
+    speed: float | None = None  # random motion: typical HR pixels per spike frame (None: CameraPath.random's)
+    deform: float | None = None  # random motion: local deformation amplitude, HR pixels (None: CameraPath.random's)
     fps: float = 20000.0
     chunk_frames: int | None = None
     overwrite: bool = False
@@ -66,7 +66,8 @@ class SimulateOptions:
         if self.chunk_frames is not None:
             check_number("--chunk-frames", self.chunk_frames, integer=True)
         for name in ("brightness", "threshold", "speed", "deform", "fps"):
-            check_number(f"--{name}", getattr(self, name))
+            if getattr(self, name) is not None or name not in ("speed", "deform"):
+                check_number(f"--{name}", getattr(self, name))
         check_flag("--overwrite", self.overwrite)
 
     def sensor_model(self) -> sensor.SensorModel:
@@ -99,8 +100,8 @@ def check_options(options: SimulateOptions, source: FrameSource) -> tuple[int, i
         raise InputError(f"{source.url} has {source.n_frames} frame: give --motion static|random to move a still image")
     if options.motion is not None and source.n_frames != 1:
         raise InputError("--motion applies to a single image; a video or folder brings its own motion")
-    check_number("--speed", options.speed, at_least=0)
-    check_number("--deform", options.deform, at_least=0)
+    check_path_options(options.motion, options.speed, options.deform)
+    check_fps("--fps", options.fps)
     if options.chunk_frames is not None:  # 0 must not mean "the default"
         check_number("--chunk-frames", options.chunk_frames, at_least=1, integer=True)
     if cfa == "mono" and (source.height % options.scale or source.width % options.scale):  # any LR size
@@ -123,10 +124,22 @@ def simulated_meta(options: SimulateOptions, height: int, width: int, source: st
                             "truth_every": options.truth_every, "simulated": True})
 
 
+def check_path_options(motion: str | None, speed: float | None, deform: float | None) -> None:
+    """Refuse ``--speed`` and ``--deform`` (None where not given) where there is no random camera path for them to
+    shape: they would be ignored without a word. Each given one must be a number >= 0."""
+    given = {name: value for name, value in (("--speed", speed), ("--deform", deform)) if value is not None}
+    if given and motion != "random":
+        scene = f"--motion {motion}" if motion else "a video's own motion"
+        raise InputError(f"{' and '.join(given)} appl{'ies' if len(given) == 1 else 'y'} to the random camera path "
+                         f"(--motion random) only, not to {scene}")
+    for name, value in given.items():
+        check_number(name, value, at_least=0)
+
+
 # ---- the scene ----
 
-def open_scene(source: FrameSource, *, frames: int | None, motion: str | None, seed: int, speed: float,
-               deform: float, interp: str, scale: int) -> "CameraFrames | VideoFrames | SourceFrames":
+def open_scene(source: FrameSource, *, frames: int | None, motion: str | None, seed: int, speed: float | None,
+               deform: float | None, interp: str, scale: int) -> "CameraFrames | VideoFrames | SourceFrames":
     """The scene of ``source`` (as ``open_frame_source`` opened it; ``lazy.open_frames`` says what each option means):
     a picture under ``motion`` over ``frames`` frames, a video spread over ``frames`` spike frames, or (no
     ``frames``) a source's own frames; its first frame read now (its dtype and colours are every frame's). One line, in Python words, for a
@@ -138,7 +151,8 @@ def open_scene(source: FrameSource, *, frames: int | None, motion: str | None, s
         if frames is None or motion not in MOTIONS:
             raise InputError(f"{url} is one picture: give frames= and motion= ({' or '.join(MOTIONS)}), the "
                              f"scene's length and how the camera moves, got frames={frames}, motion={motion!r}")
-        path = CameraPath.random(frames, source.height, source.width, seed=seed, speed=speed, deform=deform) \
+        shape = {name: value for name, value in (("speed", speed), ("deform", deform)) if value is not None}
+        path = CameraPath.random(frames, source.height, source.width, seed=seed, **shape) \
             if motion == "random" else None
         return CameraFrames(source, frames, first.dtype.str, first.shape[-1], path, seed, version)
     if motion is not None:

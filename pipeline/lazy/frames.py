@@ -14,7 +14,7 @@ import xarray as xr
 
 from pipeline.jobs.simulate import frames_array
 from pipeline.jobs.simulate_plan import (MAX_FRAMES, MAX_FRAMES_WHY, TRUTH_SCALES, CameraFrames, VideoFrames,
-                                         open_scene)
+                                         check_path_options, open_scene)
 from pipeline.lazy.spikes import check_here, python_words, url_text
 from pipeline.stores.frame_sources import open_frame_source
 from pipeline.stores.storage import recorded
@@ -28,7 +28,7 @@ _SCENES: "weakref.WeakValueDictionary" = weakref.WeakValueDictionary()  # a grap
 
 
 def open_frames(url, *, chunk_frames: int | None = None, frames: int | None = None, motion: str | None = None,
-                seed: int = 0, speed: float = 0.5, deform: float = 0.0, interp: str = "flow",
+                seed: int = 0, speed: float | None = None, deform: float | None = None, interp: str = "flow",
                 scale: int = 4) -> xr.DataArray:
     """The frames at ``url`` (a video, a folder of pictures, a Zarr video, a picture) as lazy scene frames
     ``(t, y, x, rgb)``, ``chunk_frames`` frames a block (default: about ``pipeline.jobs.simulate.BLOCK_BYTES``);
@@ -56,8 +56,7 @@ def open_frames(url, *, chunk_frames: int | None = None, frames: int | None = No
         check_text("motion", motion, optional=True)
         check_text("interp", interp)
         check_number("seed", seed, at_least=0, integer=True)
-        check_number("speed", speed, at_least=0)
-        check_number("deform", deform, at_least=0)
+        check_path_options(motion, speed, deform)
         if interp not in INTERPOLATIONS:
             raise InputError(f"unknown interpolation {interp!r}: expected one of {', '.join(INTERPOLATIONS)}")
         if scale not in TRUTH_SCALES:

@@ -57,6 +57,17 @@ SPIKES_PACKING = "8 pixels per byte along x, least significant bit first: pixel 
 WRITE_CONFIG = {"threading.max_workers": os.cpu_count() or 1, "async.concurrency": 2 * (os.cpu_count() or 1)}
 
 
+MIN_FPS = 1.0  # spike frames a second: a rate below it is a frame period given for the rate (5e-05 s at 20 kHz)
+
+
+def check_fps(name: str, fps) -> None:
+    """Refuse a spike-frame rate that is no rate (not a number > 0) or that is a frame period given for one."""
+    check_number(name, fps, above=0)
+    if fps < MIN_FPS:
+        raise InputError(f"{name} must be >= {MIN_FPS:g} spike frame a second, got {fps:g}: it is a rate, not a "
+                         f"frame period (20 kHz is {name} 20000)")
+
+
 @dataclass(frozen=True)
 class SpikeMeta:
     """What a spike store says about its recording (the group's attributes)."""
@@ -76,7 +87,7 @@ class SpikeMeta:
 
     def __post_init__(self):
         object.__setattr__(self, "cfa", check_cfa(self.cfa, self.height, self.width))
-        check_number("fps", self.fps, above=0)
+        check_fps("fps", self.fps)
         object.__setattr__(self, "fps", as_float(self.fps))  # an int fps records the bytes a float one does
         for name in ("gain", "threshold"):  # optional: simulated stores record them
             if getattr(self, name) is not None:
@@ -112,7 +123,7 @@ _ATTRIBUTE_TYPES = {"height": int, "width": int, "head_columns": int, "spike_cou
 
 # The range of each number a store records: finite, and one that its readers can use (a negative
 # gain or a scale of 0 would otherwise fail inside every task, an infinite fps print as invalid JSON).
-_ATTRIBUTE_RANGES = {"fps": {"above": 0}, "gain": {"above": 0, "at_most": MAX_GAIN}, "threshold": {"above": 0},
+_ATTRIBUTE_RANGES = {"fps": {"above": 0, "at_least": MIN_FPS}, "gain": {"above": 0, "at_most": MAX_GAIN}, "threshold": {"above": 0},
                      "spike_count": {"at_least": 0}, "frames": {"at_least": 0}, "scale": {"at_least": 1},
                      "truth_every": {"at_least": 1, "integer": True}, "brightness": {"above": 0}}
 
