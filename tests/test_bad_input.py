@@ -193,8 +193,29 @@ def test_options_that_would_be_ignored_or_that_are_no_rate_are_refused(cli, smal
             (("ingest", small_dat, out, "--height", 8, "--width", 16, "--fps", 0), "--fps must be > 0, got 0")):
         assert_refused(cli(*args), words)
         assert not out.exists()
-    assert cli("simulate", picture, out, "--motion", "random", "--speed", 0.2, "--frames", 41).exit_code == 0
+    assert lazy.open_frames(picture, frames=41, motion="random", speed=0.2).shape == (41, 32, 32, 3)
     with pytest.raises(InputError, match=r"^speed applies to the random camera path \(motion random\) only"):
         lazy.open_frames(picture, frames=41, motion="static", speed=1.0)
     with pytest.raises(InputError, match=r"^fps must be >= 1 spike frame a second, got 0.5"):
         lazy.simulate(lazy.open_frames(picture, frames=41, motion="random"), fps=0.5)
+
+
+def test_a_new_store_named_as_a_file_of_another_format_is_refused(cli, small_dat, tmp_path):
+    """``reconstruct rec.zarr out.mp4`` wrote a Zarr folder named out.mp4 (no video), ``ingest c.dat c.npy`` a
+    spike store named as a NumPy file: refused in one line that names the store to give and the export that
+    makes the file, before anything is made; in the Python API too."""
+    from cscsr import lazy
+    from stages.errors import InputError
+
+    store = tmp_path / "s.zarr"
+    assert cli("ingest", small_dat, store, "--height", 8, "--width", 16).exit_code == 0
+    for args, words in ((("reconstruct", store, tmp_path / "out.mp4"),
+                         f"out.mp4 names a video file, but this writes a video store (a Zarr folder): name it "
+                         f"{tmp_path / 'out.zarr'} (cscsr export"),
+                        (("ingest", small_dat, tmp_path / "out.npy", "--height", 8, "--width", 16),
+                         "out.npy names a NumPy array, but this writes a spike store"),
+                        (("reconstruct", store, tmp_path / "out.PNG", "--dry-run"), "out.PNG names a picture")):
+        assert_refused(cli(*args), words)
+    with pytest.raises(InputError, match=r"out.avi names a video file, but this writes a video store"):
+        lazy.to_video(lazy.reconstruct(lazy.windows(lazy.open_spikes(store)), method="tfp"), tmp_path / "out.avi")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ok.dat", "s.zarr"]

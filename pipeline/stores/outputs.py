@@ -57,6 +57,15 @@ IMAGE_MAGIC = {".png": lambda b: b.startswith(b"\x89PNG\r\n\x1a\n"), ".jpg": lam
 _MAGIC = {**IMAGE_MAGIC, ".mp4": lambda b: b[4:8] == b"ftyp",
           ".dat": lambda b: True}  # raw bits: any bytes are a capture
 _FRAME = re.compile(r"frame_\d+\.png")
+# Names that say "a file of this format": a Zarr store (a folder) under one was taken for that file
+# (``reconstruct rec.zarr out.mp4`` wrote a store named out.mp4, no video).
+_FILE_NAMES = {**{suffix: "a picture" for suffix in IMAGE_MAGIC}, ".gif": "a picture",
+               **{suffix: "a video file" for suffix in (".mp4", ".avi", ".mov", ".mkv", ".webm")},
+               ".dat": "a raw capture", ".npy": "a NumPy array", ".npz": "NumPy arrays", ".bin": "a raw file",
+               ".h5": "an HDF5 file", ".hdf5": "an HDF5 file", ".mat": "a MATLAB file", ".json": "a JSON file",
+               ".csv": "a CSV table", ".txt": "a text file"}
+_EXPORTS = {VIDEO_STORE: "cscsr export {store} VIDEO.mp4 or FOLDER/ makes the video",
+            SPIKE_STORE: "cscsr export {store} CAPTURE.dat writes the raw capture"}
 
 
 def _names(fs, path: str) -> list[str]:
@@ -153,14 +162,26 @@ def mark_folder(url: str, kind: str) -> None:
 
 
 def check_existing(url: str, *, overwrite: bool, kind: str, flag: str) -> bool:
-    """For an output about to be written: True if one exists and may be replaced; refuses otherwise."""
+    """For an output about to be written: True if one exists and may be replaced; refuses otherwise (a new store
+    under a file format's name too)."""
     if not exists(url):
+        check_store_name(url, kind)
         return False
     check_free(url)
     check_ours(url, kind)
     if not overwrite:
         raise unfinished_error(url, left, flag) if (left := leftover(url, kind)) else exists_error(url, flag)
     return True
+
+
+def check_store_name(url: str, kind: str) -> None:
+    """Refuse a new Zarr store of ``kind`` named as a file of another format (``out.mp4``, ``rec.dat``): the user
+    asked for that file, and would get a folder of Zarr chunks under its name."""
+    suffix = os.path.splitext(str(url).rstrip("/"))[1].lower()
+    if kind in _STORES and suffix in _FILE_NAMES:
+        store = str(url).rstrip("/")[: -len(suffix)] + ".zarr"
+        raise InputError(f"{url} names {_FILE_NAMES[suffix]}, but this writes a {kind} (a Zarr folder): name it "
+                         f"{store} ({_EXPORTS[kind].format(store=store)})")
 
 
 def leftover(url: str, kind: str) -> str | None:
