@@ -196,8 +196,9 @@ def test_an_sps100_capture_cut_short_is_what_ingest_stores(tmp_path, monkeypatch
     with caplog.at_level(logging.WARNING, logger="cscsr.lazy"):
         spikes = lazy.open_capture(tmp_path / "c.dat", layout="sps100", cfa="rggb")
     assert [r.getMessage() for r in caplog.records if r.name == "cscsr.lazy"] == [
-        f"{tmp_path / 'c.dat'}: its last {tail} bytes, after frame 2, are a frame cut short (its packets in "
-        f"sequence): not read"]
+        f"{tmp_path / 'c.dat'}: its first 320 bytes, before frame 0, are a frame the capture began inside of: not "
+        f"read", f"{tmp_path / 'c.dat'}: its last {tail:,} bytes, after frame 2, are a frame cut short (its packets "
+        f"in sequence): not read"]
     assert spikes.shape == (3, 1000, 1000)
     check_against_ingest(tmp_path, tmp_path / "c.dat", IngestOptions(cfa="rggb", layout="sps100", task_frames=2),
                          layout="sps100", cfa="rggb")

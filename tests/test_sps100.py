@@ -170,30 +170,30 @@ def test_a_packet_dropped_in_the_last_frame_is_refused_naming_its_offset(cli, cl
     assert not (tmp_path / "p.zarr").exists()
 
 
-@pytest.mark.parametrize("tail", [64 * 700 + 32, 48, 0])
-def test_a_capture_cut_short_in_its_last_frame_is_read_and_said_in_one_line(cli, client, tmp_path, small_chunks,
-                                                                            caplog, tail):
-    """Cut at a packet boundary in a frame (its packets in sequence): its whole frames, and one warning line
-    naming the bytes not read, in one process and in parallel; none when it ends with a whole frame."""
+@pytest.mark.parametrize("lead,tail", [(64 * 5, 64 * 700 + 32), (0, 48), (64 * 5, 0), (0, 0)])
+def test_partial_frames_at_either_end_are_not_read_and_said_in_one_line_each(cli, client, tmp_path, small_chunks,
+                                                                             caplog, lead, tail):
+    """Begun inside a frame, or cut at a packet boundary in its last (its packets in sequence): its whole frames,
+    and one warning line for each end naming the bytes not read (the leading ones were skipped without a word),
+    in one process and in parallel; none when it begins and ends with a whole frame."""
     bits = spikes(3, seed=6)
-    write_capture(tmp_path / "c.dat", bits, lead=64 * 5, tail=tail)
+    write_capture(tmp_path / "c.dat", bits, lead=lead, tail=tail)
+    lines = ([f"{tmp_path / 'c.dat'}: its first {lead:,} bytes, before frame 0, are a frame the capture began "
+              f"inside of: not read"] if lead else []) + \
+        ([f"{tmp_path / 'c.dat'}: its last {tail:,} bytes, after frame 2, are a frame cut short (its packets in "
+          f"sequence): not read"] if tail else [])
     one = cli("-q", "ingest", tmp_path / "c.dat", tmp_path / "one.zarr", "--layout", "sps100", "--task-frames", "2")
     assert one.exit_code == 0 and one.stdout.startswith(f"{tmp_path / 'one.zarr'}: "), one.stderr
     assert np.array_equal(stored(tmp_path / "one.zarr"), bits)
-    if tail:
-        assert one.stderr.strip().count("\n") == 0 and "WARNING cscsr.ingest" in one.stderr
-        assert f"c.dat: its last {tail} bytes, after frame 2, are a frame cut short" in one.stderr
-        assert "not read" in one.stderr
-    else:
-        assert one.stderr == ""
+    said = one.stderr.strip().splitlines()
+    assert len(said) == len(lines) and all("WARNING cscsr.ingest" in line for line in said), one.stderr
+    assert all(line.endswith(text) for line, text in zip(said, lines)), one.stderr
     caplog.clear()  # (the command's line, which it also logged)
     with caplog.at_level("WARNING", logger="cscsr.ingest"):
         ingest(str(tmp_path / "c.dat"), str(tmp_path / "two.zarr"), IngestOptions(layout="sps100", task_frames=2),
                progress=False, client=client)
     assert store_files(tmp_path / "one.zarr") == store_files(tmp_path / "two.zarr")
-    said = [record.getMessage() for record in caplog.records if record.name == "cscsr.ingest"]
-    assert said == ([f"{tmp_path / 'c.dat'}: its last {tail} bytes, after frame 2, are a frame cut short (its "
-                     f"packets in sequence): not read"] if tail else [])
+    assert [record.getMessage() for record in caplog.records if record.name == "cscsr.ingest"] == lines
 
 
 def test_options_and_captures_that_do_not_fit_the_layout_are_refused(cli, tmp_path):

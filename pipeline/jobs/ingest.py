@@ -259,11 +259,18 @@ def check_same_capture(dest: str, src: str, found: dict, record: dict, *, task_f
                          f"those, or start again with {again}")
 
 
-def cut_short(src: str, unread: int, n_frames: int) -> str:
-    """The line that says a capture's last ``unread`` bytes, after its ``n_frames`` whole frames, are a frame cut
-    short (checked with the last frames: ``captures.RawCapture._packed``), not read."""
-    return (f"{src}: its last {unread} bytes, after frame {n_frames - 1}, are a frame cut short (its packets in "
-            f"sequence): not read")
+def unread_parts(src: str, capture, n_frames: int) -> list[str]:
+    """The lines that say which bytes of ``capture`` are not read: those before its first whole frame (an sps100
+    capture begun mid-frame) and those after its ``n_frames`` whole frames (a frame cut short, its packets checked
+    with the last frames: ``captures.RawCapture._packed``); none for most captures."""
+    lines = []
+    if lead := capture.unread_lead:
+        lines.append(f"{src}: its first {lead:,} bytes, before frame 0, are a frame the capture began inside of: "
+                     f"not read")
+    if unread := capture.unread_bytes:
+        lines.append(f"{src}: its last {unread:,} bytes, after frame {n_frames - 1}, are a frame cut short (its "
+                     f"packets in sequence): not read")
+    return lines
 
 
 def _resumed(dest: str) -> SpikeStore:
@@ -333,8 +340,8 @@ def run_ingest(src: str, dest: str, options: IngestOptions = IngestOptions(), *,
         written = write_store(writes, None, client=client, overwrite=options.overwrite, resume=options.resume,
                               truth=None, progress=progress, title=f"ingest {src}", keep_partial=parallel,
                               flag="--resume or --overwrite")
-    if unread := job.capture.unread_bytes:  # checked with the last frames (captures.RawCapture._packed): cut short
-        log.warning("%s", cut_short(src, unread, plan.n_frames))
+    for line in unread_parts(src, job.capture, plan.n_frames):
+        log.warning("%s", line)
     return {name: written[name] for name in ("attrs", "frames", "tasks", "tasks_run", "tasks_skipped")}
 
 

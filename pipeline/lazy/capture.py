@@ -27,7 +27,7 @@ import xarray as xr
 from dask.base import tokenize
 
 from pipeline.jobs.ingest import (CaptureFrames, IngestOptions, capture_change, capture_meta, capture_record,
-                                  cut_short, opened_capture, opened_frames)
+                                  opened_capture, opened_frames, unread_parts)
 from pipeline.lazy.spikes import as_spikes, check_here, python_words, url_text
 from pipeline.stores.captures import RANGED_KINDS
 from pipeline.stores.spike_store import chunk_frames_for
@@ -65,8 +65,8 @@ def open_capture(path, *, height: int | None = None, width: int | None = None, l
         n_frames = capture.n_frames
         if capture.unread_bytes:  # a frame cut short: its packets checked now, with the last whole frame's
             capture.read(n_frames - 1, n_frames)
-    if capture.unread_bytes:
-        log.warning("%s", cut_short(path, capture.unread_bytes, n_frames))
+    for line in unread_parts(path, capture, n_frames):
+        log.warning("%s", line)
     frames = CaptureFrames(path, options.height, options.width, flip, head_columns, layout, n_frames,
                            capture.height, packed_width(capture.width), json.dumps(record))
     chunk = min(chunk_frames or chunk_frames_for(meta, n_frames), n_frames)

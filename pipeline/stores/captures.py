@@ -8,8 +8,9 @@ A capture that is frames of a fixed size at a fixed offset (``.dat``, ``.npy``) 
 ``read(start, stop)`` reads frames ``[start, stop)`` by one byte-range request, which is what a
 parallel ingest's tasks do, each on its own worker (``pipeline.jobs.ingest``). What a capture offers:
 ``n_frames``, ``height``, ``width``, ``frame_bytes`` and ``offset`` (where frame 0 starts), ``ranged``,
-``read``, ``blocks``, ``fingerprint`` and ``unread_bytes`` (bytes at its end that are not read: 0 but for a
-layout that reads a trailing partial frame). Another raw layout plugs in as a :class:`RawCapture` with a
+``read``, ``blocks``, ``fingerprint``, ``unread_bytes`` (bytes at its end that are not read: 0 but for a
+layout that reads a trailing partial frame) and ``unread_lead`` (bytes before its first whole frame: 0 but for a
+layout that finds its first frame start). Another raw layout plugs in as a :class:`RawCapture` with a
 layout object of its own: its ``frame_bytes``, ``offset``, ``frame_count(nbytes)`` and
 ``to_packed(raw, first_frame)`` ((n, frame_bytes) uint8 frames ``first_frame``.. -> (n, H, ceil(W/8)) packed,
 upright), as :class:`stages.capture.dat.DatLayout` has, and ``check_tail(tail, first_frame)`` if its ``frame_count``
@@ -105,6 +106,7 @@ class RawCapture:
         nbytes = self.fs.size(self.path) - self.offset
         self.n_frames = self.layout.frame_count(nbytes)
         self.unread_bytes = nbytes - self.n_frames * self.frame_bytes  # a trailing partial frame, checked when read
+        self.unread_lead = self.offset  # bytes before frame 0: an sps100 capture begun mid-frame (a .dat's: none)
 
     @property
     def height(self) -> int:
@@ -170,7 +172,7 @@ class RawCapture:
 class ArrayCapture:
     """A (T, H, W) array of 0/1 in ``.npy`` or inside ``.npz``, streamed without loading it."""
 
-    unread_bytes = 0  # no trailing partial frame: its header says how many frames it holds
+    unread_bytes = unread_lead = 0  # no partial frame: its header says how many frames it holds, and where
 
     def __init__(self, url: str, *, key: str | None = None, flip: bool = False):
         self.url, self.flip = url, flip
