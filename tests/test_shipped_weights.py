@@ -81,3 +81,13 @@ def test_the_shipped_weights_are_named_by_their_configuration(held_out, client, 
                 client=client, progress=False)
     assert zarr.open_group(by_name, mode="r").attrs["weights"] == str(default_weights("full"))
     assert chunk_files(by_name) == chunk_files(by_path)
+
+
+def test_every_shipped_file_records_the_output_its_network_makes():
+    """A mono network's output is grey (three equal channels), not per colour: its file said "per colour (RGB)"."""
+    from cscsr.weights.weights_io import SHIPPED, conventions, load_model, read_metadata
+
+    for name in ("lite", "full", "lite-mono"):
+        path = SHIPPED / f"cscsr-{name}.safetensors"
+        assert read_metadata(path)["output"] == conventions(load_model(path)[0].config)["output"]
+    assert "grey" in read_metadata(SHIPPED / "cscsr-lite-mono.safetensors")["output"]

@@ -25,6 +25,12 @@ CONVENTIONS = {
     "output": "linear firing rate alpha*I/theta per colour (RGB); exposure is applied after",
     "scales": ",".join(map(str, NETWORK_SCALES)),
 }
+MONO_OUTPUT = "linear firing rate alpha*I/theta per pixel (grey, as three equal channels); exposure is applied after"
+
+
+def conventions(config: CSCSRConfig) -> dict:
+    """The conventions a file of ``config`` records: a mono network's output is grey, not per colour."""
+    return {**CONVENTIONS, "output": MONO_OUTPUT} if config.mono else dict(CONVENTIONS)
 SHIPPED = Path(__file__).parent  # the shipped files live beside it
 
 
@@ -41,7 +47,7 @@ def save_weights(model, path: str | os.PathLike, storage: str = "float32", **abo
 
     if storage not in STORAGE:
         raise InputError(f"unknown weights storage {storage!r}: expected one of {', '.join(STORAGE)}")
-    metadata = {**CONVENTIONS, "config": model.config.to_json(), "storage": storage,
+    metadata = {**conventions(model.config), "config": model.config.to_json(), "storage": storage,
                 **{k: str(v) for k, v in about.items()}}
     tensors = {}
     for name, value in model.state_dict().items():
