@@ -147,3 +147,61 @@ def test_the_lazy_graphs_example_prints_what_the_page_says(tmp_path):
     for line, documented in zip(printed, expected):
         assert re.fullmatch(".*".join(map(re.escape, documented.split("..."))), line), (line, documented)
     assert (tmp_path / "hr.zarr" / "zarr.json").exists() and (tmp_path / "mine.zarr" / "zarr.json").exists()
+
+
+def _anchors(text: str) -> set[str]:
+    """The anchors a Markdown page's headings get (GitHub's rule: lower case, punctuation dropped, spaces to '-',
+    a repeated heading numbered)."""
+    found, seen, fenced = set(), {}, False
+    for line in text.splitlines():
+        fenced = fenced != line.startswith("```")
+        heading = re.match(r"(#+)\s+(.*)", line) if not fenced else None
+        if heading:
+            title = re.sub(r"\[([^\]]*)\]\([^)]*\)", r"\1", heading.group(2)).replace("`", "")
+            slug = re.sub(r"[^\w\- ]", "", title.strip().lower()).replace(" ", "-")
+            found.add(f"{slug}-{seen[slug]}" if slug in seen else slug)
+            seen[slug] = seen.get(slug, 0) + 1
+    return found
+
+
+def test_every_link_between_the_pages_reaches_a_file_and_its_heading():
+    """A relative link names a file of the repository and, after '#', a heading of that page (a renamed heading
+    left training.md pointing at gpu.md's old anchor)."""
+    broken = []
+    for name, text in PAGES.items():
+        for number, line in enumerate(text.splitlines(), 1):
+            for link in re.findall(r"\]\(([^)\s]+)\)", line):
+                if re.match(r"[a-z]+:", link):
+                    continue
+                path, _, anchor = link.partition("#")
+                target = (ROOT / name).parent / path if path else ROOT / name
+                if not target.exists():
+                    broken.append(f"{name}:{number}: {link} (no such file)")
+                elif anchor and target.suffix == ".md" and anchor not in _anchors(target.read_text()):
+                    broken.append(f"{name}:{number}: {link} (no such heading)")
+    assert not broken, broken
+
+
+def test_every_python_name_the_pages_give_exists():
+    """``pipeline.jobs.simulate_plan.TRUTH_SCALES`` and the like, in backticks, import (a constant moved between
+    modules left layout.md naming one that did not); logger names aside."""
+    import importlib
+
+    missing, checked = [], 0
+    for name, text in PAGES.items():
+        for dotted in re.findall(r"(?<!logger )`((?:stages|pipeline|cscsr)(?:\.[A-Za-z_]\w*)+)`", text):
+            parts = dotted.split(".")
+            for cut in range(len(parts), 0, -1):
+                try:
+                    found = importlib.import_module(".".join(parts[:cut]))
+                    break
+                except ImportError:
+                    continue
+            try:
+                for part in parts[cut:]:
+                    found = getattr(found, part)
+                checked += 1
+            except AttributeError:
+                missing.append(f"{name}: {dotted}")
+    assert not missing, missing
+    assert checked > 40
