@@ -48,12 +48,18 @@ class Written:
     rows: tuple = ()
 
 
-def _options(kind, job: str, given: dict):
+def _options(kind, job, given: dict):
     """``kind(**given)``, checked (its ``check()``: the command's own checks), with an unknown option named in
-    one line with the ones there are; a path given as ``os.PathLike`` (``weights=Path(...)``) as a string."""
+    one line with every keyword ``job`` (the API function) takes, its own and the options; a path given as
+    ``os.PathLike`` (``weights=Path(...)``) as a string."""
+    import inspect
+
     names = [f.name for f in dataclasses.fields(kind)]
     if unknown := [name for name in given if name not in names]:
-        raise TypeError(f"{job}() got an unknown option {unknown[0]!r}: expected some of {', '.join(names)}")
+        own = [name for name, parameter in inspect.signature(job).parameters.items()
+               if parameter.kind is inspect.Parameter.KEYWORD_ONLY]
+        raise TypeError(f"{job.__name__}() got an unknown option {unknown[0]!r}: expected some of "
+                        f"{', '.join(own + names)}")
     options = kind(**{name: _plain(value) for name, value in given.items()})
     options.check()
     return options
@@ -142,7 +148,7 @@ def ingest(src: str, store: str, *, client=None, workers: int | None = None, sch
     src, store = _path("ingest", "src", src), _path("ingest", "store", store)
     _checked("ingest", client=client, workers=workers, scheduler=scheduler, progress=progress)
     check_flag("dry_run", dry_run)
-    checked = _options(IngestOptions, "ingest", options)
+    checked = _options(IngestOptions, ingest, options)
     if dry_run:
         return Written(str(store), {}, plan_ingest(src, store, checked, workers=workers, scheduler=scheduler,
                                                    client=client))
@@ -163,7 +169,7 @@ def simulate(src: str, store: str, *, client=None, workers: int | None = None, s
 
     src, store = _path("simulate", "src", src), _path("simulate", "store", store)
     _checked("simulate", client=client, workers=workers, scheduler=scheduler, progress=progress)
-    checked = _options(SimulateOptions, "simulate", options)
+    checked = _options(SimulateOptions, simulate, options)
     attrs = run(src, store, checked, workers=workers, progress=progress,
                 scheduler=_address_of(client) if client is not None else scheduler)
     return Written(str(store), dict(attrs), _spike_counts(store))
@@ -186,7 +192,7 @@ def reconstruct(store: str, out: str, *, client=None, workers: int | None = None
     store, out = _path("reconstruct", "store", store), _path("reconstruct", "out", out)
     _checked("reconstruct", client=client, workers=workers, scheduler=scheduler, progress=progress)
     check_flag("dry_run", dry_run)
-    counts = run(store, out, _options(ReconstructOptions, "reconstruct", options), workers=workers,
+    counts = run(store, out, _options(ReconstructOptions, reconstruct, options), workers=workers,
                  scheduler=scheduler, client=client, progress=progress, dry_run=dry_run)
     if dry_run:
         return Written(str(out), {}, dict(counts))

@@ -63,6 +63,12 @@ def test_bad_options_are_refused_before_any_output(capture, client, tmp_path):
     src, _, _ = capture
     with pytest.raises(TypeError, match="unknown option 'colour'.*height"):
         ingest(src, str(tmp_path / "a.zarr"), height=HEIGHT, width=WIDTH, colour="rggb")
+    # every keyword named, the function's own too (workers, dry_run, ... were left out)
+    with pytest.raises(TypeError, match=r"^reconstruct\(\) got an unknown option 'worker': expected some of client, "
+                                        r"workers, scheduler, progress, dry_run, method, "):
+        reconstruct(src, str(tmp_path / "a.zarr"), worker=2)
+    with pytest.raises(TypeError, match=r"^ingest\(\) got an unknown option 'dryrun': expected .*, dry_run, height"):
+        ingest(src, str(tmp_path / "a.zarr"), dryrun=True)
     with pytest.raises(InputError, match="unknown CFA .rgbw."):
         ingest(src, str(tmp_path / "b.zarr"), height=HEIGHT, width=WIDTH, cfa="rgbw")
     store = str(tmp_path / "spikes.zarr")

@@ -293,3 +293,27 @@ def test_the_job_s_workers_never_import_dask_array(still, tmp_path):
         imported = client.run(lambda: sorted(name for name in ("dask.array", "xarray", "pandas") if name in sys.modules))
     assert list(imported.values()) == [[]]
     assert zarr.open_group(str(tmp_path / "s.zarr"), mode="r").attrs["state"] == "complete"  # it ran there
+
+
+def test_a_failed_simulation_says_what_the_command_line_can_do(tmp_path, monkeypatch):
+    """A task's failure other than bad input (a worker's disk, a lost cluster): the error named what the Python API
+    can do (``call to_spikes again with resume=True``) to a user of ``cscsr simulate``, which has no --resume and
+    removed the store. It says the store was removed and to run the command again."""
+    import pipeline.jobs.simulate as job
+    from pipeline.stores.spike_writes import SpikesIncomplete
+
+    def failed(writes, *args, **kwargs):
+        try:
+            raise OSError(28, "No space left on device")
+        except OSError as cause:
+            raise SpikesIncomplete(f"to_spikes {writes.url}: 0 of 1 tasks committed ... call to_spikes again with "
+                                   f"resume=True") from cause
+
+    iio.imwrite(tmp_path / "p.png", np.zeros((32, 32, 3), np.uint8))
+    monkeypatch.setattr(job, "write_store", failed)
+    with pytest.raises(SpikesIncomplete) as raised:
+        job.simulate(str(tmp_path / "p.png"), str(tmp_path / "s.zarr"), SimulateOptions(frames=41, motion="static"),
+                     workers=1, progress=False)
+    assert str(raised.value) == (f"simulate {tmp_path / 's.zarr'}: [Errno 28] No space left on device: the "
+                                 f"unfinished store was removed (a simulation is not resumed): fix the cause and run "
+                                 f"it again")

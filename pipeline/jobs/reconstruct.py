@@ -75,7 +75,8 @@ def network_options(options: ReconstructOptions) -> tuple[str | None, str | None
 
 def method_spec(options: ReconstructOptions, method: Reconstructor, where: Placement) -> MethodSpec:
     """What the tasks of a job of ``options`` build: ``method`` (:func:`prepared`) where it runs."""
-    return MethodSpec(options.method, method.weights, *network_options(options), method.weights_sha256,
+    weights = recorded(str(method.weights)) if method.weights else None  # as workers in any folder find it
+    return MethodSpec(options.method, weights, *network_options(options), method.weights_sha256,
                       bool(options.fast_gpu and where.gpus))
 
 
@@ -212,8 +213,9 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
             key, args = gain_task(recorded(store_url), store_identity(store), store.n_frames, meta.width,
                                   options.window, meta.reset)  # the same gain for any part
             gain = result_of(client, store_gain, args, key) if client else store_gain(*args)
-        # the spike store as workers find it, whatever their working directory (and as the output records it)
-        plan = Plan(recorded(store_url), out, options.method, method.weights, options.window, options.every,
+        # the spike store and the output as workers find them, whatever their working directory (and as the output
+        # records its source)
+        plan = Plan(recorded(store_url), recorded(out), options.method, method.weights, options.window, options.every,
                     float(gain), scale, meta.cfa, meta.reset, options.tile, uuid.uuid4().hex, spec.precision,
                     options.gpu_batch, spec.backend, fast_gpu=spec.fast_gpu if options.method in NETWORKS else None,
                     **made_from(store, method.weights_sha256),  # what --resume checks beside the paths

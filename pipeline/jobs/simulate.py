@@ -36,7 +36,7 @@ from pipeline.stores.spike_store import chunk_frames_for
 from pipeline.stores.spike_writes import SpikesIncomplete, SpikeWrites, Truth, write_store
 from pipeline.stores.storage import check_apart, recorded
 from stages.capture.bits import unpacked_bits
-from stages.errors import InputError
+from stages.errors import InputError, describe
 from stages.reconstruction.methods import WINDOW, output_centres
 from stages.simulation import sensor
 from stages.simulation.intensities import to_unit_rgb
@@ -63,7 +63,8 @@ def simulate(src: str, dest: str, options: SimulateOptions = SimulateOptions(), 
     scene = open_scene(source, frames=options.frames, motion=options.motion, seed=options.seed, speed=options.speed,
                        deform=options.deform, interp=options.interp, scale=options.scale)
     bits = fired_spikes(frames_array(scene, chunk), options, height, width, scene)
-    truth = made_truth(scene, output_centres(options.frames, WINDOW, options.truth_every), dest, options.cfa)
+    truth = made_truth(scene, output_centres(options.frames, WINDOW, options.truth_every), recorded(dest),
+                       options.cfa)  # written by tasks, in workers of any working folder
     on = scheduler or f"a local cluster ({workers or 'a worker per core'} workers)"
     logging.getLogger("cscsr.simulate").debug(  # cscsr --verbose
         "%s -> %s: %d frames of %dx%d LR (x%d HR), cfa %s, chunks of %d frames; on %s", src, dest, options.frames,
@@ -76,7 +77,8 @@ def simulate(src: str, dest: str, options: SimulateOptions = SimulateOptions(), 
     except SpikesIncomplete as error:  # the store is gone (a job is not resumed): the cause alone, if it is bad input
         if isinstance(error.__cause__, InputError):  # a frame of another size found as it is read, ...
             raise InputError(str(error.__cause__)) from None
-        raise
+        raise SpikesIncomplete(f"simulate {dest}: {describe(error.__cause__)}: the unfinished store was removed (a "
+                               f"simulation is not resumed): fix the cause and run it again") from error.__cause__
     return written["attrs"]
 
 

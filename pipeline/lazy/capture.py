@@ -28,7 +28,7 @@ from dask.base import tokenize
 
 from pipeline.jobs.ingest import (CaptureFrames, IngestOptions, capture_change, capture_meta, capture_record,
                                   opened_capture, opened_frames, unread_parts)
-from pipeline.lazy.spikes import as_spikes, check_here, python_words, url_text
+from pipeline.lazy.spikes import as_spikes, check_here, place, python_words
 from pipeline.stores.captures import RANGED_KINDS
 from pipeline.stores.spike_store import chunk_frames_for
 from stages.capture.bits import packed_width, unpacked_bits
@@ -49,7 +49,7 @@ def open_capture(path, *, height: int | None = None, width: int | None = None, l
     ``head_columns`` (a ``.dat``'s header columns, dropped), ``cfa`` (the sensor's pattern), ``fps``, ``reset``.
     Everything is refused, in one line, before any graph exists; damage inside the frames (an sps100 tag out of
     sequence) when the block holding it is computed, naming its byte offset."""
-    path = url_text(path, "path")
+    path = place(path, "path")
     options = IngestOptions(height, width, cfa, fps, flip, head_columns, None, reset, layout=layout)
     with python_words():
         options.check()

@@ -15,7 +15,7 @@ import xarray as xr
 from pipeline.jobs.simulate import frames_array
 from pipeline.jobs.simulate_plan import (MAX_FRAMES, MAX_FRAMES_WHY, TRUTH_SCALES, CameraFrames, VideoFrames,
                                          check_path_options, open_scene)
-from pipeline.lazy.spikes import check_here, python_words, url_text
+from pipeline.lazy.spikes import check_here, place, python_words
 from pipeline.stores.frame_sources import open_frame_source
 from pipeline.stores.storage import recorded
 from stages.errors import InputError
@@ -48,7 +48,7 @@ def open_frames(url, *, chunk_frames: int | None = None, frames: int | None = No
     as float32 intensities in [0, 1]; ``simulate`` makes its LR spikes as the job does (LR frames interpolated at LR,
     ``stages.simulation.latent``) and must be given that ``scale``. Without ``frames``, a video's frames are the
     scene's, one per spike frame."""
-    url = url_text(url)
+    url = place(url)
     with python_words():
         for name, value in (("chunk_frames", chunk_frames), ("frames", frames)):
             if value is not None:

@@ -31,8 +31,8 @@ from pipeline.jobs.simulate import check_intensities, fired_spikes, made_truth
 from pipeline.jobs.simulate_plan import CameraFrames, MOTIONS, SimulateOptions, check_options, simulated_meta
 from pipeline.lazy.capture import capture_frames, check_unchanged
 from pipeline.lazy.frames import made_scene
-from pipeline.lazy.spikes import (as_spikes, check_here, check_spikes, distributed_client, python_words, selection,
-                                  stores_read, url_text)
+from pipeline.lazy.spikes import (as_spikes, check_here, check_spikes, distributed_client, place, python_words,
+                                  selection, stores_read)
 from pipeline.stores.frame_sources import FrameSource
 from pipeline.stores.ground_truth import has_truth, write_truth
 from pipeline.stores.outputs import SPIKE_STORE, check_existing
@@ -179,7 +179,7 @@ def to_spikes(spikes: xr.DataArray, url: str, *, chunk_frames: int | None = None
     centre, every ``truth_every`` frames), after the spikes and before the store is complete, so that ``cscsr
     evaluate`` scores reconstructions of it. A resume of a store written with truth needs it again.
     """
-    url = url_text(url)
+    url = place(url)
     check_flag("progress", progress)
     writes = _checked_writes(spikes, url, chunk_frames, task_frames, overwrite, resume)
     centres = _checked_truth(truth, spikes, url, writes.resumed)

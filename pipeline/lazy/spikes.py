@@ -47,6 +47,12 @@ def url_text(url, what: str = "url") -> str:
     return url
 
 
+def place(url, what: str = "url") -> str:
+    """:func:`url_text` of a store or file a graph's tasks read or write, a local path made absolute
+    (``storage.recorded``): a worker started in another folder (``dask worker`` on a cluster) finds it there."""
+    return recorded(url_text(url, what))
+
+
 def check_here(urls, *collections) -> None:
     """Refuse, in one line, a ``memory://`` store among ``urls`` where the scheduler that would compute
     ``collections`` (the active one if none) runs its tasks in other processes, which cannot see it (the jobs'
@@ -95,7 +101,7 @@ def open_spikes(url) -> xr.DataArray:
     nothing read but metadata. Refuses, in one line, what every job refuses: no store, an incomplete one (its
     writer did not finish), a damaged or contradictory one. A chunk lost from the store is refused when a
     computation reads it, naming its frames (never read as zeros)."""
-    url = url_text(url)
+    url = place(url)
     check_here([url])
     store = open_spike_store(url)
     frames, height, width = store.shape

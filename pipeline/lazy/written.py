@@ -17,7 +17,7 @@ from pipeline.compute.executor import computed
 from pipeline.compute.progress import progress_bar
 from pipeline.jobs.reconstruct_tasks import finish_video, run_blocks, write_block
 from pipeline.lazy.spikes import (StoreReader, check_coordinates, check_here, check_times, distributed_client,
-                                  run_of, stores_read, url_text)
+                                  place, run_of, stores_read)
 from pipeline.lazy.video import VIDEO_DIMS, tile_blocks
 from pipeline.lazy.windows import _output_part
 from pipeline.stores.lease import claimed, held
@@ -50,7 +50,7 @@ def to_video(hr: xr.DataArray, url, *, overwrite: bool = False, resume: bool = F
     refused in one line before anything is written.
     """
     hr = _check_video(hr)
-    url = url_text(url)
+    url = place(url)
     check_flag("overwrite", overwrite)
     check_flag("resume", resume)
     check_flag("progress", progress)
@@ -247,7 +247,7 @@ def open_video(url) -> xr.DataArray:
     chunk, nothing read but metadata; coordinates ``t`` (seconds), ``frame`` (the centre spike frame), ``y``/``x``
     (the recording's HR pixels; from 0 in a store from before ``region``) and ``gain``; ``attrs`` as ``hr.attrs``.
     Refuses, in one line, what is not a video store, a damaged one, and one whose writer did not finish."""
-    url = url_text(url)
+    url = place(url)
     check_here([url])
     group = open_video_store(url)
     attrs = dict(group.attrs)

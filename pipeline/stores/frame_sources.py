@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.stores.images import IMAGE_SUFFIXES, decode_image
-from pipeline.stores.storage import is_local, resolve
+from pipeline.stores.storage import is_local, recorded, resolve
 from stages.errors import InputError, describe
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".gif")
@@ -37,6 +37,9 @@ class FrameSource:
     height: int
     width: int
     files: tuple = ()
+
+    def __post_init__(self):  # read by tasks in workers, whose working folder is not the client's
+        object.__setattr__(self, "url", recorded(self.url))
 
     def read(self, index: int) -> np.ndarray:
         if not 0 <= index < self.n_frames:

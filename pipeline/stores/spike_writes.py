@@ -30,6 +30,7 @@ from pipeline.stores.lease import check_free, claimed, held
 from pipeline.stores.outputs import SPIKE_STORE, new_output
 from pipeline.stores.spike_store import (COMMITTED, SPIKES, SpikeMeta, SpikeStore, SpikeStoreWriter, chunk_frames_for,
                                          open_spike_store, write_region)
+from pipeline.stores.storage import recorded
 from stages.capture.bits import count_spikes, pack_rows
 from stages.errors import InputError, describe
 
@@ -69,7 +70,7 @@ class SpikeWrites:
     again = "overwrite=True"
 
     def __init__(self, url: str, meta: SpikeMeta, n_frames: int, chunk_frames: int | None, task_frames: int | None):
-        self.url, self.meta, self.n_frames = url, meta, n_frames
+        self.url, self.meta, self.n_frames = recorded(url), meta, n_frames  # as workers in any folder find it
         # as the caller gave them (None: the default, or the store's cut), at most the whole recording
         chunk_frames, task_frames = (None if n is None else min(n, n_frames) for n in (chunk_frames, task_frames))
         self.asked = (chunk_frames, task_frames)

@@ -198,8 +198,10 @@ def remove_partial_writes(url: str) -> list[str]:
 
 
 def recorded(url: str) -> str:
-    """A location as a store records it (``source``): a URL as given, a local path made absolute, so
-    that the record still points to the same place when the store is moved or read from elsewhere."""
+    """A location as a store records it (``source``) and as a job's tasks open it: a URL as given, a local path
+    made absolute, so that the record still points to the same place when the store is moved or read from
+    elsewhere, and a worker started in another folder (``dask worker`` on a cluster) reads and writes where the
+    user meant."""
     text = str(url)
     return text if "://" in text else os.path.abspath(text)
 
