@@ -98,7 +98,7 @@ class CSCSR(nn.Module):
         b, n, h, w = spikes.shape
         if n != self.config.frames:
             raise InputError(f"the {self.config.name} network takes {self.config.frames} frames per clip, got {n}")
-        if (h % 2 or w % 2) and not self.config.mono or h < 2 or w < 2:  # mono: any side (padded)
+        if not self.config.mono and (h % 2 or w % 2 or h < 2 or w < 2):  # mono: any side, 1 too (padded)
             raise InputError(f"a Bayer clip needs even height and width, got {h}x{w}")
         if scale not in NETWORK_SCALES:
             raise InputError(f"the CSCSR network upsamples by {' or '.join(map(str, NETWORK_SCALES))}, not {scale}")

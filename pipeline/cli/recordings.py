@@ -160,7 +160,8 @@ def reconstruct(store: Annotated[str, typer.Argument(help="Spike store URL.")],
                                                                  "holds: the whole frame where it fits).")] = None,
                 weights: Annotated[Optional[str], typer.Option(help="Network weights (safetensors) for cscsr "
                                                                     "(default: full on GPU workers, lite on "
-                                                                    "CPUs).")] = None,
+                                                                    "CPUs; lite-mono for a mono "
+                                                                    "recording).")] = None,
                 workers: Workers = None, scheduler: Scheduler = None,
                 resume: Annotated[bool, typer.Option("--resume", help="Finish an interrupted run into OUT.")] = False,
                 overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace OUT if it exists.")] = False,

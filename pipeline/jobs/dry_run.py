@@ -156,7 +156,8 @@ def _measured(client, plan: Plan, part: Part, blocks: TileBlocks, hr_size: tuple
             if all((worker.get("resources") or {}).get(k, 0) >= v for k, v in (resources or {}).items())]
     if not able:
         raise InputError("the cluster has no worker that would run this job's tasks: add workers, then plan again")
-    of, able = len(able), able[:TRIAL_WORKERS]
+    job_tasks = sum(1 for _ in blocks.units())
+    of, able = len(able), able[:min(TRIAL_WORKERS, job_tasks)]  # a job of fewer tasks keeps no more workers busy
     with _scratch(client, able) as url:
         shared = not url.startswith("memory://")  # one store that every worker reaches, else one in each worker process
         # workers that share a process (a client's in-process workers) share its memory: the store made once there
@@ -169,7 +170,7 @@ def _measured(client, plan: Plan, part: Part, blocks: TileBlocks, hr_size: tuple
             return client.submit(_sampled, blocks, *unit, trial.out, trial.run, pure=False, workers=where,
                                  allow_other_workers=False, resources=resources)
 
-        most = _most_sampled(sum(1 for _ in blocks.units()), len(able))
+        most = _most_sampled(job_tasks, len(able))
 
         def sample() -> Iterator:  # for about ``seconds``, and 3 tasks a worker at least
             for n, group in enumerate(groups):
@@ -214,6 +215,7 @@ def _from_the_middle(blocks: TileBlocks) -> Iterator[tuple[int, int]]:
 
 
 def _most_sampled(job_tasks: int, workers: int) -> int:
-    """The most tasks a dry run times after the warm-up round: no more than the job has, in whole rounds of a task a
-    worker, 3 rounds at least and :data:`MOST_TASKS` a worker at most."""
-    return min(MOST_TASKS, max(3, job_tasks // workers - 1)) * workers
+    """The most tasks a dry run times after the warm-up round (a task a worker): no more than the job has with that
+    round, in whole rounds of a task a worker, one round at least (a job of one task: two tasks in all) and
+    :data:`MOST_TASKS` a worker at most. (Three rounds at least made a dry run of a one-task job run eight.)"""
+    return max(1, min(MOST_TASKS, (job_tasks - workers) // workers)) * workers
