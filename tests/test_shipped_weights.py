@@ -91,3 +91,18 @@ def test_every_shipped_file_records_the_output_its_network_makes():
         path = SHIPPED / f"cscsr-{name}.safetensors"
         assert read_metadata(path)["output"] == conventions(load_model(path)[0].config)["output"]
     assert "grey" in read_metadata(SHIPPED / "cscsr-lite-mono.safetensors")["output"]
+
+
+def test_every_shipped_file_counts_its_steps_one_way():
+    """``steps`` is every optimiser step the weights have had, ``run_steps`` the last run's, and a file made from
+    another (``initialised_from``) has that file's steps and its own (they were cumulative in one file, the last
+    run's in another, "529 + 2593" in the third)."""
+    import re
+
+    from cscsr.weights.weights_io import SHIPPED, read_metadata
+
+    for name in ("lite", "full", "lite-mono"):
+        metadata = read_metadata(SHIPPED / f"cscsr-{name}.safetensors")
+        steps, run_steps = int(metadata["steps"]), int(metadata["run_steps"])
+        parent = re.search(r"\((\d+) steps\)$", metadata.get("initialised_from", ""))
+        assert steps >= run_steps > 0 and (parent is None or steps == int(parent.group(1)) + run_steps), name

@@ -147,6 +147,7 @@ def test_a_run_may_start_from_weights_of_the_same_network(tmp_path, two_steps):
     start, _ = load_model(first)
     assert all(torch.equal(a, b) for a, b in zip(model.state_dict().values(), start.state_dict().values()))
     assert metadata["initialised_from"] == f"{first} (2 steps)"
+    assert (metadata["steps"], metadata["run_steps"]) == ("4", "2")  # every step the weights had, and this run's
     moved, _ = load_model(train(TrainOptions(steps=2, init=str(first), seed=5, **TINY), tmp_path / "moved",
                                 log=lambda line: None))
     assert not all(torch.equal(a, b) for a, b in zip(moved.state_dict().values(), start.state_dict().values()))

@@ -155,13 +155,25 @@ class Budget:
         return time.perf_counter() + needed > self.deadline
 
 
+def total_steps(recorded: str | None) -> int | None:
+    """The optimiser steps a weights file's ``steps`` records: a count, or its runs' counts summed (``529 + 2593``,
+    as an older file wrote them); None if it records none."""
+    parts = (recorded or "").split("+")
+    return sum(int(part) for part in parts) if all(part.strip().isdigit() for part in parts) else None
+
+
 def _about(step: int, options: TrainOptions, command: str) -> dict:
-    start = {}
+    """The metadata of a weights file after ``step`` steps of this run: ``steps``, every optimiser step the weights
+    have had (this run's and, from ``--init``, that file's), and ``run_steps``, this run's alone."""
+    start, before = {}, 0
     if options.init:
         from cscsr.weights.weights_io import read_metadata
 
-        start = {"initialised_from": f"{options.init} ({read_metadata(options.init).get('steps', '?')} steps)"}
-    return {**start, "steps": str(step), "command": command, "options": json.dumps(asdict(options)),
+        parent = read_metadata(options.init).get("steps")
+        start = {"initialised_from": f"{options.init} ({parent or '?'} steps)"}
+        before = total_steps(parent) or 0
+    return {**start, "steps": str(before + step), "run_steps": str(step), "command": command,
+            "options": json.dumps(asdict(options)),
             "data": f"simulated on the fly{f' by the torch synthesis on {options.device}' if options.on_device_synthesis else ''}"
                     ": dead leaves "
                     f"({options.dead_leaves:.0%} of clips) and "
