@@ -212,7 +212,7 @@ def test_tile_blocks_hold_tiles_of_one_shape():
         assert len({(grid[y][x].ry1 - grid[y][x].ry0, grid[y][x].rx1 - grid[y][x].rx0) for y, x in block}) == 1
     assert len(blocks) == 4 * 2 + 4 * 1 + 1  # 9 shapes: 4 of 4 tiles (2 blocks each), 4 of 2 tiles, 1 of 1
     joined = cut(MethodSpec("cscsr"), "rec.zarr", "id", list(range(6)), 0, 1, 41, grid, 4, "rggb", "subtract", 4, 12,
-                 1.0, True)  # 12 windows a pass: 3 tiles of 4 frames
+                 1.0, True, 46)  # 12 windows a pass: 3 tiles of 4 frames
     assert joined.passes == tuple(blocks) and joined.frames == (4, 2)
     done = np.ones((6, 5, 5), bool)
     done[4, 0, 4] = False  # one (frame, tile) left: only its pass runs, whole

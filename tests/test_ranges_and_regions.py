@@ -152,6 +152,41 @@ def test_a_network_range_keeps_the_whole_runs_batches():
     assert block_frames(3000, 1, first=5) == (3,) * 1000  # one window a pass: at most WINDOW_BLOCKS blocks
 
 
+def test_a_part_s_first_and_last_blocks_run_the_whole_run_s_batches(recording):
+    """The network's numbers can depend on its batch (its size, its other windows: one grey level at a few pixels,
+    a user's sweep found): a part's first and last blocks ran fewer windows than a whole run's. They now run the whole
+    run's batch they are in and keep their own frames, in the job and the lazy graphs alike (``cut``). A stand-in for
+    a network whose every image says the batch it ran in shows it: a part's frames are the whole run's."""
+    import dataclasses
+
+    from cscsr import lazy
+    from pipeline.jobs.reconstruct_tasks import MethodSpec
+    from pipeline.lazy.video import FunctionReconstructor, _reconstructed
+    from pipeline.lazy.windows import check_windows
+
+    @dataclasses.dataclass(frozen=True)
+    class BatchProbe(FunctionReconstructor):
+        batch: int = 4
+
+        def many(self, windows):  # each image: 16 x the batch's size + its place in it; its window's bits
+            return [np.stack(np.broadcast_arrays(np.uint8(16 * len(windows) + i), np.uint8(w.packed.sum() % 251),
+                                                 np.zeros((w.packed.shape[1], w.width), np.uint8)), axis=-1)
+                    for i, w in enumerate(windows)]
+
+    probe = BatchProbe(func=None, scale=1, halo=0, name="probe")
+
+    def run(win):
+        return _reconstructed(check_windows(win), MethodSpec("probe", own=probe), probe, 1, 64, 1.0, 1, False).values
+
+    windows = lazy.windows(lazy.open_spikes(recording), every=7)  # 23 output frames: batches 0..3, ..., 20..22
+    whole = run(windows)
+    assert sorted(set(whole[:20, 0, 0, 0] // 16)) == [4] and sorted(set(whole[20:, 0, 0, 0] // 16)) == [3]
+    for part in (windows.isel(t=slice(5, 15)), windows.isel(t=slice(9, 10)), windows.isel(t=slice(18, 23)),
+                 lazy.windows(lazy.open_spikes(recording), every=7, start=50, stop=120)):
+        first = int((part.coords["frame"][0] - 20) // 7)
+        np.testing.assert_array_equal(run(part), whole[first : first + part.sizes["t"]])
+
+
 # --- regions ---------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("method", ["tfp", "tfi"])

@@ -296,7 +296,7 @@ def test_blocks_are_fixed_by_frame_number():
 
     grid = tile_grid(16, 32, 16, 0)  # two tiles, one a block
     blocks = cut(MethodSpec("tfp"), "rec.zarr", "id", list(range(20, 30)), 0, 1, 41, grid, 4, "rggb", "subtract", 4,
-                 16, 1.0, False)  # a method of 4 windows a pass
+                 16, 1.0, False, 50)  # a method of 4 windows a pass, a recording of 50 frames: these are its all
     assert blocks.frames == (4, 4, 2) and list(blocks.units())[:3] == [(0, 0), (0, 1), (1, 0)]
     done = np.zeros((10, 1, 2), bool)
     done[0:4, 0, 0] = True

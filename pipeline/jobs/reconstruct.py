@@ -222,7 +222,8 @@ def reconstruct(store_url: str, out: str, options: ReconstructOptions = Reconstr
                     start=part.start, stop=part.stop, region=part.region)
         hr_size = ((y1 - y0) * scale, (x1 - x0) * scale)
         blocks = cut(spec, plan.spikes, plan.source_identity, centres, part.first, plan.every, plan.window, grid,
-                     method.batch, plan.cfa, plan.reset, plan.scale, plan.gpu_batch, plan.gain, where.gpus)
+                     method.batch, plan.cfa, plan.reset, plan.scale, plan.gpu_batch, plan.gain, where.gpus,
+                     store.n_frames)
         if dry_run:
             done = (_check_resumable(plan, open_video_store(out), centres, blocks) if options.resume
                     else np.zeros((len(centres), len(grid), len(grid[0])), bool))

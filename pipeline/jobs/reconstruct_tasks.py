@@ -23,7 +23,7 @@ from pipeline.stores.video_store import TileWriter, open_video_store
 from stages.capture.bits import pack_rows, unpack_rows
 from stages.errors import InputError
 from stages.reconstruction.colour import auto_gain
-from stages.reconstruction.methods import NETWORKS, Reconstructor, Window, classic, middle_centre
+from stages.reconstruction.methods import NETWORKS, Reconstructor, Window, classic, middle_centre, output_centres
 from stages.reconstruction.tfp import tfp_rate
 from stages.reconstruction.tiles import Tile
 
@@ -120,6 +120,10 @@ class TileBlocks:
     most: int  # the most windows a network pass (GPU workers)
     gain: float | tuple
     gpu: bool = False  # its reconstructions ask for a share of a GPU worker (pipeline.compute.cluster.GPU_SHARE)
+    # a part's first and last blocks: the whole run's windows before and after it in their network batch, run with
+    # it and dropped, so that every batch is a whole run's (its numbers can depend on its size and neighbours)
+    lead: int = 0
+    tail: int = 0
 
     def __post_init__(self) -> None:
         from dask.base import tokenize
@@ -170,10 +174,14 @@ class TileBlocks:
         (None: inline, in a task that takes its output) -> per tile (n, h, w, 3) uint8 (:func:`read_tiles`)."""
         from dask._task_spec import Task, TaskRef
 
-        centres = tuple(self.first_centre + j * self.every for j in range(self.starts[b], self.starts[b + 1]))
+        lead = self.lead if b == 0 else 0
+        tail = self.tail if b == len(self.frames) - 1 else 0
+        run = range(self.starts[b] - lead, self.starts[b + 1] + tail)
+        centres = tuple(self.first_centre + j * self.every for j in run)
         gain = TaskRef(self.gain) if isinstance(self.gain, tuple) else self.gain
         return Task(key, read_tiles, gain, self.spec, self.url, self.identity, centres, self.half,
-                    tuple(self.grid[ty][tx] for ty, tx in self.passes[k]), self.cfa, self.reset, self.scale, self.most)
+                    tuple(self.grid[ty][tx] for ty, tx in self.passes[k]), self.cfa, self.reset, self.scale, self.most,
+                    (lead, self.frames[b]))
 
     def graph(self, b: int, k: int) -> dict:
         """The tasks of pass ``k`` of block ``b`` along time, as the lazy array holds them: {key: task}, each tile's
@@ -218,15 +226,20 @@ class TileBlocks:
 
 def cut(spec: MethodSpec, url: str, identity: str, centres: list[int], first: int, every: int, window: int,
         grid: list[list[Tile]], batch: int, cfa: str, reset: str, scale: int, most: int, gain: float | tuple,
-        gpu: bool) -> TileBlocks:
-    """The blocks of the output frames centred on ``centres`` (index ``first`` of the whole recording's) of the store
-    at ``url``: :func:`block_frames` along time, ``grid``'s tiles, and on GPU workers (``gpu``) the tiles of one shape
-    joined into passes of ``most`` windows. The job and ``lazy.reconstruct`` cut them here."""
+        gpu: bool, recording_frames: int) -> TileBlocks:
+    """The blocks of the output frames centred on ``centres`` (index ``first`` of the whole recording's, of
+    ``recording_frames`` spike frames) of the store at ``url``: :func:`block_frames` along time, ``grid``'s tiles, and
+    on GPU workers (``gpu``) the tiles of one shape joined into passes of ``most`` windows; a part's first and last
+    blocks run the whole run's batch they are in (``lead`` and ``tail``). The job and ``lazy.reconstruct`` cut them
+    here."""
     from pipeline.jobs.reconstruct_plan import tile_blocks
 
     passes = tile_blocks(grid, max(1, most // batch) if gpu else 1)
+    whole = len(output_centres(recording_frames, window, every))
+    end = first + len(centres)
+    lead, tail = (first % batch, min(-end % batch, whole - end)) if batch > 1 else (0, 0)
     return TileBlocks(spec, url, identity, centres[0], every, window // 2, block_frames(len(centres), batch, first),
-                      tuple(map(tuple, grid)), tuple(passes), cfa, reset, scale, most, gain, gpu)
+                      tuple(map(tuple, grid)), tuple(passes), cfa, reset, scale, most, gain, gpu, lead, tail)
 
 
 class Outcome(NamedTuple):
@@ -263,13 +276,17 @@ def run_blocks(client, units: Iterable[tuple[int, int]], *, blocks: TileBlocks, 
 
 
 def read_tiles(gain, spec: MethodSpec, url: str, identity: str, centres: tuple[int, ...], half: int,
-               tiles: tuple[Tile, ...], cfa: str, reset: str, scale: int, most: int) -> tuple[np.ndarray, ...]:
+               tiles: tuple[Tile, ...], cfa: str, reset: str, scale: int, most: int,
+               keep: tuple[int, int] | None = None) -> tuple[np.ndarray, ...]:
     """Task: the windows centred on spike frames ``centres`` of each tile and its halo, read packed from the store,
     reconstructed (on a GPU, the windows of all ``tiles``, of one shape, in passes of ``most``) -> per tile
-    (n, h, w, 3) uint8, the halo cropped."""
+    (n, h, w, 3) uint8, the halo cropped; ``keep`` (first, count): those frames alone (the others ran to fill a
+    whole run's batch)."""
     spikes = spike_array(url, identity)
     windows = [tile_windows(spikes, url, centres, half, tile, cfa, reset, float(gain), scale) for tile in tiles]
     images = spec.built().many_tiles(windows, most) if centres else [[] for _ in tiles]
+    if keep is not None:
+        images = [tile_images[keep[0] : keep[0] + keep[1]] for tile_images in images]
     return tuple(cropped(tile_images, tile.crop(scale)) for tile, tile_images in zip(tiles, images))
 
 

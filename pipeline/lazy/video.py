@@ -153,7 +153,7 @@ def _reconstructed(win: xr.DataArray, spec: MethodSpec, built: Reconstructor, sc
     if isinstance(reads, PackedReads) and reads.holds(win.data, int(win.coords["frame"][0])):  # read from the store
         blocks = cut(spec, reads.url, reads.identity, [int(c) for c in win.coords["frame"].values], attrs["first"],
                      attrs["every"], attrs["window"], grid, built.batch, cfa, attrs["reset"], scale, most,
-                     gain.__dask_keys__()[0] if isinstance(gain, da.Array) else gain, gpu)
+                     gain.__dask_keys__()[0] if isinstance(gain, da.Array) else gain, gpu, attrs["frames"])
         hr = _blocks_array(blocks, gain)
     else:  # the windows as they are (a function between stages): each block's tile of them
         frames = _task_frames(win.data.chunks[0], built.batch, attrs["first"])
