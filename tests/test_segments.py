@@ -73,3 +73,18 @@ def test_in_segments_hands_the_job_s_preload_to_its_segment_s_cluster(monkeypatc
     assert list(in_segments(lambda client, items: iter(items), iter(range(1)), 2, workers=1,
                             show_dashboard=False)) == [0]
     assert asked == [(1, NETWORK_PRELOAD), (1, ())]
+
+
+def test_a_segment_whose_job_is_gone_before_it_starts_does_not_outlive_it():
+    """A job killed while its segment's interpreter was still starting left the segment writing OUT for seconds,
+    with no claim held (a user's sweep saw 300 more tasks committed after the kill): a process told its job's id
+    exits at once when its parent is another (here: the job's id is one that is not its parent)."""
+    import subprocess
+    import sys
+
+    code = "import os; from pipeline.compute.executor import _die_with_parent; _die_with_parent({}); print('alive')"
+    gone = subprocess.run([sys.executable, "-c", code.format(1)], capture_output=True, text=True, timeout=120)
+    assert gone.returncode == 1 and "alive" not in gone.stdout
+    here = subprocess.run([sys.executable, "-c", code.format("os.getppid()")], capture_output=True, text=True,
+                          timeout=120)
+    assert here.returncode == 0 and here.stdout.strip() == "alive"

@@ -19,6 +19,7 @@ import ctypes
 import itertools
 import logging
 import multiprocessing
+import os
 import queue
 import signal
 import sys
@@ -180,7 +181,7 @@ def in_segments(run: Callable[..., Iterator[T]], items: Iterable, size: int, *, 
         messages = context.Queue()
         child = context.Process(target=_segment, name=f"cscsr-segment-{number}",
                                 args=(run, segment, workers, show_dashboard and number == 0, messages, verbose,
-                                      preload))
+                                      preload, os.getpid()))
         child.start()
         try:
             yield from _relay(messages, child)
@@ -280,11 +281,11 @@ def show_dashboard_once(client) -> None:
             print(f"dashboard: {link}", file=sys.stderr)
 
 
-def _segment(run, items, workers, show_dashboard, messages, verbose=False, preload=()) -> None:
+def _segment(run, items, workers, show_dashboard, messages, verbose=False, preload=(), parent=None) -> None:
     """Child: start a cluster, run the segment, send each outcome, exit (and all its memory with it). Stopped
     (SIGTERM from its job, Ctrl-C at the terminal), it closes its cluster on the way out and says nothing: the job
-    reports."""
-    _die_with_parent()
+    reports. A job gone before it started (``parent``, its process id) is not outlived."""
+    _die_with_parent(parent)
     interrupt_on(signal.SIGTERM, signal.SIGINT)
     if verbose:  # what the cluster's log level is chosen by (cluster._dask_log_level)
         logging.getLogger("cscsr").setLevel(logging.DEBUG)
@@ -303,13 +304,17 @@ def _segment(run, items, workers, show_dashboard, messages, verbose=False, prelo
         messages.cancel_join_thread()
 
 
-def _die_with_parent() -> None:
-    """Ask Linux to SIGKILL this process when its parent dies (no-op elsewhere)."""
+def _die_with_parent(parent: int | None = None) -> None:
+    """Ask Linux to SIGKILL this process when its parent dies (no-op elsewhere); exit at once if the parent,
+    process ``parent``, is already gone: a job killed while its segment's interpreter was still starting (seconds on
+    a loaded machine) left it writing OUT with no claim held, a resume beside it."""
     if sys.platform.startswith("linux"):
         try:
             ctypes.CDLL(None).prctl(1, signal.SIGKILL)  # 1 = PR_SET_PDEATHSIG
         except (OSError, AttributeError):
             pass
+    if parent is not None and os.getppid() != parent:  # asked after the request: no death falls between the two
+        os._exit(1)
 
 
 # ---- a graph in bounded rounds (the spike stores' writes, to_video's rounds) ----
