@@ -1,19 +1,13 @@
 """``cscsr watch``: reconstruct recordings as they land in an inbox, exactly once each.
 
-Each pass lists INBOX (any fsspec URL): spike stores (``NAME.zarr``) and raw captures
-(``NAME.dat``, ``NAME.npz``, ``NAME.npy``) with an optional sidecar ``NAME.json`` (height,
-width, cfa, flip, fps, reset, head_columns, key, name; the watcher's defaults fill the
-rest). A raw capture's CFA is never guessed: it comes from its sidecar or ``--cfa``, and a capture
-with neither is refused (:func:`unstated`): taken as the wrong one, a mono capture would be
-demosaicked into colour speckle, or a Bayer one shown grey with its mosaic, and no error said so.
-A recording is taken once it has not changed for ``settle`` seconds (a file still
-being copied is left for a later pass; ``settle`` must exceed the writer's longest pause), and
-one changed within the last second only if a second look a second later finds the same
-modification time, files and bytes (:func:`steady`). For each: ingest a raw capture into
-``OUTBOX/spikes/NAME.zarr``, reconstruct into ``OUTBOX/NAME.zarr``, export
-``OUTBOX/NAME.mp4``; the ledger (:mod:`pipeline.inbox.ledger`) records every step's outcome. No two
-recordings share an output path (:func:`spike_store_of`), and OUTBOX may not be, be inside, or
-contain INBOX.
+Each pass lists INBOX (:mod:`pipeline.inbox.listing`: the recordings, their sidecars, whether they have settled).
+A raw capture's CFA is never guessed: it comes from its sidecar or ``--cfa``, and a capture with neither is
+refused (:func:`unstated`): taken as the wrong one, a mono capture would be demosaicked into colour speckle, or a
+Bayer one shown grey with its mosaic, and no error said so. A recording is taken once it has not changed for
+``settle`` seconds (``settle`` must exceed the writer's longest pause). For each: ingest a raw capture into
+``OUTBOX/spikes/NAME.zarr``, reconstruct into ``OUTBOX/NAME.zarr``, export ``OUTBOX/NAME.mp4``; the ledger
+(:mod:`pipeline.inbox.ledger`) records every step's outcome. No two recordings share an output path
+(:func:`spike_store_of`), and OUTBOX may not be, be inside, or contain INBOX.
 
 Killing the watcher at any moment loses nothing and duplicates nothing: the ledger row it
 left ``running`` is taken up by the next pass, whose reconstruction resumes from the
@@ -42,15 +36,14 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from fsspec.implementations.local import LocalFileSystem
-
 from pipeline.compute.cluster import check_in_memory, dask_client
 from pipeline.jobs.export import export_mp4
 from pipeline.jobs.ingest import IngestOptions, capture_fields, ingest
 from pipeline.inbox.ledger import Ledger
+from pipeline.inbox.listing import RAW, Candidate, check_inbox, discover, fingerprint, steady
 from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct, reconstructor
 from pipeline.stores.spike_store import check_fps, open_spike_store
-from pipeline.stores.storage import check_apart, exists, is_local, local_kind, resolve
+from pipeline.stores.storage import check_apart, exists, is_local
 from pipeline.stores.video_store import open_video_store
 from stages.reconstruction.cfa import check_cfa
 from stages.errors import InputError, describe
@@ -58,13 +51,6 @@ from stages.reconstruction.methods import NETWORKS, WINDOW
 from stages.numbers import check_number
 from stages.capture.resets import check_reset
 
-RAW = ("dat", "npz", "npy")
-KINDS = ("zarr",) + RAW
-SKIPPED_SUFFIXES = ("json", "partial", "tmp", "part", "crdownload")  # sidecars, and uploads still in flight
-SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
-SIDECAR_FIELDS = {"height": int, "width": int, "cfa": str, "flip": bool, "fps": (int, float), "reset": str,
-                  "head_columns": int, "key": str, "name": str}
-SAMPLE = 1 << 20  # bytes read from each end of a file for its fingerprint
 WATCH_DEFAULTS = IngestOptions(cfa=None)  # no CFA guessed: a raw capture's comes from its sidecar or --cfa
 
 log = logging.getLogger("cscsr.watch")  # the package is ``pipeline``; the logger is named for the command
@@ -97,223 +83,6 @@ class WatchOptions:
             check_cfa(self.defaults.cfa)
         check_reset(self.defaults.reset)
 
-
-@dataclass(frozen=True)
-class Candidate:
-    name: str  # output name: OUTBOX/NAME.zarr
-    url: str
-    kind: str
-    sidecar: dict
-    modified: float
-    problem: str | None = None
-    look: tuple = ()  # (modification time, files, bytes) of the recording when listed: a second look compares
-
-
-def discover(inbox: str) -> list[Candidate]:
-    """The recordings in INBOX (one level), with a reason for each one that cannot be taken."""
-    fs, root = check_inbox(inbox)
-    base_url = str(inbox).rstrip("/")
-    local = isinstance(fs, LocalFileSystem)  # only local folders have symbolic links
-    found = []
-    listed = {_base(entry): entry for entry in fs.ls(root, detail=True)}
-    for base, entry in sorted(listed.items()):
-        suffix = base.rsplit(".", 1)[-1].lower() if "." in base else ""
-        if base.startswith(".") or suffix in SKIPPED_SUFFIXES:
-            continue
-        stem = base[: -len(suffix) - 1] if suffix else base
-        url = f"{base_url}/{base}"
-        escape = (_leaves(root, entry["name"]) or _leaves(root, f"{root}/{stem}.json")) if local else None
-        if escape:  # refused before anything (even a modification time) is read through the link
-            found.append(Candidate(stem, url, suffix, {}, 0.0, f"{escape} leads outside the inbox: refused "
-                                                               f"(a link out of INBOX is never followed)"))
-            continue
-        odd = _odd(fs, root, entry, store=suffix == "zarr") or _odd(fs, root, listed.get(f"{stem}.json"), store=False)
-        if odd:  # refused before anything is read: a named pipe blocks its reader, a folder fails every read
-            found.append(Candidate(stem, url, suffix, {}, 0.0, odd))
-            continue
-        look = _look(fs, entry)
-        modified = look[0]
-        if suffix not in KINDS:
-            found.append(Candidate(stem, url, suffix, {}, modified,
-                                   f"unknown kind of file {base!r}: expected NAME.zarr, .dat, .npz or .npy"))
-            continue
-        sidecar, problem = _sidecar(fs, f"{root}/{stem}.json")
-        if sidecar.get("_modified"):
-            modified = max(modified, sidecar.pop("_modified"))
-        name = sidecar.get("name", stem)
-        if problem is None and (not SAFE_NAME.match(name) or ".." in name):
-            problem = f"unsafe name {name!r}: letters, digits, '.', '_' and '-' only, no '..'"
-        problem = problem or _misfit_fields(sidecar, stem, base, suffix)
-        found.append(Candidate(name, url, suffix, sidecar, modified, problem, look))
-    return found
-
-
-def check_inbox(inbox: str):
-    """(filesystem, path) of INBOX; refused in one line unless it is a folder (before OUTBOX is made)."""
-    fs, root = resolve(inbox)
-    if not fs.isdir(root):
-        what = "is a file, not a folder" if fs.exists(root) else "does not exist"
-        raise InputError(f"inbox {inbox} {what}: give the folder where recordings land")
-    if any(fs.exists(f"{root.rstrip('/')}/{name}") for name in ("zarr.json", ".zgroup", ".zarray")):
-        raise InputError(f"inbox {inbox} is a Zarr store, not a folder of recordings: give the folder where "
-                         f"recordings land (a NAME.zarr there is taken as one)")
-    return fs, root
-
-
-def _base(entry: dict) -> str:
-    """The name of a listed entry within its folder."""
-    return entry["name"].rstrip("/").rsplit("/", 1)[-1]
-
-
-def _odd(fs, root: str, entry: dict | None, *, store: bool) -> str | None:
-    """Why an INBOX entry as listed (a recording, or the sidecar beside one) is not what its name says it is, in
-    one line; None if it is, or if nothing is there. A ``NAME.zarr`` recording (``store``) is a folder of folders
-    and regular files; every other entry read (a raw capture, a sidecar) is a regular file. Told without opening
-    anything (``os.stat``, through a link that stays in INBOX: links out are refused before this), since a named
-    pipe's reader waits forever for a writer and a folder read as a file fails every pass. An object store holds
-    files and folders (prefixes) only, as listed."""
-    if entry is None:
-        return None
-    local = isinstance(fs, LocalFileSystem)
-    path = entry["name"].rstrip("/")
-    name = os.path.relpath(path, root) if local else path[len(root.rstrip("/")) + 1 :]
-    what = local_kind(path) if local else ("a folder" if entry.get("type") == "directory" else "a regular file")
-    if what is None:
-        return None  # gone since the listing
-    if store and what != "a folder":
-        return f"{name} is {what}, not a folder: refused (a NAME.zarr recording is the folder of a Zarr store)"
-    if not store and what != "a regular file":
-        return f"{name} is {what}, not a regular file: refused (only regular files and NAME.zarr folders are read)"
-    if store and local:
-        for folder, dirs, files in os.walk(path):  # as _leaves walks: a link to a folder is not followed
-            for inner in files:
-                inside = os.path.join(folder, inner)
-                if (what := local_kind(inside)) not in ("a regular file", None):
-                    return (f"{os.path.relpath(inside, root)} is {what}, not a regular file: refused (a Zarr "
-                            f"store holds folders and regular files only)")
-    return None
-
-
-def _leaves(root: str, path: str) -> str | None:
-    """The first symbolic link at or under ``path`` whose real path is outside the local folder
-    ``root`` (INBOX), as ``NAME -> TARGET``; None if everything stays inside (or nothing is there)."""
-    real_root = os.path.realpath(root).rstrip("/") + "/"
-
-    def outside(entry: str) -> str | None:
-        target = os.path.realpath(entry)
-        return None if target.startswith(real_root) else f"{os.path.relpath(entry, root)} -> {target}"
-
-    if not os.path.lexists(path):
-        return None
-    if os.path.islink(path) or not os.path.isdir(path):
-        return outside(path)
-    for folder, dirs, files in os.walk(path):  # never follows a link to a folder: each is checked instead
-        for name in dirs + files:
-            entry = os.path.join(folder, name)
-            if os.path.islink(entry) and (escape := outside(entry)):
-                return escape
-    return None
-
-
-def _modified(fs, entry: dict) -> float:
-    """Latest modification time of a file, or of any file under a directory (a Zarr store)."""
-    return _look(fs, entry)[0]
-
-
-def _look(fs, entry: dict) -> tuple[float, int, int]:
-    """(latest modification time, files, bytes) of a file, or of every file under a directory (a Zarr store)."""
-    def stamp(info):
-        value = info.get("mtime") or info.get("LastModified") or info.get("created") or 0
-        return value.timestamp() if hasattr(value, "timestamp") else float(value)
-
-    if entry.get("type") == "directory":
-        files = fs.find(entry["name"], detail=True).values()
-        return (max([stamp(info) for info in files] + [stamp(entry)]), len(files),
-                sum(int(info.get("size") or 0) for info in files))
-    return stamp(entry), 1, int(entry.get("size") or 0)
-
-
-SECOND_LOOK = 1.0  # seconds: a recording changed more recently than this is looked at again before it is taken
-
-
-def steady(candidate: Candidate) -> bool:
-    """Whether a recording has stopped changing. One unchanged for a second or more is taken as it is (the
-    ``--settle`` check before this has already waited as long as the user asked); one changed within the
-    last second (``--settle`` under 1) is looked at again a second after that change, and taken only if its
-    modification time, files and bytes are the same as when it was listed. A writer that pauses longer
-    than ``--settle`` (and than a second) between writes is not seen: ``--settle`` must exceed its pauses."""
-    quiet = time.time() - candidate.modified
-    if quiet >= SECOND_LOOK or not candidate.look:
-        return True
-    time.sleep(min(SECOND_LOOK, SECOND_LOOK - quiet))  # a clock ahead of ours (a remote store's) waits a second
-    fs, path = resolve(candidate.url)
-    parent, base = str(path).rstrip("/").rsplit("/", 1)
-    fs.invalidate_cache()  # an object store's listing cache would show the first look again
-    for entry in fs.ls(parent, detail=True):  # as the first look saw it (a link's own time, not its target's)
-        if _base(entry) == base:
-            return _look(fs, entry) == candidate.look
-    return False  # moved away between the two looks
-
-
-def _sidecar(fs, path: str) -> tuple[dict, str | None]:
-    if not fs.exists(path):
-        return {}, None
-    name = path.rsplit("/", 1)[-1]
-    try:
-        values = json.loads(fs.cat_file(path))
-    except (ValueError, UnicodeDecodeError) as error:
-        return {}, f"sidecar {name} is not JSON ({error})"
-    if not isinstance(values, dict):
-        return {}, f"sidecar {name} must be a JSON object, got {type(values).__name__}"
-    for key, value in values.items():
-        kind = SIDECAR_FIELDS.get(key)
-        if kind is None:
-            return {}, f"sidecar {name}: unknown field {key!r} (known: {', '.join(SIDECAR_FIELDS)})"
-        if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
-            return {}, f"sidecar {name}: {key} must be {getattr(kind, '__name__', 'a number')}, got {value!r}"
-    try:  # its values as ingest checks them, said as the sidecar's fields, not as options nobody gave
-        IngestOptions(**{k: v for k, v in values.items() if k != "name"}).check()
-    except InputError as error:
-        return {}, f"sidecar {name}: " + re.sub(r"--([a-z][a-z-]*)", lambda m: m[1].replace("-", "_"), str(error))
-    return {**values, "_modified": _modified(fs, fs.info(path))}, None
-
-
-def _misfit_fields(sidecar: dict, stem: str, base: str, suffix: str) -> str | None:
-    """Why a sidecar's fields do not fit the recording ``base`` beside it, in one line, or None: beside a spike
-    store (``NAME.zarr``, which records its own size, CFA and rate) only ``name`` applies; ``key`` names an array
-    inside a ``.npz``, and other captures have none. Refused rather than ignored: the sender meant something by
-    them."""
-    if suffix == "zarr":
-        fields = sorted(field for field in sidecar if field not in ("name", "_modified"))
-        if fields:
-            return (f"sidecar {stem}.json: {', '.join(fields)} describe{'s' if len(fields) == 1 else ''} a raw capture, "
-                    f"and {base} is a spike store, which records its own: remove {'it' if len(fields) == 1 else 'them'} "
-                    f"(only 'name' applies to a store)")
-    elif "key" in sidecar and suffix != "npz":
-        return f"sidecar {stem}.json: key names an array inside a .npz, and {base} has none: remove it"
-    return None
-
-
-def fingerprint(candidate: Candidate) -> str:
-    """A hash of the recording's bytes: size and both ends of a file; every file's size and the
-    metadata of a Zarr store. Renaming a recording does not change it; changing it does."""
-    fs, path = resolve(candidate.url)
-    digest = hashlib.sha256()
-    if candidate.kind == "zarr":
-        for name, info in sorted(fs.find(path, detail=True).items()):
-            relative = name[len(path.rstrip("/")) :]
-            digest.update(f"{relative}:{info['size']};".encode())
-            if relative.endswith("zarr.json"):
-                digest.update(fs.cat_file(name))
-    else:
-        size = fs.size(path)
-        digest.update(f"{candidate.kind}:{size};".encode())
-        with fs.open(path, "rb") as f:
-            digest.update(f.read(SAMPLE))
-            if size > SAMPLE:
-                f.seek(max(size - SAMPLE, SAMPLE))
-                digest.update(f.read())
-    return digest.hexdigest()
 
 
 def parameters(candidate: Candidate, options: WatchOptions) -> dict:
