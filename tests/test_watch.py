@@ -52,7 +52,7 @@ def test_bad_input_is_recorded_and_never_stops_the_others(tmp_path, client, cli)
     drop(inbox, "growing.dat", reds[:50_000], REDS)  # just landed: left for a later pass
 
     counts = watch_once(str(inbox), str(outbox), WatchOptions(tile=128), client)
-    assert counts == {"processed": 2, "waiting": 1, "skipped": 0, "refused": 5}
+    assert counts == {"processed": 1, "waiting": 1, "skipped": 0, "refused": 6}  # truncated: refused on ingest
     got = states(outbox)
     assert got["good"][:3] == ("done", 0, 1)
     assert got["truncated"][:2] == ("failed", 1) and "12500" in got["truncated"][3]  # names the frame size
@@ -68,7 +68,7 @@ def test_bad_input_is_recorded_and_never_stops_the_others(tmp_path, client, cli)
 
     settled(inbox)  # the growing file stopped growing: taken now (and refused: 50,000 bytes is not whole frames)
     again = watch_once(str(inbox), str(outbox), WatchOptions(tile=128), client)
-    assert again == {"processed": 1, "waiting": 0, "skipped": 7, "refused": 0}  # good, truncated and the 5 refused
+    assert again == {"processed": 0, "waiting": 0, "skipped": 7, "refused": 1}  # good, truncated and the 5 refused
     # before: handled
     assert states(outbox)["good"][2] == 1 and states(outbox)["growing"][0] == "failed"  # done once, not twice
     assert len(Ledger(outbox).rows()) == 8  # one row per recording, however many passes

@@ -87,6 +87,26 @@ def test_a_pass_that_refused_every_recording_exits_non_zero(tmp_path, cli):
         f"error: every recording in {inbox} was refused (1)")
 
 
+
+def test_a_capture_refused_as_truncated_while_processed_is_refused_too(tmp_path, cli):
+    """A truncated capture is bad input found during its ingest, not before: it was counted as processed, and a
+    ``--once`` pass of it alone exited 0. Now it is refused as a nonsense sidecar is: one line, exit status 1."""
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    drop(inbox, "cut.dat", bytes(100), {"height": 16, "width": 16, "cfa": "rggb"})  # 3 frames of 32 bytes, and 4
+    settled(inbox)
+
+    result = cli(*watch_args(inbox, outbox))
+    assert result.exit_code == 1, result.stderr
+    *logged, last = result.stderr.strip().splitlines()
+    assert last == f"error: every recording in {inbox} was refused (1): see the lines above, or cscsr status {outbox}"
+    assert records("\n".join(logged))[-1] == ("INFO", f"pass over {inbox}: 0 processed, 0 still settling, 0 already "
+                                                        f"handled, 1 refused")
+    row = json.loads(cli("status", outbox, "--json").stdout)[0]
+    assert (row["name"], row["state"], bool(row["final"])) == ("cut", "failed", True) and "32" in row["error"]
+    again = cli(*watch_args(inbox, outbox))  # refused before: handled, nothing new
+    assert again.exit_code == 0, again.stderr
+
 def test_a_retry_is_a_warning_and_log_file_takes_the_lines(tmp_path, cli, monkeypatch):
     import pipeline.inbox.watch
 

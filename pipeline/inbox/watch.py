@@ -110,8 +110,10 @@ def key_of(fingerprint_: str, params: dict) -> str:
 
 
 def process(candidate: Candidate, key: str, params: dict, outbox: str, ledger: Ledger, options: WatchOptions,
-            client) -> None:
-    """Ingest (raw captures), reconstruct, export; record the outcome. Never raises for one recording."""
+            client) -> str:
+    """Ingest (raw captures), reconstruct, export; record the outcome and return it: ``done``, ``refused`` (bad
+    input found on the way, a truncated capture: final) or ``retry`` (anything else, retried with back-off or
+    quarantined). Never raises for one recording."""
     row = ledger.get(key)
     out = str(outbox).rstrip("/")
     video, preview = f"{out}/{candidate.name}.zarr", f"{out}/{candidate.name}.mp4"
@@ -145,7 +147,7 @@ def process(candidate: Candidate, key: str, params: dict, outbox: str, ledger: L
     except InputError as error:
         ledger.fail(key, str(error), final=True, retry_in=None, quarantine=False)
         log.error("%s: failed: %s", candidate.name, describe(error))
-        return
+        return "refused"
     except Exception as error:  # anything else may pass: retry later, up to a bound
         attempts = ledger.get(key).attempts
         quarantine = attempts >= options.max_attempts
@@ -156,9 +158,10 @@ def process(candidate: Candidate, key: str, params: dict, outbox: str, ledger: L
         else:
             log.warning("%s: failed, will retry in %.0f s (attempt %d of %d): %s", candidate.name,
                         options.backoff * 2 ** (attempts - 1), attempts, options.max_attempts, message)
-        return
+        return "retry"
     ledger.done(key, time.perf_counter() - started)
     log.info("%s: done in %.1f s -> %s", candidate.name, time.perf_counter() - started, video)
+    return "done"
 
 
 def spike_store_of(outbox: str, name: str) -> str:
@@ -179,7 +182,9 @@ def _complete_spikes(url: str) -> bool:
 
 
 def watch_once(inbox: str, outbox: str, options: WatchOptions, client) -> dict:
-    """One pass over INBOX; returns how many recordings were processed, waited for and skipped."""
+    """One pass over INBOX; returns how many recordings were processed (done, or failed to be retried), waited for,
+    skipped (handled before) and refused (bad input, whether found before any work or on the way: a truncated
+    capture is refused as a nonsense sidecar is)."""
     ledger = Ledger(outbox)
     counts = {"processed": 0, "waiting": 0, "skipped": 0, "refused": 0}
     now = time.time()
@@ -235,8 +240,8 @@ def watch_once(inbox: str, outbox: str, options: WatchOptions, client) -> dict:
                       f"already {row.state}{' (final)' if row.final else ''}")
             counts["skipped"] += 1
             continue
-        process(candidate, key, params, outbox, ledger, options, client)
-        counts["processed"] += 1
+        outcome = process(candidate, key, params, outbox, ledger, options, client)
+        counts["refused" if outcome == "refused" else "processed"] += 1  # bad input found on the way is refused
     return counts
 
 

@@ -417,6 +417,6 @@ def test_settle_zero_never_takes_a_file_still_being_written(tmp_path):
     (inbox / "landed.dat").write_bytes(reds[:50_000])  # finished just now: not whole frames, refused on ingest
     (inbox / "landed.json").write_text('{"height": %d, "width": %d, "cfa": "mono"}' % (REDS["height"], REDS["width"]))
     counts = watch_once(str(inbox), str(outbox), WatchOptions(settle=0), client=None)
-    assert counts["processed"] == 1 and counts["waiting"] == 0
+    assert counts["refused"] == 1 and counts["waiting"] == 0
     (row,) = Ledger(outbox).rows()
     assert (row.name, row.state, row.final) == ("landed", "failed", 1)
