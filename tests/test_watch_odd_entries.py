@@ -22,11 +22,12 @@ BOUND = 120  # seconds: a pass over these tiny captures takes a few; one blocked
 SIDECAR = {"height": 16, "width": 16, "cfa": "rggb"}
 
 
-def watch_once_process(inbox, outbox) -> subprocess.CompletedProcess:
-    """``cscsr watch INBOX OUTBOX --once`` as a user runs it, in a process group of its own: one still running
-    after BOUND seconds is killed with its cluster, and fails the test."""
-    command = [CSCSR, "watch", str(inbox), str(outbox), "--once", "--workers", "1", "--settle", "0", "--tile", "16",
-               "--every", "5"]
+def watch_once_process(inbox, outbox, prefix=()) -> subprocess.CompletedProcess:
+    """``cscsr watch INBOX OUTBOX --once`` as a user runs it, in a process group of its own, started through
+    ``prefix`` (e.g. ``setpriv ...``): one still running after BOUND seconds is killed with its cluster, and fails
+    the test."""
+    command = [*prefix, CSCSR, "watch", str(inbox), str(outbox), "--once", "--workers", "1", "--settle", "0",
+               "--tile", "16", "--every", "5"]
     with subprocess.Popen(command, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                           text=True) as process:
         try:

@@ -12,6 +12,7 @@ time, files and bytes (:func:`steady`).
 
 import hashlib
 import json
+import logging
 import os
 import re
 import time
@@ -21,7 +22,7 @@ from fsspec.implementations.local import LocalFileSystem
 
 from pipeline.jobs.ingest import IngestOptions
 from pipeline.stores.storage import local_kind, resolve
-from stages.errors import InputError
+from stages.errors import InputError, describe
 
 RAW = ("dat", "npz", "npy")
 KINDS = ("zarr",) + RAW
@@ -30,6 +31,8 @@ SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 SIDECAR_FIELDS = {"height": int, "width": int, "cfa": str, "flip": bool, "fps": (int, float), "reset": str,
                   "head_columns": int, "key": str, "name": str}
 SAMPLE = 1 << 20  # bytes read from each end of a file for its fingerprint
+
+log = logging.getLogger("cscsr.watch")
 
 
 @dataclass(frozen=True)
@@ -43,51 +46,86 @@ class Candidate:
     look: tuple = ()  # (modification time, files, bytes) of the recording when listed: a second look compares
 
 
+class InboxUnavailable(InputError):
+    """INBOX cannot be listed (gone, unmounted, not readable): one line; a watcher started with ``--interval`` logs
+    it and tries again at its next pass (a remount), one started with ``--once`` ends with it."""
+
+
 def discover(inbox: str) -> list[Candidate]:
-    """The recordings in INBOX (one level), with a reason for each one that cannot be taken."""
+    """The recordings in INBOX (one level), with a reason for each one that cannot be taken. One that cannot be read
+    (no permission) is such a reason, for that recording alone; one gone since the listing is left out."""
     fs, root = check_inbox(inbox)
     base_url = str(inbox).rstrip("/")
-    local = isinstance(fs, LocalFileSystem)  # only local folders have symbolic links
+    try:
+        listed = {_base(entry): entry for entry in fs.ls(root, detail=True)}
+    except FileNotFoundError:
+        raise InboxUnavailable(f"inbox {inbox} does not exist: give the folder where recordings land") from None
+    except OSError as error:
+        raise InboxUnavailable(f"cannot list inbox {inbox}: {_reason(error)}") from None
     found = []
-    listed = {_base(entry): entry for entry in fs.ls(root, detail=True)}
     for base, entry in sorted(listed.items()):
         suffix = base.rsplit(".", 1)[-1].lower() if "." in base else ""
         if base.startswith(".") or suffix in SKIPPED_SUFFIXES:
             continue
         stem = base[: -len(suffix) - 1] if suffix else base
-        url = f"{base_url}/{base}"
-        escape = (_leaves(root, entry["name"]) or _leaves(root, f"{root}/{stem}.json")) if local else None
-        if escape:  # refused before anything (even a modification time) is read through the link
-            found.append(Candidate(stem, url, suffix, {}, 0.0, f"{escape} leads outside the inbox: refused "
-                                                               f"(a link out of INBOX is never followed)"))
-            continue
-        odd = _odd(fs, root, entry, store=suffix == "zarr") or _odd(fs, root, listed.get(f"{stem}.json"), store=False)
-        if odd:  # refused before anything is read: a named pipe blocks its reader, a folder fails every read
-            found.append(Candidate(stem, url, suffix, {}, 0.0, odd))
-            continue
-        look = _look(fs, entry)
-        modified = look[0]
-        if suffix not in KINDS:
-            found.append(Candidate(stem, url, suffix, {}, modified,
-                                   f"unknown kind of file {base!r}: expected NAME.zarr, .dat, .npz or .npy"))
-            continue
-        sidecar, problem = _sidecar(fs, f"{root}/{stem}.json")
-        if sidecar.get("_modified"):
-            modified = max(modified, sidecar.pop("_modified"))
-        name = sidecar.get("name", stem)
-        if problem is None and (not SAFE_NAME.match(name) or ".." in name):
-            problem = f"unsafe name {name!r}: letters, digits, '.', '_' and '-' only, no '..'"
-        problem = problem or _misfit_fields(sidecar, stem, base, suffix)
-        found.append(Candidate(name, url, suffix, sidecar, modified, problem, look))
+        try:
+            found.append(_candidate(fs, root, f"{base_url}/{base}", listed, entry, stem, suffix))
+        except FileNotFoundError:  # moved or deleted since the listing: nothing to take (or to refuse)
+            log.info("%s: skipped: gone from the inbox since the pass listed it (%s/%s)", stem, base_url, base)
+        except OSError as error:  # no permission: this recording's problem, said once; the others go on
+            found.append(Candidate(stem, f"{base_url}/{base}", suffix, {}, 0.0, unreadable(error, root)))
     return found
+
+
+def _candidate(fs, root: str, url: str, listed: dict, entry: dict, stem: str, suffix: str) -> Candidate:
+    """The recording ``entry`` of INBOX as a candidate, with the reason it cannot be taken, if any."""
+    base = _base(entry)
+    if isinstance(fs, LocalFileSystem):  # only local folders have symbolic links
+        escape = _leaves(root, entry["name"]) or _leaves(root, f"{root}/{stem}.json")
+        if escape:  # refused before anything (even a modification time) is read through the link
+            return Candidate(stem, url, suffix, {}, 0.0, f"{escape} leads outside the inbox: refused (a link out of "
+                                                         f"INBOX is never followed)")
+    odd = _odd(fs, root, entry, store=suffix == "zarr") or _odd(fs, root, listed.get(f"{stem}.json"), store=False)
+    if odd:  # refused before anything is read: a named pipe blocks its reader, a folder fails every read
+        return Candidate(stem, url, suffix, {}, 0.0, odd)
+    look = _look(fs, entry)
+    modified = look[0]
+    if suffix not in KINDS:
+        return Candidate(stem, url, suffix, {}, modified,
+                         f"unknown kind of file {base!r}: expected NAME.zarr, .dat, .npz or .npy")
+    sidecar, problem = _sidecar(fs, f"{root}/{stem}.json")
+    if sidecar.get("_modified"):
+        modified = max(modified, sidecar.pop("_modified"))
+    name = sidecar.get("name", stem)
+    if problem is None and (not SAFE_NAME.match(name) or ".." in name):
+        problem = f"unsafe name {name!r}: letters, digits, '.', '_' and '-' only, no '..'"
+    problem = problem or _misfit_fields(sidecar, stem, base, suffix)
+    return Candidate(name, url, suffix, sidecar, modified, problem, look)
+
+
+def unreadable(error: OSError, root: str) -> str:
+    """Why a recording (or its sidecar, or a file of its store) cannot be read, in one line naming the file within
+    INBOX: ``cannot read a.dat: permission denied``. Recorded as its refusal; a later pass that can read it takes
+    it (each pass looks again)."""
+    path = str(error.filename or "").rstrip("/")
+    inside = root.rstrip("/") + "/"
+    shown = path[len(inside):] if path.startswith(inside) else path or "it"
+    return f"cannot read {shown}: {_reason(error)} (a later pass takes it once it can be read)"
+
+
+def _reason(error: OSError) -> str:
+    """An OS error's reason alone, lower case: ``permission denied``."""
+    reason = error.strerror or describe(error)
+    return reason[:1].lower() + reason[1:]
 
 
 def check_inbox(inbox: str):
     """(filesystem, path) of INBOX; refused in one line unless it is a folder (before OUTBOX is made)."""
     fs, root = resolve(inbox)
     if not fs.isdir(root):
-        what = "is a file, not a folder" if fs.exists(root) else "does not exist"
-        raise InputError(f"inbox {inbox} {what}: give the folder where recordings land")
+        if not fs.exists(root):  # at the start, or at a later pass (unmounted)
+            raise InboxUnavailable(f"inbox {inbox} does not exist: give the folder where recordings land")
+        raise InputError(f"inbox {inbox} is a file, not a folder: give the folder where recordings land")
     if any(fs.exists(f"{root.rstrip('/')}/{name}") for name in ("zarr.json", ".zgroup", ".zarray")):
         raise InputError(f"inbox {inbox} is a Zarr store, not a folder of recordings: give the folder where "
                          f"recordings land (a NAME.zarr there is taken as one)")

@@ -40,10 +40,11 @@ from pipeline.compute.cluster import check_in_memory, dask_client
 from pipeline.jobs.export import export_mp4
 from pipeline.jobs.ingest import IngestOptions, capture_fields, ingest
 from pipeline.inbox.ledger import Ledger
-from pipeline.inbox.listing import RAW, Candidate, check_inbox, discover, fingerprint, steady
+from pipeline.inbox.listing import (RAW, Candidate, InboxUnavailable, check_inbox, discover, fingerprint,
+                                    steady, unreadable)
 from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct, reconstructor
 from pipeline.stores.spike_store import check_fps, open_spike_store
-from pipeline.stores.storage import check_apart, exists, is_local
+from pipeline.stores.storage import check_apart, exists, is_local, resolve
 from pipeline.stores.video_store import open_video_store
 from stages.reconstruction.cfa import check_cfa
 from stages.errors import InputError, describe
@@ -184,65 +185,75 @@ def _complete_spikes(url: str) -> bool:
 def watch_once(inbox: str, outbox: str, options: WatchOptions, client) -> dict:
     """One pass over INBOX; returns how many recordings were processed (done, or failed to be retried), waited for,
     skipped (handled before) and refused (bad input, whether found before any work or on the way: a truncated
-    capture is refused as a nonsense sidecar is)."""
+    capture is refused as a nonsense sidecar is). What goes wrong with one recording is that recording's alone: one
+    that cannot be read is refused (and taken by a later pass that can read it), one gone since the listing is
+    skipped, and the pass goes on. An INBOX that cannot be listed is :class:`InboxUnavailable`."""
     ledger = Ledger(outbox)
     counts = {"processed": 0, "waiting": 0, "skipped": 0, "refused": 0}
     now = time.time()
-
-    def refuse(candidate: Candidate, problem: str) -> None:
-        refusal = hashlib.sha256(f"{candidate.url}|{problem}".encode()).hexdigest()[:24]  # once per problem
-        if ledger.get(refusal) is None:
-            ledger.record_refusal(refusal, candidate.name, candidate.url, problem)
-            log.error("%s: failed: %s (%s)", candidate.name, problem, candidate.url)
-            counts["refused"] += 1
-        else:  # handled before, as a recording done is: a --once pass of nothing new is no failure
-            log.debug("%s: skipped: refused before (%s)", candidate.name, candidate.url)
-            counts["skipped"] += 1
-
+    root = resolve(inbox)[1]
     for candidate in discover(inbox):
-        if candidate.problem:
-            refuse(candidate, candidate.problem)
+        try:
+            outcome = _take(candidate, outbox, ledger, options, client, now)
+        except FileNotFoundError:  # moved or deleted (or a file of its store) since the listing: nothing to take
+            log.info("%s: skipped: gone from the inbox since the pass listed it (%s)", candidate.name, candidate.url)
             continue
-        if now - candidate.modified < options.settle:
-            log.debug("%s: skipped for now: changed %.1f s ago, still settling", candidate.name, now - candidate.modified)
-            counts["waiting"] += 1  # still being written, or just landed: next pass
-            continue
-        params = parameters(candidate, options)
-        bytes_hash = fingerprint(candidate)
-        key = key_of(bytes_hash, params)
-        row = ledger.get(key)
-        handled = row is not None and (row.state in ("done", "quarantined") or (
-            row.state == "failed" and (row.final or (row.next_try or 0) > now)))
-        if not handled and not steady(candidate):  # the bytes just fingerprinted may be half a recording
-            log.debug("%s: skipped for now: changed between two looks a second apart, still being written",
-                      candidate.name)
-            counts["waiting"] += 1
-            continue
-        if problem := unstated(candidate, params):  # once settled: a sidecar may land after its capture
-            refuse(candidate, problem)
-            continue
-        if row is None:
-            owner = ledger.owner_of(candidate.name)
-            ledger.queue(key, candidate.name, candidate.url, bytes_hash, params)
-            log.info("%s: found %s (%s)", candidate.name, candidate.url, candidate.kind)
-            if owner is not None:
-                ledger.start(key, None)
-                reason = (f"output name {candidate.name!r} already belongs to {owner.source} (other bytes or "
-                          f"parameters): rename the recording or give its sidecar a 'name'")
-                ledger.fail(key, reason, final=True, retry_in=None, quarantine=False)
-                log.error("%s: failed: %s", candidate.name, reason)
-                counts["refused"] += 1
-                continue
-            row = ledger.get(key)
-        waiting = row.state == "failed" and not row.final and (row.next_try or 0) > now
-        if row.state in ("done", "quarantined") or (row.state == "failed" and row.final) or waiting:
-            log.debug("%s: skipped: %s", candidate.name, "waiting to retry" if waiting else
-                      f"already {row.state}{' (final)' if row.final else ''}")
-            counts["skipped"] += 1
-            continue
-        outcome = process(candidate, key, params, outbox, ledger, options, client)
-        counts["refused" if outcome == "refused" else "processed"] += 1  # bad input found on the way is refused
+        except OSError as error:  # no permission to read it: its own problem, said once; the others go on
+            outcome = _refuse(candidate, unreadable(error, root), ledger)
+        counts[outcome] += 1
     return counts
+
+
+def _refuse(candidate: Candidate, problem: str, ledger: Ledger) -> str:
+    """Record ``candidate`` as refused for ``problem``, once per problem (a later pass finding the same problem
+    skips it, as a recording done is: a --once pass of nothing new is no failure); the count it adds to."""
+    refusal = hashlib.sha256(f"{candidate.url}|{problem}".encode()).hexdigest()[:24]
+    if ledger.get(refusal) is None:
+        ledger.record_refusal(refusal, candidate.name, candidate.url, problem)
+        log.error("%s: failed: %s (%s)", candidate.name, problem, candidate.url)
+        return "refused"
+    log.debug("%s: skipped: refused before (%s)", candidate.name, candidate.url)
+    return "skipped"
+
+
+def _take(candidate: Candidate, outbox: str, ledger: Ledger, options: WatchOptions, client, now: float) -> str:
+    """Refuse, leave for later, skip or process one recording of a pass; which of the pass's counts it adds to."""
+    if candidate.problem:
+        return _refuse(candidate, candidate.problem, ledger)
+    if now - candidate.modified < options.settle:
+        log.debug("%s: skipped for now: changed %.1f s ago, still settling", candidate.name, now - candidate.modified)
+        return "waiting"  # still being written, or just landed: next pass
+    params = parameters(candidate, options)
+    bytes_hash = fingerprint(candidate)
+    key = key_of(bytes_hash, params)
+    row = ledger.get(key)
+    handled = row is not None and (row.state in ("done", "quarantined") or (
+        row.state == "failed" and (row.final or (row.next_try or 0) > now)))
+    if not handled and not steady(candidate):  # the bytes just fingerprinted may be half a recording
+        log.debug("%s: skipped for now: changed between two looks a second apart, still being written",
+                  candidate.name)
+        return "waiting"
+    if problem := unstated(candidate, params):  # once settled: a sidecar may land after its capture
+        return _refuse(candidate, problem, ledger)
+    if row is None:
+        owner = ledger.owner_of(candidate.name)
+        ledger.queue(key, candidate.name, candidate.url, bytes_hash, params)
+        log.info("%s: found %s (%s)", candidate.name, candidate.url, candidate.kind)
+        if owner is not None:
+            ledger.start(key, None)
+            reason = (f"output name {candidate.name!r} already belongs to {owner.source} (other bytes or "
+                      f"parameters): rename the recording or give its sidecar a 'name'")
+            ledger.fail(key, reason, final=True, retry_in=None, quarantine=False)
+            log.error("%s: failed: %s", candidate.name, reason)
+            return "refused"
+        row = ledger.get(key)
+    waiting = row.state == "failed" and not row.final and (row.next_try or 0) > now
+    if row.state in ("done", "quarantined") or (row.state == "failed" and row.final) or waiting:
+        log.debug("%s: skipped: %s", candidate.name, "waiting to retry" if waiting else
+                  f"already {row.state}{' (final)' if row.final else ''}")
+        return "skipped"
+    outcome = process(candidate, key, params, outbox, ledger, options, client)
+    return "refused" if outcome == "refused" else "processed"  # bad input found on the way is refused
 
 
 @contextmanager
@@ -259,7 +270,9 @@ def outbox_lock(outbox: str):
 
 def watch(inbox: str, outbox: str, options: WatchOptions, *, once: bool, interval: float, workers: int | None = None,
           scheduler: str | None = None) -> None:
-    """Passes over INBOX every ``interval`` seconds (or one, ``once``), on one Dask client."""
+    """Passes over INBOX every ``interval`` seconds (or one, ``once``), on one Dask client. An INBOX that cannot be
+    listed at a pass (unmounted for a while) is an ERROR line and the next pass looks again; with ``once``, the one
+    line that ends the command."""
     if not is_local(outbox):
         raise InputError(f"OUTBOX must be a local folder (the ledger is SQLite), got {outbox}")
     check_apart(outbox, inbox, options.weights)  # else the watcher would take its own outputs as recordings
@@ -272,12 +285,18 @@ def watch(inbox: str, outbox: str, options: WatchOptions, *, once: bool, interva
     Ledger(outbox)  # someone else's file named like the ledger is refused before the lock file or a cluster
     with outbox_lock(outbox), dask_client(workers=workers, scheduler=scheduler) as client:
         while True:
-            counts = watch_once(inbox, outbox, options, client)
-            log.info("pass over %s: %d processed, %d still settling, %d already handled, %d refused", inbox,
-                     counts["processed"], counts["waiting"], counts["skipped"], counts["refused"])
-            if once:
-                check_not_all_refused(counts, inbox, outbox)
-                return
+            try:
+                counts = watch_once(inbox, outbox, options, client)
+            except InboxUnavailable as error:  # unmounted for a while: a service says so, and looks again
+                if once:
+                    raise
+                log.error("pass over %s: %s; trying again in %s", inbox, describe(error), _duration(interval))
+            else:
+                log.info("pass over %s: %d processed, %d still settling, %d already handled, %d refused", inbox,
+                         counts["processed"], counts["waiting"], counts["skipped"], counts["refused"])
+                if once:
+                    check_not_all_refused(counts, inbox, outbox)
+                    return
             time.sleep(interval)
 
 
@@ -289,6 +308,14 @@ def check_not_all_refused(counts: dict, inbox: str, outbox: str) -> None:
     if counts["refused"] and not (counts["processed"] or counts["waiting"]):
         raise InputError(f"every recording in {inbox} was refused ({counts['refused']}): see the lines above, or "
                          f"cscsr status {outbox}")
+
+
+def _duration(seconds: float) -> str:
+    """``90 s``, ``10 min``, ``2 h``: an interval as a log line says it."""
+    for unit, size in (("h", 3600), ("min", 60)):
+        if seconds >= size and seconds % size == 0:
+            return f"{seconds / size:g} {unit}"
+    return f"{seconds:g} s"
 
 
 def parse_interval(text: str) -> float:
