@@ -121,3 +121,39 @@ def test_a_service_outlives_a_recording_gone_mid_pass_and_an_inbox_gone_for_a_wh
     monkeypatch.setattr(watcher, "discover", lambda path: (inbox.rename(away), real_discover(path))[1])
     with pytest.raises(InboxUnavailable, match=f"^inbox {inbox} does not exist"):
         watcher.watch(str(inbox), str(outbox), QUICK, once=True, interval=1, workers=1)
+
+
+def test_new_bytes_of_a_recording_supersede_an_attempt_left_unfinished(tmp_path, client, monkeypatch):
+    """A capture re-sent with new bytes after a watcher was killed mid-reconstruction of the old ones (its row left
+    ``running``), or after the old ones failed to be retried (a store copied half, then whole): the new bytes were
+    refused as ``output name 'r' already belongs to .../r.npy``, their own path, and the old row stayed running
+    for ever. Now the new bytes are done under the name, and the unfinished row is superseded."""
+    import pipeline.inbox.watch as watcher
+
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    drop(inbox, "flaky.npy", tiny_capture(1), SIDECAR)
+    drop(inbox, "r.npy", tiny_capture(2), SIDECAR)
+    settled(inbox)
+
+    class Killed(BaseException):
+        """The watcher killed mid-job: nothing after it runs, the row stays running."""
+
+    def broken(spikes, video, *args, **kwargs):
+        raise OSError("worker lost") if video.endswith("flaky.zarr") else Killed()
+
+    with monkeypatch.context() as patched, pytest.raises(Killed):
+        patched.setattr(watcher, "reconstruct", broken)
+        watcher.watch_once(str(inbox), str(outbox), WatchOptions(tile=16, every=5, backoff=0), client)
+    assert {name: row.state for name, row in rows(outbox).items()} == {"flaky": "failed", "r": "running"}
+
+    drop(inbox, "flaky.npy", tiny_capture(3), SIDECAR)  # sent again, corrected
+    drop(inbox, "r.npy", tiny_capture(4), SIDECAR)
+    settled(inbox)
+    counts = watcher.watch_once(str(inbox), str(outbox), WatchOptions(tile=16, every=5), client)
+    assert counts == {"processed": 2, "waiting": 0, "skipped": 0, "refused": 0}
+    shown = rows(outbox)
+    assert {name: (row.state, row.attempts, row.error) for name, row in shown.items()} == {
+        "flaky": ("done", 2, None), "r": ("done", 2, None)}
+    assert sorted(row.state for row in Ledger(outbox).rows()) == ["done", "done", "superseded", "superseded"]
+    assert all(row.fingerprint == shown[row.name].fingerprint for row in Ledger(outbox).rows() if row.state == "done")

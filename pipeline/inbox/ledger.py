@@ -6,9 +6,11 @@ so the same bytes dropped twice are done once, and new parameters mean new work.
     queued -> running -> done
                       -> failed (retried after a back-off, up to a bound) -> quarantined
                       -> failed, final (bad input: retrying cannot help)
+    queued, running, failed (to be retried) -> superseded (new bytes of the same recording landed)
 
 A row left ``running`` by a watcher that died is taken up again (its outputs resumed) by
-the next one. Every change is one SQLite transaction, so a kill at any moment leaves the
+the next one, unless the recording's bytes changed meanwhile: then it is superseded by the new
+bytes' row, which owns the recording's outputs. Every change is one SQLite transaction, so a kill at any moment leaves the
 ledger consistent.
 
 A ledger is opened only if it is ours: a file that is not an SQLite database, or a database
@@ -25,7 +27,7 @@ from pathlib import Path
 
 from stages.errors import InputError, describe
 
-STATES = ("queued", "running", "done", "failed", "quarantined")
+STATES = ("queued", "running", "done", "failed", "quarantined", "superseded")
 FILENAME = "ledger.sqlite"
 APPLICATION_ID = 0x63736372  # "cscr" in the SQLite header: this database is a cscsr ledger
 
@@ -129,11 +131,28 @@ class Ledger:
         its rows counted, in the order the recordings were first found."""
         return latest_per_source(self.rows())
 
-    def owner_of(self, output: str) -> Row | None:
-        """The row, done or in progress, that an output name belongs to."""
+    def owner_of(self, output: str, source: str) -> Row | None:
+        """The row, done or in progress, that an output name belongs to, for the recording at ``source``: an
+        unfinished attempt at ``source``'s own earlier bytes (left ``running`` by a watcher killed, or failed to be
+        retried) is no owner, since the new bytes supersede it (:meth:`supersede`)."""
         with closing(self._connect()) as db:
-            return db.execute("SELECT * FROM recordings WHERE output = ? AND state != 'quarantined' "
-                              "AND NOT (state = 'failed' AND final = 1) ORDER BY queued_at LIMIT 1", (output,)).fetchone()
+            return db.execute("SELECT * FROM recordings WHERE output = ? AND state NOT IN ('quarantined', 'superseded') "
+                              "AND NOT (state = 'failed' AND final = 1) AND NOT (source = ? AND state != 'done') "
+                              "ORDER BY queued_at LIMIT 1", (output, source)).fetchone()
+
+    def supersede(self, source: str) -> int:
+        """Mark the unfinished rows of ``source`` (queued, running, failed to be retried) ``superseded``: the
+        recording there has new bytes, whose row takes its outputs over. Their keys are renamed (the same bytes
+        landing again are new work, not a row done with); the number of rows marked."""
+        now = time.time()
+        with closing(self._connect()) as db:
+            db.execute("BEGIN IMMEDIATE")
+            marked = db.execute("UPDATE recordings SET state = 'superseded', key = key || ':superseded:' || ?, "
+                                "next_try = NULL, error = 'its recording changed before it was done: the new bytes "
+                                "have a row of their own' WHERE source = ? AND final = 0 "
+                                "AND state IN ('queued', 'running', 'failed')", (repr(now), source)).rowcount
+            db.execute("COMMIT")
+        return marked
 
     def queue(self, key: str, name: str, source: str, fingerprint: str, params: dict) -> None:
         self._write("INSERT OR IGNORE INTO recordings (key, name, source, fingerprint, params, state, queued_at) "
@@ -162,13 +181,14 @@ class Ledger:
 
 
 def latest_per_source(rows: list[Row]) -> list[Row]:
-    """``rows`` collapsed to one per ``source``: the one touched last (queued, started or finished), its
-    ``attempts`` the sum over the source's rows; in the order of each source's first row."""
+    """``rows`` collapsed to one per ``source``: the one touched last (queued, started or finished; a superseded
+    row only if the source has no other), its ``attempts`` the sum over the source's rows; in the order of each
+    source's first row."""
     by_source: dict[str, list[Row]] = {}
     for row in rows:
         by_source.setdefault(row.source, []).append(row)
-    return [replace(max(group, key=_last_touched), attempts=sum(row.attempts for row in group))
-            for group in by_source.values()]
+    return [replace(max(group, key=lambda row: (row.state != "superseded", _last_touched(row))),
+                    attempts=sum(row.attempts for row in group)) for group in by_source.values()]
 
 
 def _last_touched(row: Row) -> float:

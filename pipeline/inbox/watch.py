@@ -236,13 +236,18 @@ def _take(candidate: Candidate, outbox: str, ledger: Ledger, options: WatchOptio
     if problem := unstated(candidate, params):  # once settled: a sidecar may land after its capture
         return _refuse(candidate, problem, ledger)
     if row is None:
-        owner = ledger.owner_of(candidate.name)
+        owner = ledger.owner_of(candidate.name, candidate.url)
+        if ledger.supersede(candidate.url):  # before the new row is queued: the new row is the one touched last
+            log.info("%s: changed before an earlier attempt at it was done: that attempt is superseded",
+                     candidate.name)
         ledger.queue(key, candidate.name, candidate.url, bytes_hash, params)
         log.info("%s: found %s (%s)", candidate.name, candidate.url, candidate.kind)
         if owner is not None:
             ledger.start(key, None)
-            reason = (f"output name {candidate.name!r} already belongs to {owner.source} (other bytes or "
-                      f"parameters): rename the recording or give its sidecar a 'name'")
+            whose = (f"{owner.source} as it was done earlier" if owner.source == candidate.url else owner.source)
+            whose += " (other bytes or parameters)"
+            reason = (f"output name {candidate.name!r} already belongs to {whose}: rename the recording or give its "
+                      f"sidecar a 'name'")
             ledger.fail(key, reason, final=True, retry_in=None, quarantine=False)
             log.error("%s: failed: %s", candidate.name, reason)
             return "refused"
