@@ -5,6 +5,7 @@ recording's alone; the others are taken, and a service keeps running."""
 import logging
 import os
 import shutil
+import sqlite3
 import subprocess
 
 import pytest
@@ -157,3 +158,33 @@ def test_new_bytes_of_a_recording_supersede_an_attempt_left_unfinished(tmp_path,
         "flaky": ("done", 2, None), "r": ("done", 2, None)}
     assert sorted(row.state for row in Ledger(outbox).rows()) == ["done", "done", "superseded", "superseded"]
     assert all(row.fingerprint == shown[row.name].fingerprint for row in Ledger(outbox).rows() if row.state == "done")
+
+
+def test_an_output_folder_that_cannot_be_written_is_retried_and_done_once_it_can_be(tmp_path, cli):
+    """``OUTBOX/spikes`` not writable (chmod 555; a read-only file system alike): a problem of OUTBOX, not of the
+    recording, which was recorded ``failed (final)`` and never tried again once the folder was fixed. Now it is
+    retried with back-off, as a full disk is, and done once the folder can be written."""
+    prefix = as_a_user()
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    (outbox / "spikes").mkdir(parents=True)
+    drop(inbox, "a.npy", tiny_capture(), SIDECAR)
+    settled(inbox)
+    (outbox / "spikes").chmod(0o555)
+    try:
+        result = watch_once_process(inbox, outbox, prefix)
+    finally:
+        (outbox / "spikes").chmod(0o755)
+    assert result.returncode == 0, result.stderr
+    row = rows(outbox)["a"]
+    assert (row.state, row.final, row.attempts) == ("failed", 0, 1) and row.next_try is not None
+    assert row.error == f"cannot write {outbox / 'spikes' / 'a.zarr'}: the folder {outbox / 'spikes'} is not writable " \
+                        f"(no permission, or a read-only file system)"
+    assert f"WARNING cscsr.watch: a: failed, will retry in 60 s (attempt 1 of 3): {row.error}" in result.stderr
+
+    with sqlite3.connect(outbox / "ledger.sqlite") as db:  # let the back-off pass
+        db.execute("UPDATE recordings SET next_try = 0")
+    again = cli("watch", inbox, outbox, "--once", "--workers", 1, "--settle", 0, "--tile", 16, "--every", 5)
+    assert again.exit_code == 0, again.stderr
+    assert (rows(outbox)["a"].state, rows(outbox)["a"].attempts) == ("done", 2)
+    assert (outbox / "a.mp4").stat().st_size > 0

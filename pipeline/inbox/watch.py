@@ -44,7 +44,7 @@ from pipeline.inbox.listing import (RAW, Candidate, InboxUnavailable, check_inbo
                                     steady, unreadable)
 from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct, reconstructor
 from pipeline.stores.spike_store import check_fps, open_spike_store
-from pipeline.stores.storage import check_apart, exists, is_local, resolve
+from pipeline.stores.storage import Unreachable, Unwritable, check_apart, exists, is_local, resolve
 from pipeline.stores.video_store import open_video_store
 from stages.reconstruction.cfa import check_cfa
 from stages.errors import InputError, describe
@@ -52,6 +52,7 @@ from stages.reconstruction.methods import NETWORKS, WINDOW
 from stages.numbers import check_number
 from stages.capture.resets import check_reset
 
+ENVIRONMENT = (Unwritable, Unreachable)  # refusals that say what is wrong around a recording, not in it: retried
 WATCH_DEFAULTS = IngestOptions(cfa=None)  # no CFA guessed: a raw capture's comes from its sidecar or --cfa
 
 log = logging.getLogger("cscsr.watch")  # the package is ``pipeline``; the logger is named for the command
@@ -113,8 +114,9 @@ def key_of(fingerprint_: str, params: dict) -> str:
 def process(candidate: Candidate, key: str, params: dict, outbox: str, ledger: Ledger, options: WatchOptions,
             client) -> str:
     """Ingest (raw captures), reconstruct, export; record the outcome and return it: ``done``, ``refused`` (bad
-    input found on the way, a truncated capture: final) or ``retry`` (anything else, retried with back-off or
-    quarantined). Never raises for one recording."""
+    input found on the way, a truncated capture: final) or ``retry`` (anything else, an output folder not writable
+    or storage out of reach included: :data:`ENVIRONMENT`; retried with back-off, or quarantined). Never raises for
+    one recording."""
     row = ledger.get(key)
     out = str(outbox).rstrip("/")
     video, preview = f"{out}/{candidate.name}.zarr", f"{out}/{candidate.name}.mp4"
@@ -146,23 +148,30 @@ def process(candidate: Candidate, key: str, params: dict, outbox: str, ledger: L
         export_mp4(video, preview, overwrite=True, progress=False)
         log.info("%s: exported %s", candidate.name, preview)
     except InputError as error:
+        if isinstance(error, ENVIRONMENT):
+            return _retry_later(candidate, key, ledger, options, describe(error))
         ledger.fail(key, str(error), final=True, retry_in=None, quarantine=False)
         log.error("%s: failed: %s", candidate.name, describe(error))
         return "refused"
     except Exception as error:  # anything else may pass: retry later, up to a bound
-        attempts = ledger.get(key).attempts
-        quarantine = attempts >= options.max_attempts
-        message = f"{type(error).__name__}: {describe(error)}"
-        ledger.fail(key, message, final=False, retry_in=options.backoff * 2 ** (attempts - 1), quarantine=quarantine)
-        if quarantine:
-            log.error("%s: quarantined after %d attempts: %s", candidate.name, attempts, message)
-        else:
-            log.warning("%s: failed, will retry in %.0f s (attempt %d of %d): %s", candidate.name,
-                        options.backoff * 2 ** (attempts - 1), attempts, options.max_attempts, message)
-        return "retry"
+        return _retry_later(candidate, key, ledger, options, f"{type(error).__name__}: {describe(error)}")
     ledger.done(key, time.perf_counter() - started)
     log.info("%s: done in %.1f s -> %s", candidate.name, time.perf_counter() - started, video)
     return "done"
+
+
+def _retry_later(candidate: Candidate, key: str, ledger: Ledger, options: WatchOptions, message: str) -> str:
+    """Record a failure that may pass (a lost worker, a full disk, an output folder not writable for now): retried
+    after the back-off, doubling, then quarantined after ``max_attempts``; ``retry``."""
+    attempts = ledger.get(key).attempts
+    quarantine = attempts >= options.max_attempts
+    ledger.fail(key, message, final=False, retry_in=options.backoff * 2 ** (attempts - 1), quarantine=quarantine)
+    if quarantine:
+        log.error("%s: quarantined after %d attempts: %s", candidate.name, attempts, message)
+    else:
+        log.warning("%s: failed, will retry in %.0f s (attempt %d of %d): %s", candidate.name,
+                    options.backoff * 2 ** (attempts - 1), attempts, options.max_attempts, message)
+    return "retry"
 
 
 def spike_store_of(outbox: str, name: str) -> str:
@@ -292,7 +301,7 @@ def watch(inbox: str, outbox: str, options: WatchOptions, *, once: bool, interva
         while True:
             try:
                 counts = watch_once(inbox, outbox, options, client)
-            except InboxUnavailable as error:  # unmounted for a while: a service says so, and looks again
+            except (InboxUnavailable, Unreachable) as error:  # unmounted, offline: a service says so, looks again
                 if once:
                     raise
                 log.error("pass over %s: %s; trying again in %s", inbox, describe(error), _duration(interval))

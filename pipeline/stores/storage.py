@@ -350,6 +350,11 @@ def _same_local_file(a: str, b: str) -> bool:
 UNWRITABLE = "is not writable (no permission, or a read-only file system)"
 
 
+class Unwritable(InputError):
+    """An output place this process may not write (no permission, a read-only file system): one line, as any bad
+    input, for a command; for the watcher a problem of OUTBOX, not of the recording, retried as a full disk is."""
+
+
 def check_place(output: str) -> None:
     """Refuse, in one line naming the path, a local output that cannot be written where it is asked for: one
     under a regular file (``file.txt/out.zarr``: "is a file, not a folder"), or in a folder this process may
@@ -364,7 +369,7 @@ def check_place(output: str) -> None:
         return
     if os.path.isdir(here):
         if not os.access(here, os.W_OK | os.X_OK):
-            raise InputError(f"cannot write {output}: the folder {name} {UNWRITABLE}")
+            raise Unwritable(f"cannot write {output}: the folder {name} {UNWRITABLE}")
         return
     while True:
         here, name = os.path.dirname(here), os.path.dirname(name)
@@ -373,7 +378,7 @@ def check_place(output: str) -> None:
     if not os.path.isdir(here):
         raise InputError(f"cannot write {output}: {name or here} is a file, not a folder")
     if not os.access(here, os.W_OK | os.X_OK):
-        raise InputError(f"cannot write {output}: the folder {name or here} {UNWRITABLE}")
+        raise Unwritable(f"cannot write {output}: the folder {name or here} {UNWRITABLE}")
 
 
 def source_of(url: str) -> str | None:
