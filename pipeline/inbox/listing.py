@@ -43,7 +43,8 @@ class Candidate:
     sidecar: dict
     modified: float
     problem: str | None = None
-    look: tuple = ()  # (modification time, files, bytes) of the recording when listed: a second look compares
+    look: tuple = ()  # ((entry, (modification time, files, bytes)), ...) of the recording and its sidecar as listed:
+    # a second look compares
 
 
 class InboxUnavailable(InputError):
@@ -78,28 +79,33 @@ def discover(inbox: str) -> list[Candidate]:
 
 
 def _candidate(fs, root: str, url: str, listed: dict, entry: dict, stem: str, suffix: str) -> Candidate:
-    """The recording ``entry`` of INBOX as a candidate, with the reason it cannot be taken, if any."""
+    """The recording ``entry`` of INBOX as a candidate, with the reason it cannot be taken, if any. Its modification
+    time is the latest of the recording's and its sidecar's: a sidecar still being written settles as a capture
+    does, and is judged only once settled (the watcher checks ``--settle`` before any problem found in it)."""
     base = _base(entry)
+    sidecars = sorted(other for other in listed if other[: len(stem)] == stem and other[len(stem):].lower() == ".json")
+    sidecar_base = sidecars[0] if sidecars else f"{stem}.json"  # NAME.json, NAME.JSON, ...: beside NAME.DAT alike
     if isinstance(fs, LocalFileSystem):  # only local folders have symbolic links
-        escape = _leaves(root, entry["name"]) or _leaves(root, f"{root}/{stem}.json")
+        escape = _leaves(root, entry["name"]) or _leaves(root, f"{root}/{sidecar_base}")
         if escape:  # refused before anything (even a modification time) is read through the link
             return Candidate(stem, url, suffix, {}, 0.0, f"{escape} leads outside the inbox: refused (a link out of "
                                                          f"INBOX is never followed)")
-    odd = _odd(fs, root, entry, store=suffix == "zarr") or _odd(fs, root, listed.get(f"{stem}.json"), store=False)
+    odd = _odd(fs, root, entry, store=suffix == "zarr") or _odd(fs, root, listed.get(sidecar_base), store=False)
     if odd:  # refused before anything is read: a named pipe blocks its reader, a folder fails every read
         return Candidate(stem, url, suffix, {}, 0.0, odd)
-    look = _look(fs, entry)
-    modified = look[0]
+    look = ((base, _look(fs, entry)),) + (((sidecar_base, _look(fs, listed[sidecar_base])),) if sidecars else ())
+    modified = max(seen[0] for _, seen in look)
     if suffix not in KINDS:
         return Candidate(stem, url, suffix, {}, modified,
-                         f"unknown kind of file {base!r}: expected NAME.zarr, .dat, .npz or .npy")
-    sidecar, problem = _sidecar(fs, f"{root}/{stem}.json")
-    if sidecar.get("_modified"):
-        modified = max(modified, sidecar.pop("_modified"))
+                         f"unknown kind of file {base!r}: expected NAME.zarr, .dat, .npz or .npy", look)
+    if len(sidecars) > 1:
+        return Candidate(stem, url, suffix, {}, modified, f"{len(sidecars)} sidecars for {base}: "
+                                                          f"{', '.join(sidecars)}: keep one", look)
+    sidecar, problem = _sidecar(fs, f"{root}/{sidecar_base}") if sidecars else ({}, None)
     name = sidecar.get("name", stem)
     if problem is None and (not SAFE_NAME.match(name) or ".." in name):
         problem = f"unsafe name {name!r}: letters, digits, '.', '_' and '-' only, no '..'"
-    problem = problem or _misfit_fields(sidecar, stem, base, suffix)
+    problem = problem or _misfit_fields(sidecar, sidecar_base, base, suffix)
     return Candidate(name, url, suffix, sidecar, modified, problem, look)
 
 
@@ -187,11 +193,6 @@ def _leaves(root: str, path: str) -> str | None:
     return None
 
 
-def _modified(fs, entry: dict) -> float:
-    """Latest modification time of a file, or of any file under a directory (a Zarr store)."""
-    return _look(fs, entry)[0]
-
-
 def _look(fs, entry: dict) -> tuple[float, int, int]:
     """(latest modification time, files, bytes) of a file, or of every file under a directory (a Zarr store)."""
     def stamp(info):
@@ -212,19 +213,19 @@ def steady(candidate: Candidate) -> bool:
     """Whether a recording has stopped changing. One unchanged for a second or more is taken as it is (the
     ``--settle`` check before this has already waited as long as the user asked); one changed within the
     last second (``--settle`` under 1) is looked at again a second after that change, and taken only if its
-    modification time, files and bytes are the same as when it was listed. A writer that pauses longer
-    than ``--settle`` (and than a second) between writes is not seen: ``--settle`` must exceed its pauses."""
+    modification time, files and bytes (and its sidecar's) are the same as when it was listed. A writer that
+    pauses longer than ``--settle`` (and than a second) between writes is not seen: ``--settle`` must exceed its
+    pauses."""
     quiet = time.time() - candidate.modified
     if quiet >= SECOND_LOOK or not candidate.look:
         return True
     time.sleep(min(SECOND_LOOK, SECOND_LOOK - quiet))  # a clock ahead of ours (a remote store's) waits a second
     fs, path = resolve(candidate.url)
-    parent, base = str(path).rstrip("/").rsplit("/", 1)
+    parent = str(path).rstrip("/").rsplit("/", 1)[0]
     fs.invalidate_cache()  # an object store's listing cache would show the first look again
-    for entry in fs.ls(parent, detail=True):  # as the first look saw it (a link's own time, not its target's)
-        if _base(entry) == base:
-            return _look(fs, entry) == candidate.look
-    return False  # moved away between the two looks
+    names = dict(candidate.look)
+    again = {_base(entry): _look(fs, entry) for entry in fs.ls(parent, detail=True) if _base(entry) in names}
+    return again == names  # as the first look saw them (a link's own time, not its target's); one moved away: no
 
 
 def _sidecar(fs, path: str) -> tuple[dict, str | None]:
@@ -247,22 +248,22 @@ def _sidecar(fs, path: str) -> tuple[dict, str | None]:
         IngestOptions(**{k: v for k, v in values.items() if k != "name"}).check()
     except InputError as error:
         return {}, f"sidecar {name}: " + re.sub(r"--([a-z][a-z-]*)", lambda m: m[1].replace("-", "_"), str(error))
-    return {**values, "_modified": _modified(fs, fs.info(path))}, None
+    return values, None
 
 
-def _misfit_fields(sidecar: dict, stem: str, base: str, suffix: str) -> str | None:
+def _misfit_fields(sidecar: dict, sidecar_base: str, base: str, suffix: str) -> str | None:
     """Why a sidecar's fields do not fit the recording ``base`` beside it, in one line, or None: beside a spike
     store (``NAME.zarr``, which records its own size, CFA and rate) only ``name`` applies; ``key`` names an array
     inside a ``.npz``, and other captures have none. Refused rather than ignored: the sender meant something by
     them."""
     if suffix == "zarr":
-        fields = sorted(field for field in sidecar if field not in ("name", "_modified"))
+        fields = sorted(field for field in sidecar if field != "name")
         if fields:
-            return (f"sidecar {stem}.json: {', '.join(fields)} describe{'s' if len(fields) == 1 else ''} a raw capture, "
+            return (f"sidecar {sidecar_base}: {', '.join(fields)} describe{'s' if len(fields) == 1 else ''} a raw capture, "
                     f"and {base} is a spike store, which records its own: remove {'it' if len(fields) == 1 else 'them'} "
                     f"(only 'name' applies to a store)")
     elif "key" in sidecar and suffix != "npz":
-        return f"sidecar {stem}.json: key names an array inside a .npz, and {base} has none: remove it"
+        return f"sidecar {sidecar_base}: key names an array inside a .npz, and {base} has none: remove it"
     return None
 
 

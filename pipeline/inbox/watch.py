@@ -216,7 +216,7 @@ def watch_once(inbox: str, outbox: str, options: WatchOptions, client) -> dict:
 def _refuse(candidate: Candidate, problem: str, ledger: Ledger) -> str:
     """Record ``candidate`` as refused for ``problem``, once per problem (a later pass finding the same problem
     skips it, as a recording done is: a --once pass of nothing new is no failure); the count it adds to."""
-    refusal = hashlib.sha256(f"{candidate.url}|{problem}".encode()).hexdigest()[:24]
+    refusal = _refusal_key(candidate, problem)
     if ledger.get(refusal) is None:
         ledger.record_refusal(refusal, candidate.name, candidate.url, problem)
         log.error("%s: failed: %s (%s)", candidate.name, problem, candidate.url)
@@ -225,13 +225,24 @@ def _refuse(candidate: Candidate, problem: str, ledger: Ledger) -> str:
     return "skipped"
 
 
+def _refusal_key(candidate: Candidate, problem: str) -> str:
+    """The ledger key of a refusal: one per recording and problem."""
+    return hashlib.sha256(f"{candidate.url}|{problem}".encode()).hexdigest()[:24]
+
+
 def _take(candidate: Candidate, outbox: str, ledger: Ledger, options: WatchOptions, client, now: float) -> str:
-    """Refuse, leave for later, skip or process one recording of a pass; which of the pass's counts it adds to."""
-    if candidate.problem:
-        return _refuse(candidate, candidate.problem, ledger)
+    """Refuse, leave for later, skip or process one recording of a pass; which of the pass's counts it adds to. A
+    recording (with its sidecar) is judged once it has settled: a sidecar still being written is no bad JSON yet.
+    Problems found without reading anything (a link out of INBOX, an odd entry) have no time: refused at once."""
     if now - candidate.modified < options.settle:
         log.debug("%s: skipped for now: changed %.1f s ago, still settling", candidate.name, now - candidate.modified)
         return "waiting"  # still being written, or just landed: next pass
+    if candidate.problem:
+        if ledger.get(_refusal_key(candidate, candidate.problem)) is None and not steady(candidate):
+            log.debug("%s: skipped for now: changed between two looks a second apart, still being written",
+                      candidate.name)
+            return "waiting"
+        return _refuse(candidate, candidate.problem, ledger)
     params = parameters(candidate, options)
     bytes_hash = fingerprint(candidate)
     key = key_of(bytes_hash, params)

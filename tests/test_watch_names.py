@@ -1,0 +1,49 @@
+"""``cscsr watch``: how recordings and their sidecars are named and told apart: a sidecar's name in any case, one
+still being written, the same bytes under two names, one INBOX spelt three ways, names no log line may split."""
+
+import json
+import os
+
+import zarr
+
+from pipeline.inbox.ledger import Ledger
+from pipeline.inbox.watch import WatchOptions, watch_once
+from tests.test_watch import drop, settled
+from tests.test_watch_log import tiny_capture
+
+SIDECAR = {"height": 16, "width": 16, "cfa": "rggb"}
+QUICK = WatchOptions(tile=16, every=5, settle=0)
+
+
+def shown(outbox) -> dict:
+    """name -> (state, final, error) of each recording as ``cscsr status`` shows it."""
+    return {row.name: (row.state, row.final, row.error) for row in Ledger(outbox).recordings()}
+
+
+def test_a_sidecar_in_upper_case_is_read_and_one_still_being_written_waits_to_settle(tmp_path, client):
+    """``cam.NPY`` beside ``cam.JSON``: the capture was taken, its sidecar never read (a mono capture reconstructed
+    as RGGB, no word said); two sidecars of one capture are refused as such. A sidecar still being written
+    (half its JSON, just modified) was refused at once as not JSON, whatever --settle: now the recording waits
+    to settle, sidecar included, and is taken once its sidecar is whole."""
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    (inbox / "cam.NPY").write_bytes(tiny_capture())
+    (inbox / "cam.JSON").write_text(json.dumps({"cfa": "mono"}))
+    drop(inbox, "twin.npy", tiny_capture(1), SIDECAR)
+    (inbox / "twin.JSON").write_text(json.dumps(SIDECAR))
+    drop(inbox, "late.npy", tiny_capture(2))
+    settled(inbox)
+    (inbox / "late.json").write_text('{"height": 16, "wi')  # being written now
+
+    counts = watch_once(str(inbox), str(outbox), WatchOptions(tile=16, every=5, settle=10), client)
+    assert counts == {"processed": 1, "waiting": 1, "skipped": 0, "refused": 1}
+    assert shown(outbox) == {"cam": ("done", 0, None),
+                             "twin": ("failed", 1, "2 sidecars for twin.npy: twin.JSON, twin.json: keep one")}
+    assert zarr.open_group(str(outbox / "spikes" / "cam.zarr"), mode="r").attrs["cfa"] == "mono"
+
+    (inbox / "late.json").write_text(json.dumps(SIDECAR))  # whole now
+    settled(inbox)
+    counts = watch_once(str(inbox), str(outbox), WatchOptions(tile=16, every=5, settle=10), client)
+    assert counts == {"processed": 1, "waiting": 0, "skipped": 2, "refused": 0}
+    assert shown(outbox)["late"] == ("done", 0, None)
+    assert not [row for row in Ledger(outbox).rows() if row.name == "late" and row.state == "failed"]
