@@ -47,3 +47,35 @@ def test_a_sidecar_in_upper_case_is_read_and_one_still_being_written_waits_to_se
     assert counts == {"processed": 1, "waiting": 0, "skipped": 2, "refused": 0}
     assert shown(outbox)["late"] == ("done", 0, None)
     assert not [row for row in Ledger(outbox).rows() if row.name == "late" and row.state == "failed"]
+
+
+def test_the_same_bytes_under_another_name_have_a_status_line_of_their_own(tmp_path, client, cli, caplog):
+    """Byte-identical recordings under two names: the second got no output and no status line (one DEBUG line
+    only), and a third, refused for its sidecar, kept showing that stale refusal once its sidecar was fixed. Now
+    each is a ``duplicate`` line naming the recording done, said once at INFO."""
+    import logging
+
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    for name in ("a", "b", "c"):
+        drop(inbox, f"{name}.npy", tiny_capture(), SIDECAR)
+    (inbox / "c.json").write_text(json.dumps({**SIDECAR, "colour": True}))
+    settled(inbox)
+    with caplog.at_level(logging.DEBUG, logger="cscsr.watch"):
+        first = watch_once(str(inbox), str(outbox), QUICK, client)
+        (inbox / "c.json").write_text(json.dumps(SIDECAR))  # fixed
+        settled(inbox)
+        second = watch_once(str(inbox), str(outbox), QUICK, client)
+    assert first == {"processed": 1, "waiting": 0, "skipped": 1, "refused": 1}
+    assert second == {"processed": 0, "waiting": 0, "skipped": 3, "refused": 0}
+    assert {name: state[:2] for name, state in shown(outbox).items()} == {
+        "a": ("done", 0), "b": ("duplicate", 0), "c": ("duplicate", 0)}
+    said = [record.getMessage() for record in caplog.records if record.levelno == logging.INFO and " same bytes" in
+            record.getMessage()]
+    assert said == [f"{name}: same bytes and parameters as a ({inbox / 'a.npy'}): not done again, its outputs are "
+                    f"a's" for name in ("b", "c")]  # once each
+    assert sorted(path for path in os.listdir(outbox) if not path.startswith(".")) == [
+        "a.mp4", "a.zarr", "ledger.sqlite", "spikes"]
+    table = cli("status", outbox).stdout
+    assert "duplicate" in table and "same bytes as a:" in [line for line in table.splitlines() if "│ b " in line][0]
+    assert json.loads(cli("status", outbox, "--json").stdout)[1]["output"] == "a"

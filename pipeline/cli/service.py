@@ -94,6 +94,8 @@ def status(outbox: Annotated[str, typer.Argument(help="A watcher's OUTBOX.")],
     for r in rows:
         finished = time.strftime("%m-%d %H:%M:%S", time.localtime(r.finished_at)) if r.finished_at else ""
         detail = r.error or (f"{r.output}.zarr" if r.state == "done" else "")
+        if r.state == "duplicate":  # the same bytes and parameters as the recording named r.output
+            detail = f"same bytes as {r.output}: {r.output}.zarr (see its line)"
         if r.state == "failed" and not r.final and r.next_try:
             detail += f" (retry after {time.strftime('%H:%M:%S', time.localtime(r.next_try))})"
         table.add_row(r.name, r.state + (" (final)" if r.final else ""), str(r.attempts),

@@ -7,6 +7,7 @@ so the same bytes dropped twice are done once, and new parameters mean new work.
                       -> failed (retried after a back-off, up to a bound) -> quarantined
                       -> failed, final (bad input: retrying cannot help)
     queued, running, failed (to be retried) -> superseded (new bytes of the same recording landed)
+    duplicate (the same bytes and parameters as another recording, under another name: done once, as that one)
 
 A row left ``running`` by a watcher that died is taken up again (its outputs resumed) by
 the next one, unless the recording's bytes changed meanwhile: then it is superseded by the new
@@ -27,7 +28,7 @@ from pathlib import Path
 
 from stages.errors import InputError, describe
 
-STATES = ("queued", "running", "done", "failed", "quarantined", "superseded")
+STATES = ("queued", "running", "done", "failed", "quarantined", "superseded", "duplicate")
 FILENAME = "ledger.sqlite"
 APPLICATION_ID = 0x63736372  # "cscr" in the SQLite header: this database is a cscsr ledger
 
@@ -136,7 +137,7 @@ class Ledger:
         unfinished attempt at ``source``'s own earlier bytes (left ``running`` by a watcher killed, or failed to be
         retried) is no owner, since the new bytes supersede it (:meth:`supersede`)."""
         with closing(self._connect()) as db:
-            return db.execute("SELECT * FROM recordings WHERE output = ? AND state NOT IN ('quarantined', 'superseded') "
+            return db.execute("SELECT * FROM recordings WHERE output = ? AND state NOT IN ('quarantined', 'superseded', 'duplicate') "
                               "AND NOT (state = 'failed' AND final = 1) AND NOT (source = ? AND state != 'done') "
                               "ORDER BY queued_at LIMIT 1", (output, source)).fetchone()
 
@@ -171,6 +172,19 @@ class Ledger:
         next_try = None if final or quarantine or retry_in is None else time.time() + retry_in
         self._write("UPDATE recordings SET state = ?, error = ?, final = ?, finished_at = ?, next_try = ? WHERE key = ?",
                     (state, error, int(final), time.time(), next_try, key))
+
+    def record_duplicate(self, key: str, name: str, source: str, of: Row) -> bool:
+        """Record the recording at ``source``, named ``name``, as a duplicate of the row ``of`` (the same bytes and
+        parameters, another name): its own row (the key ``key``, one per source), ``output`` the name whose outputs
+        it shares; whether this is news (False: recorded by an earlier pass)."""
+        now = time.time()
+        with closing(self._connect()) as db:
+            db.execute("BEGIN IMMEDIATE")
+            added = db.execute("INSERT OR IGNORE INTO recordings (key, name, source, fingerprint, params, state, "
+                               "queued_at, finished_at, output) VALUES (?, ?, ?, ?, ?, 'duplicate', ?, ?, ?)",
+                               (key, name, source, of.fingerprint, of.params, now, now, of.output or of.name)).rowcount
+            db.execute("COMMIT")
+        return added == 1
 
     def record_refusal(self, key: str, name: str, source: str, error: str) -> None:
         """A candidate refused before any work (bad name, unknown kind, bad sidecar, odd entry): failed, final."""

@@ -230,6 +230,18 @@ def _refusal_key(candidate: Candidate, problem: str) -> str:
     return hashlib.sha256(f"{candidate.url}|{problem}".encode()).hexdigest()[:24]
 
 
+def _duplicate(candidate: Candidate, key: str, row, ledger: Ledger) -> str:
+    """A recording whose bytes and parameters are those of the ledger's ``row``, under another name: done once,
+    as that one (its outputs are that name's), and recorded as a ``duplicate`` of it, so ``cscsr status`` shows a
+    line for it; said once at INFO. Counted as handled."""
+    if ledger.record_duplicate(_refusal_key(candidate, key), candidate.name, candidate.url, row):
+        log.info("%s: same bytes and parameters as %s (%s): not done again, its outputs are %s's", candidate.name,
+                 row.name, row.source, row.output or row.name)
+    else:
+        log.debug("%s: skipped: same bytes and parameters as %s (%s)", candidate.name, row.name, row.source)
+    return "skipped"
+
+
 def _take(candidate: Candidate, outbox: str, ledger: Ledger, options: WatchOptions, client, now: float) -> str:
     """Refuse, leave for later, skip or process one recording of a pass; which of the pass's counts it adds to. A
     recording (with its sidecar) is judged once it has settled: a sidecar still being written is no bad JSON yet.
@@ -255,6 +267,8 @@ def _take(candidate: Candidate, outbox: str, ledger: Ledger, options: WatchOptio
         return "waiting"
     if problem := unstated(candidate, params):  # once settled: a sidecar may land after its capture
         return _refuse(candidate, problem, ledger)
+    if row is not None and row.source != candidate.url:  # these bytes were sent under another name
+        return _duplicate(candidate, key, row, ledger)
     if row is None:
         owner = ledger.owner_of(candidate.name, candidate.url)
         if ledger.supersede(candidate.url):  # before the new row is queued: the new row is the one touched last
