@@ -79,3 +79,28 @@ def test_the_same_bytes_under_another_name_have_a_status_line_of_their_own(tmp_p
     table = cli("status", outbox).stdout
     assert "duplicate" in table and "same bytes as a:" in [line for line in table.splitlines() if "│ b " in line][0]
     assert json.loads(cli("status", outbox, "--json").stdout)[1]["output"] == "a"
+
+
+def test_one_inbox_spelt_several_ways_is_one_inbox_in_the_ledger(tmp_path, client, cli, monkeypatch):
+    """``in``, ``./in/``, a link to it and its absolute path: each spelling keyed the ledger anew, so a refusal was
+    logged again at every spelling (and a --once pass failed for it), and status showed a line per spelling."""
+    inbox, outbox = tmp_path / "in", tmp_path / "out"
+    inbox.mkdir()
+    (tmp_path / "link").symlink_to(inbox)
+    drop(inbox, "a.npy", tiny_capture(), SIDECAR)
+    drop(inbox, "notes.txt", b"hello")
+    settled(inbox)
+    monkeypatch.chdir(tmp_path)
+
+    first = watch_once("in", str(outbox), QUICK, client)
+    assert first == {"processed": 1, "waiting": 0, "skipped": 0, "refused": 1}
+    for spelling in ("./in/", str(tmp_path / "link"), f"file://{inbox}"):
+        assert watch_once(spelling, str(outbox), QUICK, client) == {"processed": 0, "waiting": 0, "skipped": 2,
+                                                                    "refused": 0}, spelling
+    again = cli("watch", "./in", "out", "--once", "--workers", 1, "--settle", 0, "--tile", 16, "--every", 5)
+    assert again.exit_code == 0, again.stderr  # the refusal was said before: nothing new
+    assert f"INFO cscsr.watch: pass over {inbox}: 0 processed, 0 still settling, 2 already handled, 0 refused" \
+        in again.stderr
+    rows = json.loads(cli("status", outbox, "--json").stdout)
+    assert [(row["name"], row["source"], row["state"]) for row in rows] == [
+        ("a", str(inbox / "a.npy"), "done"), ("notes", str(inbox / "notes.txt"), "failed")]

@@ -125,6 +125,14 @@ def _reason(error: OSError) -> str:
     return reason[:1].lower() + reason[1:]
 
 
+def canonical(inbox: str) -> str:
+    """INBOX as the ledger knows it: a local folder by its absolute real path, so that ``in``, ``./in/``,
+    ``$PWD/in``, ``file://$PWD/in`` and a link to it are one inbox, whose recordings are done, refused and shown
+    once; any other URL as given, less a trailing slash."""
+    fs, path = resolve(inbox)
+    return os.path.realpath(path) if isinstance(fs, LocalFileSystem) else str(inbox).rstrip("/")
+
+
 def check_inbox(inbox: str):
     """(filesystem, path) of INBOX; refused in one line unless it is a folder (before OUTBOX is made)."""
     fs, root = resolve(inbox)

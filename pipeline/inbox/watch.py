@@ -40,8 +40,8 @@ from pipeline.compute.cluster import check_in_memory, dask_client
 from pipeline.jobs.export import export_mp4
 from pipeline.jobs.ingest import IngestOptions, capture_fields, ingest
 from pipeline.inbox.ledger import Ledger
-from pipeline.inbox.listing import (RAW, Candidate, InboxUnavailable, check_inbox, discover, fingerprint,
-                                    steady, unreadable)
+from pipeline.inbox.listing import (RAW, Candidate, InboxUnavailable, canonical, check_inbox, discover,
+                                    fingerprint, steady, unreadable)
 from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct, reconstructor
 from pipeline.stores.spike_store import check_fps, open_spike_store
 from pipeline.stores.storage import Unreachable, Unwritable, check_apart, exists, is_local, resolve
@@ -200,6 +200,7 @@ def watch_once(inbox: str, outbox: str, options: WatchOptions, client) -> dict:
     ledger = Ledger(outbox)
     counts = {"processed": 0, "waiting": 0, "skipped": 0, "refused": 0}
     now = time.time()
+    inbox = canonical(inbox)  # however INBOX is spelt, its recordings have one source each in the ledger
     root = resolve(inbox)[1]
     for candidate in discover(inbox):
         try:
@@ -267,7 +268,7 @@ def _take(candidate: Candidate, outbox: str, ledger: Ledger, options: WatchOptio
         return "waiting"
     if problem := unstated(candidate, params):  # once settled: a sidecar may land after its capture
         return _refuse(candidate, problem, ledger)
-    if row is not None and row.source != candidate.url:  # these bytes were sent under another name
+    if row is not None and row.source != candidate.url and row.name != candidate.name:  # sent under another name
         return _duplicate(candidate, key, row, ledger)
     if row is None:
         owner = ledger.owner_of(candidate.name, candidate.url)
@@ -320,6 +321,7 @@ def watch(inbox: str, outbox: str, options: WatchOptions, *, once: bool, interva
         raise InputError(f"OUTBOX {outbox} is a file, not a folder: give a folder for the outputs and the ledger")
     check_in_memory((inbox,))  # its spike stores are read by the reconstructions' worker processes
     check_inbox(inbox)  # a missing INBOX is refused before OUTBOX is made
+    inbox = canonical(inbox)  # as the ledger knows it (and each pass's line says it)
     os.makedirs(outbox, exist_ok=True)
     Ledger(outbox)  # someone else's file named like the ledger is refused before the lock file or a cluster
     with outbox_lock(outbox), dask_client(workers=workers, scheduler=scheduler) as client:
