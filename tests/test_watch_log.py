@@ -173,3 +173,32 @@ def test_verbose_lets_dask_warnings_through():
         assert _dask_log_level() == logging.WARNING
     finally:
         logger.setLevel(logging.NOTSET)
+
+
+def test_log_lines_survive_rotation_and_names_that_would_split_them(tmp_path, cli, monkeypatch):
+    """--log-file moved away by log rotation (logrotate without copytruncate) while the watcher runs: its lines went
+    on into the moved file for ever; now the file is opened again at its path. A file in INBOX whose name holds a
+    newline split its lines, and could forge one; now each control character is shown escaped, each line one
+    record."""
+    import pipeline.inbox.watch
+
+    inbox, outbox, log = tmp_path / "inbox", tmp_path / "outbox", tmp_path / "watch.log"
+    inbox.mkdir()
+    forged = "x.dat\n2025-01-01T00:00:00+0000 INFO cscsr.watch: x: done in 1.0 s"
+    drop(inbox, forged + ".dat", b"\0" * 64)
+    settled(inbox)
+    real_pass = pipeline.inbox.watch.watch_once
+
+    def rotated(*args):
+        counts = real_pass(*args)
+        log.rename(tmp_path / "watch.log.1")  # the pass's lines are written; logrotate moves the file
+        return counts
+
+    monkeypatch.setattr(pipeline.inbox.watch, "watch_once", rotated)
+    result = cli(*watch_args(inbox, outbox, "--log-file", log))
+    assert result.exit_code == 1 and "was refused (1)" in result.stderr  # the forged name: an unsafe name
+    before, after = records((tmp_path / "watch.log.1").read_text()), records(log.read_text())
+    assert after == [("INFO", f"pass over {inbox}: 0 processed, 0 still settling, 0 already handled, 1 refused")]
+    (level, message), = before  # one record, one line: the name's newline escaped
+    assert level == "ERROR" and message.startswith(r"x.dat\n2025-01-01T00:00:00+0000 INFO cscsr.watch: x: done in "
+                                                   r"1.0 s: failed: unsafe name 'x.dat\n2025")

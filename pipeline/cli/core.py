@@ -5,6 +5,7 @@ and ``main``. The commands live beside it (``recordings``, ``network``, ``servic
 import contextlib
 import functools
 import logging
+import logging.handlers
 import os
 import signal
 import sys
@@ -131,11 +132,25 @@ def options(context: typer.Context,
     send_logs(context)
 
 
+class OneLineFormatter(logging.Formatter):
+    """Each record one line, whatever it names: a newline or other control character in it (a file so named in
+    an inbox) is shown escaped as Python shows it in a string (``\\n``, ``\\x1b``), so no name splits a line or
+    forges one; printable text, names in any script included, is left as it is."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        line = super().format(record)
+        if line.isprintable():
+            return line
+        return "".join(char if char.isprintable() else char.encode("unicode_escape").decode("ascii") for char in line)
+
+
 def send_logs(context: typer.Context, path: str | None = None) -> None:
-    """Our log records, timestamped one line each, to standard error or to the file ``path`` (appended), at the
-    level --quiet / --verbose chose, until the command ends. Only the command line configures logging."""
-    handler = logging.FileHandler(path, encoding="utf-8") if path else logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter(LOG_FORMAT, LOG_TIME))
+    """Our log records, timestamped one line each, to standard error or to the file ``path`` (appended; reopened
+    when log rotation moves it away, as logrotate does), at the level --quiet / --verbose chose, until the command
+    ends. Only the command line configures logging."""
+    handler = (logging.handlers.WatchedFileHandler(path, encoding="utf-8") if path
+               else logging.StreamHandler(sys.stderr))
+    handler.setFormatter(OneLineFormatter(LOG_FORMAT, LOG_TIME))
     handler.set_name("cscsr")
     logger = logging.getLogger("cscsr")
     for old in [h for h in logger.handlers if h.get_name() == "cscsr"]:  # --log-file replaces standard error
