@@ -122,6 +122,8 @@ def test_status_shows_a_recording_once_in_its_latest_state_as_one_json_document(
     ledger.record_refusal("other", "b", str(tmp_path / "inbox" / "b.txt"), "unknown kind of file 'b.txt'")
     rows = json.loads(cli("status", tmp_path, "--json").stdout)  # one JSON list, not JSON Lines
     assert [(row["name"], row["state"], row["attempts"]) for row in rows] == [("a", "done", 2), ("b", "failed", 1)]
+    assert rows[0]["params"] == {"method": "tfp"} and rows[1]["params"] == {}  # objects, not JSON inside JSON
+    assert rows[0]["final"] is False and rows[1]["final"] is True  # booleans, not 0 and 1
     table = cli("status", tmp_path)
     assert table.exit_code == 0 and "2 recordings" in table.stdout
     assert [line for line in table.stdout.splitlines() if "│ a " in line][0].count("done") == 1

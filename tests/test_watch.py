@@ -158,6 +158,11 @@ def test_a_second_watcher_is_refused_and_intervals_parse(tmp_path, cli):
                                                            "--once makes one pass, --interval passes again and "
                                                            "again: give one")
     assert not (tmp_path / "fresh").exists()
+    huge = cli("watch", tmp_path / "inbox", tmp_path / "fresh", "--interval", "99999999999h", "--workers", 1)
+    assert huge.exit_code == 1 and huge.stderr.strip() == ("error: --interval must be at most 168h (a week), got "
+                                                           "'99999999999h': for rarer passes, run cscsr watch --once "
+                                                           "from cron")  # not an OverflowError after the first pass
+    assert not (tmp_path / "fresh").exists() and parse_interval("168h") == 7 * 24 * 3600
 
 
 def _ledger_state(outbox, name):

@@ -7,7 +7,7 @@ import os
 import zarr
 
 from pipeline.inbox.ledger import Ledger
-from pipeline.inbox.watch import WatchOptions, watch_once
+from pipeline.inbox.watch import WatchOptions, discover, watch_once
 from tests.test_watch import drop, settled
 from tests.test_watch_log import tiny_capture
 
@@ -104,3 +104,18 @@ def test_one_inbox_spelt_several_ways_is_one_inbox_in_the_ledger(tmp_path, clien
     rows = json.loads(cli("status", outbox, "--json").stdout)
     assert [(row["name"], row["source"], row["state"]) for row in rows] == [
         ("a", str(inbox / "a.npy"), "done"), ("notes", str(inbox / "notes.txt"), "failed")]
+
+
+def test_a_name_too_long_is_refused_for_its_length(tmp_path):
+    """A name of 140 letters was refused as ``letters, digits, '.', '_' and '-' only``, which it is: the limit it
+    broke is its length, 128 characters, which is now what the refusal says; 128 are taken."""
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    drop(inbox, "n" * 140 + ".npy", tiny_capture(), SIDECAR)
+    settled(inbox)
+    counts = watch_once(str(inbox), str(outbox), WatchOptions(settle=10), client=None)
+    assert counts == {"processed": 0, "waiting": 0, "skipped": 0, "refused": 1}
+    assert shown(outbox) == {"n" * 140: ("failed", 1, f"name {'n' * 140!r} is 140 characters long: at most 128 "
+                                                      f"(rename the recording, or give its sidecar a shorter 'name')")}
+    (inbox / ("n" * 140 + ".npy")).rename(inbox / ("m" * 128 + ".npy"))
+    assert [(found.name, found.problem) for found in discover(str(inbox))] == [("m" * 128, None)]

@@ -19,8 +19,8 @@ DEFAULT_INTERVAL = "10m"  # between a watcher's passes
 def watch(context: typer.Context,
           inbox: Annotated[str, typer.Argument(help="Where recordings land (any URL).")],
           outbox: Annotated[str, typer.Argument(help="Local folder for outputs and the ledger.")],
-          interval: Annotated[Optional[str], typer.Option(help="Time between passes: 30s, 10m, 1h (default: "
-                                                           "10m).")] = None,
+          interval: Annotated[Optional[str], typer.Option(help="Time between passes: 30s, 10m, 1h, at most 168h "
+                                                           "(default: 10m).")] = None,
           once: Annotated[bool, typer.Option("--once", help="One pass, then exit (for cron).")] = False,
           method: Annotated[str, typer.Option(metavar=METHOD_CHOICES, help="Reconstruction method.")] = "tfp",
           weights: Annotated[Optional[str], typer.Option(help="Network weights for cscsr.")] = None,
@@ -85,8 +85,9 @@ def status(outbox: Annotated[str, typer.Argument(help="A watcher's OUTBOX.")],
     from pipeline.inbox.ledger import Ledger
 
     rows = Ledger(outbox, read_only=True).recordings()  # refused unless it is a cscsr ledger; never written
-    if as_json:  # one JSON document per command, as info --json and the dry runs print
-        print(json.dumps([row.__dict__ for row in rows], allow_nan=False))
+    if as_json:  # one JSON document per command, as info --json and the dry runs print; params an object, in it
+        print(json.dumps([{**row.__dict__, "params": json.loads(row.params), "final": bool(row.final)}
+                          for row in rows], allow_nan=False))
         return
     table = Table(title=f"{outbox}: {len(rows)} recordings (sources: --json)")
     for column in ("name", "state", "tries", "seconds", "finished", "error / output"):

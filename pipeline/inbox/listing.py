@@ -27,7 +27,8 @@ from stages.errors import InputError, describe
 RAW = ("dat", "npz", "npy")
 KINDS = ("zarr",) + RAW
 SKIPPED_SUFFIXES = ("json", "partial", "tmp", "part", "crdownload")  # sidecars, and uploads still in flight
-SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
+LONGEST_NAME = 128  # characters of an output name
+SAFE_NAME = re.compile(rf"^[A-Za-z0-9][A-Za-z0-9._-]{{0,{LONGEST_NAME - 1}}}$")
 SIDECAR_FIELDS = {"height": int, "width": int, "cfa": str, "flip": bool, "fps": (int, float), "reset": str,
                   "head_columns": int, "key": str, "name": str}
 SAMPLE = 1 << 20  # bytes read from each end of a file for its fingerprint
@@ -105,6 +106,9 @@ def _candidate(fs, root: str, url: str, listed: dict, entry: dict, stem: str, su
     name = sidecar.get("name", stem)
     if problem is None and (not SAFE_NAME.match(name) or ".." in name):
         problem = f"unsafe name {name!r}: letters, digits, '.', '_' and '-' only, no '..'"
+        if len(name) > LONGEST_NAME and SAFE_NAME.match(name[:LONGEST_NAME]) and ".." not in name:
+            problem = (f"name {name!r} is {len(name)} characters long: at most {LONGEST_NAME} (rename the recording, "
+                       f"or give its sidecar a shorter 'name')")
     problem = problem or _misfit_fields(sidecar, sidecar_base, base, suffix)
     return Candidate(name, url, suffix, sidecar, modified, problem, look)
 

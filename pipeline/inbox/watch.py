@@ -359,9 +359,17 @@ def _duration(seconds: float) -> str:
     return f"{seconds:g} s"
 
 
+LONGEST_INTERVAL = 7 * 24 * 3600  # seconds between passes, at most: rarer passes are cron's work (--once)
+
+
 def parse_interval(text: str) -> float:
-    """'90', '90s', '10m', '1h' -> seconds."""
+    """'90', '90s', '10m', '1h' -> seconds; at most a week (:data:`LONGEST_INTERVAL`), refused before the first
+    pass (a huge one failed after it, as more than the system's sleep can wait)."""
     match = re.fullmatch(r"\s*(\d+(?:\.\d+)?)\s*([smh]?)\s*", str(text))
     if not match or float(match.group(1)) <= 0:
         raise InputError(f"--interval must look like 30s, 10m or 1h, got {text!r}")
-    return float(match.group(1)) * {"": 1, "s": 1, "m": 60, "h": 3600}[match.group(2)]
+    seconds = float(match.group(1)) * {"": 1, "s": 1, "m": 60, "h": 3600}[match.group(2)]
+    if seconds > LONGEST_INTERVAL:
+        raise InputError(f"--interval must be at most 168h (a week), got {text!r}: for rarer passes, run cscsr watch "
+                         f"--once from cron")
+    return seconds
