@@ -77,7 +77,7 @@ def test_the_same_bytes_under_another_name_have_a_status_line_of_their_own(tmp_p
     assert sorted(path for path in os.listdir(outbox) if not path.startswith(".")) == [
         "a.mp4", "a.zarr", "ledger.sqlite", "spikes"]
     table = cli("status", outbox).stdout
-    assert "duplicate" in table and "same bytes as a:" in [line for line in table.splitlines() if "│ b " in line][0]
+    assert "duplicate" in table and "same bytes as a:" in next(line for line in table.splitlines() if "│ b " in line)
     assert json.loads(cli("status", outbox, "--json").stdout)[1]["output"] == "a"
 
 
@@ -115,7 +115,8 @@ def test_a_name_too_long_is_refused_for_its_length(tmp_path):
     settled(inbox)
     counts = watch_once(str(inbox), str(outbox), WatchOptions(settle=10), client=None)
     assert counts == {"processed": 0, "waiting": 0, "skipped": 0, "refused": 1}
-    assert shown(outbox) == {"n" * 140: ("failed", 1, f"name {'n' * 140!r} is 140 characters long: at most 128 "
-                                                      f"(rename the recording, or give its sidecar a shorter 'name')")}
+    reason = f"name {'n' * 140!r} is 140 characters long: at most 128 (rename the recording, or give its sidecar a " \
+             f"shorter 'name')"
+    assert shown(outbox) == {"n" * 140: ("failed", 1, reason)}
     (inbox / ("n" * 140 + ".npy")).rename(inbox / ("m" * 128 + ".npy"))
     assert [(found.name, found.problem) for found in discover(str(inbox))] == [("m" * 128, None)]

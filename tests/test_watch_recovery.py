@@ -28,7 +28,8 @@ def as_a_user() -> list[str]:
     if os.geteuid() != 0:
         return []
     prefix = ["setpriv", "--bounding-set=-dac_override,-dac_read_search"]
-    if shutil.which("setpriv") is None or subprocess.run([*prefix, "true"], capture_output=True).returncode != 0:
+    if shutil.which("setpriv") is None or subprocess.run([*prefix, "true"], capture_output=True,
+                                                         check=False).returncode:
         pytest.skip("running as root, and setpriv cannot drop root's right to read any file here")
     return prefix
 
@@ -114,8 +115,8 @@ def test_a_service_outlives_a_recording_gone_mid_pass_and_an_inbox_gone_for_a_wh
         watcher.watch(str(inbox), str(outbox), QUICK, once=False, interval=0.01, workers=1)
     logged = [(record.levelname, record.getMessage()) for record in caplog.records]
     assert ("INFO", f"b: skipped: gone from the inbox since the pass listed it ({inbox / 'b.npy'})") in logged
-    assert ("ERROR", f"pass over {inbox}: inbox {inbox} does not exist: give the folder where recordings land; "
-                     f"trying again in 0.01 s") in logged
+    assert ("ERROR", (f"pass over {inbox}: inbox {inbox} does not exist: give the folder where recordings land; "
+                      f"trying again in 0.01 s")) in logged
     assert {name: row.state for name, row in rows(outbox).items()} == {"a": "done", "c": "done", "d": "done"}
 
     monkeypatch.setattr(watcher, "watch_once", real_pass)
@@ -178,8 +179,8 @@ def test_an_output_folder_that_cannot_be_written_is_retried_and_done_once_it_can
     assert result.returncode == 0, result.stderr
     row = rows(outbox)["a"]
     assert (row.state, row.final, row.attempts) == ("failed", 0, 1) and row.next_try is not None
-    assert row.error == f"cannot write {outbox / 'spikes' / 'a.zarr'}: the folder {outbox / 'spikes'} is not writable " \
-                        f"(no permission, or a read-only file system)"
+    assert row.error == (f"cannot write {outbox / 'spikes' / 'a.zarr'}: the folder {outbox / 'spikes'} is not "
+                         f"writable (no permission, or a read-only file system)")
     assert f"WARNING cscsr.watch: a: failed, will retry in 60 s (attempt 1 of 3): {row.error}" in result.stderr
 
     with sqlite3.connect(outbox / "ledger.sqlite") as db:  # let the back-off pass

@@ -11,8 +11,8 @@ so the same bytes dropped twice are done once, and new parameters mean new work.
 
 A row left ``running`` by a watcher that died is taken up again (its outputs resumed) by
 the next one, unless the recording's bytes changed meanwhile: then it is superseded by the new
-bytes' row, which owns the recording's outputs. Every change is one SQLite transaction, so a kill at any moment leaves the
-ledger consistent.
+bytes' row, which owns the recording's outputs. Every change is one SQLite transaction, so a
+kill at any moment leaves the ledger consistent.
 
 A ledger is opened only if it is ours: a file that is not an SQLite database, or a database
 without the marker (``PRAGMA application_id``) and without our ``recordings`` table, is refused
@@ -137,9 +137,10 @@ class Ledger:
         unfinished attempt at ``source``'s own earlier bytes (left ``running`` by a watcher killed, or failed to be
         retried) is no owner, since the new bytes supersede it (:meth:`supersede`)."""
         with closing(self._connect()) as db:
-            return db.execute("SELECT * FROM recordings WHERE output = ? AND state NOT IN ('quarantined', 'superseded', 'duplicate') "
-                              "AND NOT (state = 'failed' AND final = 1) AND NOT (source = ? AND state != 'done') "
-                              "ORDER BY queued_at LIMIT 1", (output, source)).fetchone()
+            return db.execute("SELECT * FROM recordings WHERE output = ? AND state NOT IN ('quarantined', "
+                              "'superseded', 'duplicate') AND NOT (state = 'failed' AND final = 1) "
+                              "AND NOT (source = ? AND state != 'done') ORDER BY queued_at LIMIT 1",
+                              (output, source)).fetchone()
 
     def supersede(self, source: str) -> int:
         """Mark the unfinished rows of ``source`` (queued, running, failed to be retried) ``superseded``: the

@@ -2,10 +2,10 @@
 taken, whether it has stopped changing, and the fingerprint of its bytes.
 
 A pass lists INBOX (any fsspec URL, one level): spike stores (``NAME.zarr``) and raw captures (``NAME.dat``,
-``NAME.npz``, ``NAME.npy``) with an optional sidecar ``NAME.json`` (height, width, cfa, flip, fps, reset,
-head_columns, key, name; the watcher's defaults fill the rest). Nothing is read through a symbolic link whose real
-path leaves INBOX (:func:`_leaves`), nor opened where an entry is not what its name says (:func:`_odd`: a named
-pipe's reader waits forever). A recording is taken once it has not changed for ``settle`` seconds (the watcher
+``NAME.npz``, ``NAME.npy``) with an optional sidecar ``NAME.json``, in any case (height, width, cfa, flip, fps,
+reset, head_columns, key, name; the watcher's defaults fill the rest). Nothing is read through a symbolic link
+whose real path leaves INBOX (:func:`_leaves`), nor opened where an entry is not what its name says (:func:`_odd`:
+a named pipe's reader waits forever). A recording is taken once it has not changed for ``settle`` seconds (the watcher
 checks), and one changed within the last second only if a second look a second later finds the same modification
 time, files and bytes (:func:`steady`).
 """
@@ -271,9 +271,10 @@ def _misfit_fields(sidecar: dict, sidecar_base: str, base: str, suffix: str) -> 
     if suffix == "zarr":
         fields = sorted(field for field in sidecar if field != "name")
         if fields:
-            return (f"sidecar {sidecar_base}: {', '.join(fields)} describe{'s' if len(fields) == 1 else ''} a raw capture, "
-                    f"and {base} is a spike store, which records its own: remove {'it' if len(fields) == 1 else 'them'} "
-                    f"(only 'name' applies to a store)")
+            one = len(fields) == 1
+            return (f"sidecar {sidecar_base}: {', '.join(fields)} describe{'s' if one else ''} a raw capture, and "
+                    f"{base} is a spike store, which records its own: remove {'it' if one else 'them'} (only 'name' "
+                    f"applies to a store)")
     elif "key" in sidecar and suffix != "npz":
         return f"sidecar {sidecar_base}: key names an array inside a .npz, and {base} has none: remove it"
     return None

@@ -15,8 +15,10 @@ committed tiles, and outputs are named by the recording, so there is never a sec
 Bad input (unknown extension, unsafe name, nonsense sidecar, truncated capture, a symbolic link
 anywhere in a recording or its sidecar whose real path leaves INBOX, an entry that is not what its name
 says, such as a folder, named pipe, socket or device where a regular file belongs, :func:`_odd`) is recorded
-as failed with its reason and never stops the other recordings; other errors are retried
-with exponential back-off, then quarantined. Names are checked so no output can land
+as failed with its reason and never stops the other recordings; other errors (an OUTBOX folder not writable
+included) are retried with exponential back-off, then quarantined. A recording that cannot be read is refused
+alone, one gone mid-pass skipped; new bytes of a recording supersede an unfinished attempt at its old ones, and
+the same bytes under another name are a duplicate, done once. Names are checked so no output can land
 outside OUTBOX. One watcher per OUTBOX at a time (a lock file).
 
 Every event is one record of the ``cscsr.watch`` logger, naming the recording: found, claimed,
@@ -39,7 +41,7 @@ from pathlib import Path
 from pipeline.compute.cluster import check_in_memory, dask_client
 from pipeline.jobs.export import export_mp4
 from pipeline.jobs.ingest import IngestOptions, capture_fields, ingest
-from pipeline.inbox.ledger import Ledger
+from pipeline.inbox.ledger import Ledger, Row
 from pipeline.inbox.listing import (RAW, Candidate, InboxUnavailable, canonical, check_inbox, discover,
                                     fingerprint, steady, unreadable)
 from pipeline.jobs.reconstruct import ReconstructOptions, reconstruct, reconstructor
@@ -231,7 +233,7 @@ def _refusal_key(candidate: Candidate, problem: str) -> str:
     return hashlib.sha256(f"{candidate.url}|{problem}".encode()).hexdigest()[:24]
 
 
-def _duplicate(candidate: Candidate, key: str, row, ledger: Ledger) -> str:
+def _duplicate(candidate: Candidate, key: str, row: Row, ledger: Ledger) -> str:
     """A recording whose bytes and parameters are those of the ledger's ``row``, under another name: done once,
     as that one (its outputs are that name's), and recorded as a ``duplicate`` of it, so ``cscsr status`` shows a
     line for it; said once at INFO. Counted as handled."""
