@@ -123,8 +123,8 @@ _ATTRIBUTE_TYPES = {"height": int, "width": int, "head_columns": int, "spike_cou
 
 # The range of each number a store records: finite, and one that its readers can use (a negative
 # gain or a scale of 0 would otherwise fail inside every task, an infinite fps print as invalid JSON).
-_ATTRIBUTE_RANGES = {"fps": {"above": 0, "at_least": MIN_FPS}, "gain": {"above": 0, "at_most": MAX_GAIN}, "threshold": {"above": 0},
-                     "spike_count": {"at_least": 0}, "frames": {"at_least": 0}, "scale": {"at_least": 1},
+_ATTRIBUTE_RANGES = {"fps": {"above": 0, "at_least": MIN_FPS}, "gain": {"above": 0, "at_most": MAX_GAIN},
+                     "threshold": {"above": 0}, "spike_count": {"at_least": 0}, "frames": {"at_least": 0}, "scale": {"at_least": 1},
                      "truth_every": {"at_least": 1, "integer": True}, "brightness": {"above": 0}}
 
 
