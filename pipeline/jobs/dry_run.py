@@ -44,8 +44,11 @@ def plan_job(plan: Plan, part: Part, blocks: TileBlocks, done: np.ndarray, hr_si
         start_up, segments, on = 0.0, 1, "of the cluster"
     else:  # the job would start a local cluster of its own per segment: measured in a segment alike, whose fixed
         began = time.perf_counter()  # cost (a fresh process and cluster, started, warmed and stopped) each pays
-        measured, = in_segments(functools.partial(_measured_here, job=job, seconds=SAMPLE_SECONDS), [None], 1,
-                                workers=workers, show_dashboard=False)
+        # its scratch folder made and removed here, once the segment and its cluster are gone: a task still running
+        # when the job was stopped could write into it after the segment's own cleanup
+        with _folder() as folder:
+            measured, = in_segments(functools.partial(_measured_here, job=job, seconds=SAMPLE_SECONDS, folder=folder),
+                                    [None], 1, workers=workers, show_dashboard=False)
         start_up = max(0.0, time.perf_counter() - began - measured["seconds"] - measured["seconds_per_task"])
         segments, on = -(-to_run // segment_tasks), "local"
     count = measured["of"]  # the workers the job runs on (measured on at most TRIAL_WORKERS of them)
@@ -110,18 +113,26 @@ def _trial_store(url: str, attrs: dict | None = None, layout: dict | None = None
 
 
 @contextlib.contextmanager
-def _scratch(client, workers: list[str]) -> Iterator[str]:
-    """Where a dry run's tasks write, never at or beside OUT: a store in a new folder under this machine's temporary
-    folder where every one of ``workers`` can write it (they pay a write to disk, as the job's tasks do), else a
-    ``memory://`` store in each worker process's memory; the folder is removed after either way."""
+def _folder() -> Iterator[str]:
+    """A new folder under this machine's temporary folder, removed after."""
     folder = tempfile.mkdtemp(prefix="cscsr-dry-run-")
     try:
+        yield folder
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def _scratch(client, workers: list[str], folder: str | None = None) -> Iterator[str]:
+    """Where a dry run's tasks write, never at or beside OUT: a store in a new folder under this machine's temporary
+    folder (``folder``, whose maker removes it; else one made and removed here) where every one of ``workers`` can
+    write it (they pay a write to disk, as the job's tasks do), else a ``memory://`` store in each worker process's
+    memory."""
+    with contextlib.nullcontext(folder) if folder else _folder() as folder:
         if all(client.run(_writable, folder, workers=workers).values()):
             yield os.path.join(folder, "out.zarr")
         else:
             yield f"memory://cscsr-dry-run-{uuid.uuid4().hex}/out.zarr"
-    finally:
-        shutil.rmtree(folder, ignore_errors=True)
 
 
 _TOKEN = uuid.uuid4().hex  # this process's, drawn once (a process forked later has a pid of its own)
@@ -143,7 +154,7 @@ MOST_TASKS = 100  # a worker, in that time (tasks of milliseconds)
 
 
 def _measured(client, plan: Plan, part: Part, blocks: TileBlocks, hr_size: tuple[int, int], *,
-              seconds: float = SAMPLE_SECONDS) -> dict:
+              seconds: float = SAMPLE_SECONDS, folder: str | None = None) -> dict:
     """Run tasks of the job (from its middle on) on every worker that would run them (at most ``TRIAL_WORKERS``),
     all at once as the job keeps them busy (one worker measured alone runs up to twice as fast as in the job), into
     a temporary store (:func:`_scratch`): one task per worker to warm them, then tasks submitted as the job submits
@@ -158,7 +169,7 @@ def _measured(client, plan: Plan, part: Part, blocks: TileBlocks, hr_size: tuple
         raise InputError("the cluster has no worker that would run this job's tasks: add workers, then plan again")
     job_tasks = sum(1 for _ in blocks.units())
     of, able = len(able), able[:min(TRIAL_WORKERS, job_tasks)]  # a job of fewer tasks keeps no more workers busy
-    with _scratch(client, able) as url:
+    with _scratch(client, able, folder) as url:
         shared = not url.startswith("memory://")  # one store that every worker reaches, else one in each worker process
         # workers that share a process (a client's in-process workers) share its memory: the store made once there
         owners = list({process: address for address, process in client.run(_process, workers=able).items()}.values())
@@ -182,16 +193,28 @@ def _measured(client, plan: Plan, part: Part, blocks: TileBlocks, hr_size: tuple
             _trial_store(url, trial.attrs(), layout)
         else:
             client.run(_trial_store, url, trial.attrs(), layout, workers=owners)
+        def forget() -> None:  # the trial store and every worker's writer of it
+            client.run(_trial_store, url, None, None, shared, workers=owners)
+            if shared:
+                _trial_store(url)
+
         try:
-            client.gather([submit(group, [address]) for address, group in zip(able, groups)])  # warm
+            for future in [submit(group, [address]) for address, group in zip(able, groups)]:  # warm
+                future.result()  # each (a gather stopped by a signal left asyncio's "never retrieved" AllExit)
             began, finished, results = time.perf_counter(), [], []
             for _, future in submitted(client, sample(), submit):  # as the job submits them: a bounded window
                 results.append(future.result())
                 finished.append(time.perf_counter())
-        finally:
-            client.run(_trial_store, url, None, None, shared, workers=owners)
-            if shared:
-                _trial_store(url)
+        except Exception:  # a task failed: the cause is said, not a failed cleanup after it
+            with contextlib.suppress(Exception):
+                forget()
+            raise
+        except BaseException:  # stopped (SIGTERM, Ctrl-C): on our own cluster (``folder``) its workers go with it, or
+            if folder is None:  # went with the signal (its process group): nothing to ask them; a user's are asked
+                with contextlib.suppress(Exception):
+                    forget()
+            raise
+        forget()
         # until the last workers go idle: the time of the task that leaves one task a worker to finish
         counted = max(1, len(finished) - len(able) + 1)
         seconds = finished[counted - 1] - began
@@ -200,9 +223,10 @@ def _measured(client, plan: Plan, part: Part, blocks: TileBlocks, hr_size: tuple
                 "hr_pixels": sum(r["hr_pixels"] for r in results)}
 
 
-def _measured_here(client, items, *, job: tuple, seconds: float) -> Iterator[dict]:
-    """:func:`_measured` as a segment of the job runs (``executor.in_segments``)."""
-    yield _measured(client, *job, seconds=seconds)
+def _measured_here(client, items, *, job: tuple, seconds: float, folder: str) -> Iterator[dict]:
+    """:func:`_measured` as a segment of the job runs (``executor.in_segments``), on its own cluster, writing into
+    ``folder`` (the job's process removes it)."""
+    yield _measured(client, *job, seconds=seconds, folder=folder)
 
 
 def _from_the_middle(blocks: TileBlocks) -> Iterator[tuple[int, int]]:

@@ -39,9 +39,10 @@ def ctrl_c_as_at_a_terminal() -> None:
 
 
 def terminated_mid_work(args: list, ready, *, cwd, tmpdir, ctrl_c: bool = False, env: dict | None = None,
-                        release=None) -> Stopped:
+                        release=None, group: bool = False) -> Stopped:
     """Run ``cscsr -q ARGS`` in ``cwd`` with ``TMPDIR=tmpdir`` (and ``env`` added to its environment), SIGTERM it once
-    ``ready()`` holds (``ctrl_c``: SIGINT to its whole process group, as a terminal's Ctrl-C), then create the file
+    ``ready()`` holds (``group``: its whole process group, workers too, as ``kill -- -PGID`` or a supervisor does;
+    ``ctrl_c``: SIGINT to its whole process group, as a terminal's Ctrl-C), then create the file
     ``release`` if given (tasks held by :func:`held` go on: a task takes a while, not for ever); -> (its result,
     seconds from the signal to its exit), once every process it started (its descendants, sampled while it ran) is
     gone."""
@@ -58,8 +59,8 @@ def terminated_mid_work(args: list, ready, *, cwd, tmpdir, ctrl_c: bool = False,
             descendants |= set(_descendants(started))
             time.sleep(0.05)
         descendants |= set(_descendants(started))
-        if ctrl_c:
-            os.killpg(process.pid, signal.SIGINT)
+        if ctrl_c or group:
+            os.killpg(process.pid, signal.SIGINT if ctrl_c else signal.SIGTERM)
         else:
             process.send_signal(signal.SIGTERM)
         sent = time.monotonic()
@@ -306,6 +307,27 @@ def test_sigterm_during_reconstruct_stops_its_segment_and_cluster_and_resume_fin
     again = subprocess.run([CSCSR, "-q", *map(str, args), "--resume"], capture_output=True, text=True, timeout=300)
     assert again.returncode == 0, again.stderr
     assert zarr.open_group(str(out), mode="r").attrs["state"] == "complete"
+
+
+@pytest.mark.parametrize("group,ctrl_c", [(False, False), (True, False), (False, True)])
+def test_sigterm_during_a_dry_run_is_said_as_such_and_leaves_nothing(spikes, tmp_path, tmpdir_of_its_own, group,
+                                                                     ctrl_c):
+    """A dry run stopped while its sampled tasks run: to the whole process group, its workers went with the signal
+    and the cleanup's lost connection (CommClosedError, exit 1) was said instead of the signal; Ctrl-C printed
+    asyncio's "never retrieved" AllExit first; a task still running could write its scratch folder back."""
+    from pipeline.compute.hold import hold_environment
+
+    release = tmp_path / "release"
+    scratch = lambda: [name for name in os.listdir(tmpdir_of_its_own) if name.startswith("cscsr-dry-run-")]  # noqa: E731
+    args = ["reconstruct", spikes, tmp_path / "out.zarr", "--workers", 2, "--every", 5, "--dry-run"]
+    result, seconds = terminated_mid_work(args, lambda: scratch() and os.listdir(tmpdir_of_its_own / scratch()[0]),
+                                          cwd=tmp_path, tmpdir=tmpdir_of_its_own, group=group, release=release,
+                                          env=hold_environment(0, release), ctrl_c=ctrl_c)
+    if ctrl_c:
+        assert_stopped(result, seconds, status=130, line="error: interrupted")
+    else:
+        assert_stopped(result, seconds)
+    assert sorted(os.listdir(tmp_path)) == ["release", "tmp"] and temporary_files(tmpdir_of_its_own) == set()
 
 
 def test_sigterm_during_simulate_closes_its_cluster_and_removes_the_store(tmp_path, tmpdir_of_its_own):
