@@ -327,7 +327,7 @@ def test_the_python_api_refuses_them_as_strictly(recording, tmp_path):
 
 @pytest.fixture
 def quick(monkeypatch):
-    """Dry runs that measure for 0.3 s rather than 3 (at least 3 tasks a worker all the same)."""
+    """Dry runs that measure for 0.3 s rather than 3 (a round of a task a worker at least all the same)."""
     import pipeline.jobs.dry_run
 
     monkeypatch.setattr(pipeline.jobs.dry_run, "SAMPLE_SECONDS", 0.3)

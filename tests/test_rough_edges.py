@@ -74,6 +74,21 @@ def test_reconstruct_dry_run_of_a_small_job_times_at_most_its_tasks(tmp_path, mo
     assert plan["seconds_per_task"] > 0
 
 
+def test_a_dry_run_of_tasks_longer_than_its_sampling_time_times_one_round(tmp_path, monkeypatch):
+    """Tasks that take longer than the sampling time (the network's on a whole 1000x1000 frame, a minute each) are
+    timed once a worker after the warm-up: three rounds made a dry run cost half the job."""
+    import pipeline.jobs.dry_run
+
+    monkeypatch.setattr(pipeline.jobs.dry_run, "SAMPLE_SECONDS", 0.0)  # every task is longer than that
+    np.save(tmp_path / "s.npy", (np.random.default_rng(1).random((300, 16, 32)) < 0.2).astype(np.uint8))
+    ingest(str(tmp_path / "s.npy"), str(tmp_path / "s.zarr"), IngestOptions(cfa="rggb"), progress=False)
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as local, \
+            Client(local) as client:
+        plan = reconstruct(str(tmp_path / "s.zarr"), str(tmp_path / "out.zarr"),
+                           ReconstructOptions(every=7, tile=16), client=client, dry_run=True)
+    assert plan["tasks"] > 10 and plan["measured"]["tasks"] == 1 and plan["seconds_per_task"] > 0
+
+
 # --- result lines -----------------------------------------------------------------------------
 
 def test_ingest_result_names_its_frames(dat, cli, tmp_path):

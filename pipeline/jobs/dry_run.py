@@ -183,9 +183,9 @@ def _measured(client, plan: Plan, part: Part, blocks: TileBlocks, hr_size: tuple
 
         most = _most_sampled(job_tasks, len(able))
 
-        def sample() -> Iterator:  # for about ``seconds``, and 3 tasks a worker at least
-            for n, group in enumerate(groups):
-                if n >= most or (n >= 3 * len(able) and n % len(able) == 0 and time.perf_counter() - began >= seconds):
+        def sample() -> Iterator:  # whole rounds for about ``seconds``, one at least: tasks of a minute (a network's
+            for n, group in enumerate(groups):  # whole 1000x1000 frame) ran 3 rounds, half the job
+                if n >= most or (n >= len(able) and n % len(able) == 0 and time.perf_counter() - began >= seconds):
                     return
                 yield group
 
@@ -215,8 +215,9 @@ def _measured(client, plan: Plan, part: Part, blocks: TileBlocks, hr_size: tuple
                     forget()
             raise
         forget()
-        # until the last workers go idle: the time of the task that leaves one task a worker to finish
-        counted = max(1, len(finished) - len(able) + 1)
+        # until the last workers go idle: the time of the task that leaves one task a worker to finish; in one round,
+        # which began at once on every worker, the time of its last
+        counted = len(finished) if len(finished) <= len(able) else len(finished) - len(able) + 1
         seconds = finished[counted - 1] - began
         return {"workers": len(able), "of": of, "tasks": len(results), "seconds": seconds,
                 "seconds_per_task": seconds * len(able) / counted, "bytes": sum(r["bytes"] for r in results),
