@@ -114,3 +114,14 @@ def test_mp4_export_keeps_the_frame_size_and_says_when_it_pads(cli, tmp_path, he
     decoded = iio.imread(tmp_path / "video.mp4")
     assert decoded.shape == (2, *padded, 3)
     assert np.abs(decoded[:, :height, :width].astype(float) - frames).mean() < 4  # in place: not resampled
+
+
+def test_an_mp4_of_frames_only_h264_level_6_holds_is_said_to_be_so():
+    """A whole 1000x1000 sensor at x4 is 4000x4000 HR: H.264 level 6 (203 Mb/s, a user's sweep measured), which many
+    hardware players and browsers do not decode; the export says so, and what to do. 4096x2304 (level 5.2) is not
+    said, 2304x4096 neither (the same macroblocks), one macroblock row more is."""
+    from pipeline.jobs.export import beyond_common_players
+
+    assert beyond_common_players(4000, 4000).startswith("frames of 4000x4000 make an H.264 level 6 video")
+    assert beyond_common_players(2304, 4096) is None and beyond_common_players(4096, 2304) is None
+    assert beyond_common_players(2320, 4096) is not None and beyond_common_players(1000, 1000) is None

@@ -57,6 +57,20 @@ def _complete_video(store_url: str):
     return group
 
 
+LEVEL_52_MACROBLOCKS = 36864  # H.264 level 5.2's largest frame (4096x2304): where many hardware decoders stop
+
+
+def beyond_common_players(height: int, width: int) -> str | None:
+    """What to say of an H.264 video of ``height`` x ``width`` frames that only level 6 holds (a 4000x4000 HR
+    frame: a 1000x1000 sensor at x4), which many hardware players, phones and browsers do not decode; else None."""
+    macroblocks = -(-height // 16) * -(-width // 16)
+    if macroblocks <= LEVEL_52_MACROBLOCKS:
+        return None
+    return (f"frames of {height}x{width} make an H.264 level 6 video (over level 5.2's 2304x4096): ffmpeg and "
+            f"software players play it, many hardware players and browsers do not; export PNG frames (a FOLDER/) "
+            f"or reconstruct a --region for them")
+
+
 def export_mp4(store_url: str, dest: str, *, overwrite: bool = False, progress: bool = True) -> None:
     """H.264 at 10 frames per second (libx264, yuv420p), written locally then moved to ``dest``. Frames keep their
     size; yuv420p needs even sides, so an odd side grows by one repeated row or column, said in one log line
@@ -71,6 +85,8 @@ def export_mp4(store_url: str, dest: str, *, overwrite: bool = False, progress: 
         log.warning("%s: frames are %dx%d and H.264 (yuv420p) needs even sides: the video is %dx%d, its last %s "
                     "repeated", dest, width, height, width + -width % MP4_BLOCK, height + -height % MP4_BLOCK,
                     " and last ".join(odd))
+    if note := beyond_common_players(height, width):
+        log.warning("%s: %s", dest, note)
     fs, path = resolve(dest)
     # the old video (only an MP4: .mp4 is the kind written here) is kept until the new one is in place
     with new_output(dest, overwrite=overwrite, kind=".mp4"), tempfile.TemporaryDirectory() as scratch:
