@@ -60,16 +60,22 @@ def test_a_dry_run_samples_no_more_tasks_than_the_job_has():
     assert _most_sampled(10**6, 2) == MOST_TASKS * 2
 
 
-def test_reconstruct_dry_run_of_a_small_job_times_at_most_its_tasks(tmp_path, monkeypatch):
+def dry_run_on_one_worker(tmp_path, monkeypatch, seconds: float, frames: int) -> dict:
+    """The plan of a TFP dry run (every 7, tiles of 16) of ``frames`` frames of LR 16x32 that samples for about
+    ``seconds``, on a cluster of one worker in this process."""
     import pipeline.jobs.dry_run
 
-    monkeypatch.setattr(pipeline.jobs.dry_run, "SAMPLE_SECONDS", 30.0)  # tasks of milliseconds: the cap stops it
-    np.save(tmp_path / "s.npy", (np.random.default_rng(1).random((120, 16, 32)) < 0.2).astype(np.uint8))
+    monkeypatch.setattr(pipeline.jobs.dry_run, "SAMPLE_SECONDS", seconds)
+    np.save(tmp_path / "s.npy", (np.random.default_rng(1).random((frames, 16, 32)) < 0.2).astype(np.uint8))
     ingest(str(tmp_path / "s.npy"), str(tmp_path / "s.zarr"), IngestOptions(cfa="rggb"), progress=False)
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as local, \
             Client(local) as client:
-        plan = reconstruct(str(tmp_path / "s.zarr"), str(tmp_path / "out.zarr"),
+        return reconstruct(str(tmp_path / "s.zarr"), str(tmp_path / "out.zarr"),
                            ReconstructOptions(every=7, tile=16), client=client, dry_run=True)
+
+
+def test_reconstruct_dry_run_of_a_small_job_times_at_most_its_tasks(tmp_path, monkeypatch):
+    plan = dry_run_on_one_worker(tmp_path, monkeypatch, 30.0, 120)  # tasks of milliseconds: the cap stops it
     assert plan["tasks"] < 40 and plan["measured"]["tasks"] + plan["workers"] <= plan["tasks"]
     assert plan["seconds_per_task"] > 0
 
@@ -77,15 +83,7 @@ def test_reconstruct_dry_run_of_a_small_job_times_at_most_its_tasks(tmp_path, mo
 def test_a_dry_run_of_tasks_longer_than_its_sampling_time_times_one_round(tmp_path, monkeypatch):
     """Tasks that take longer than the sampling time (the network's on a whole 1000x1000 frame, a minute each) are
     timed once a worker after the warm-up: three rounds made a dry run cost half the job."""
-    import pipeline.jobs.dry_run
-
-    monkeypatch.setattr(pipeline.jobs.dry_run, "SAMPLE_SECONDS", 0.0)  # every task is longer than that
-    np.save(tmp_path / "s.npy", (np.random.default_rng(1).random((300, 16, 32)) < 0.2).astype(np.uint8))
-    ingest(str(tmp_path / "s.npy"), str(tmp_path / "s.zarr"), IngestOptions(cfa="rggb"), progress=False)
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as local, \
-            Client(local) as client:
-        plan = reconstruct(str(tmp_path / "s.zarr"), str(tmp_path / "out.zarr"),
-                           ReconstructOptions(every=7, tile=16), client=client, dry_run=True)
+    plan = dry_run_on_one_worker(tmp_path, monkeypatch, 0.0, 300)  # every task is longer than no time
     assert plan["tasks"] > 10 and plan["measured"]["tasks"] == 1 and plan["seconds_per_task"] > 0
 
 
