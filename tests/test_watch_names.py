@@ -120,3 +120,32 @@ def test_a_name_too_long_is_refused_for_its_length(tmp_path):
     assert shown(outbox) == {"n" * 140: ("failed", 1, reason)}
     (inbox / ("n" * 140 + ".npy")).rename(inbox / ("m" * 128 + ".npy"))
     assert [(found.name, found.problem) for found in discover(str(inbox))] == [("m" * 128, None)]
+
+
+def test_bytes_refused_for_their_name_are_done_under_another_and_bad_bytes_stay_refused(tmp_path, client):
+    """``b.npy`` whose sidecar names it ``a``, a name ``a.npy`` holds, is refused for its name; the same bytes as
+    ``c.npy`` were then a ``duplicate`` of that refusal, never done: the name's refusal no longer holds the bytes.
+    Bytes refused as bad input (a truncated capture) under another name are refused too, in that refusal's words,
+    not shown as a duplicate of outputs that do not exist."""
+    inbox, outbox = tmp_path / "inbox", tmp_path / "outbox"
+    inbox.mkdir()
+    drop(inbox, "a.npy", tiny_capture(0), {"cfa": "rggb"})
+    drop(inbox, "b.npy", tiny_capture(1), {"cfa": "rggb", "name": "a"})
+    drop(inbox, "t.npy", tiny_capture(2)[:-100], {"cfa": "rggb"})
+    settled(inbox)
+    by_file = lambda: {os.path.basename(row.source): (row.state, row.final, row.error)  # noqa: E731
+                       for row in Ledger(outbox).recordings()}
+    watch_once(str(inbox), str(outbox), QUICK, client)
+    before = by_file()
+    assert before["a.npy"] == ("done", 0, None) and before["t.npy"][:2] == ("failed", 1)
+    assert before["b.npy"] == ("failed", 1, f"output name 'a' already belongs to {inbox / 'a.npy'} (other bytes or "
+                                            f"parameters): rename the recording or give its sidecar a 'name'")
+
+    drop(inbox, "c.npy", tiny_capture(1), {"cfa": "rggb"})
+    drop(inbox, "u.npy", tiny_capture(2)[:-100], {"cfa": "rggb"})
+    settled(inbox)
+    counts = watch_once(str(inbox), str(outbox), QUICK, client)
+    assert counts["processed"] == 1 and counts["refused"] == 1
+    after = by_file()
+    assert after["c.npy"] == ("done", 0, None) and (outbox / "c.zarr").exists()
+    assert after["u.npy"] == ("failed", 1, f"the same bytes and parameters as t, refused: {before['t.npy'][2]}")

@@ -271,23 +271,20 @@ def _take(candidate: Candidate, outbox: str, ledger: Ledger, options: WatchOptio
     if problem := unstated(candidate, params):  # once settled: a sidecar may land after its capture
         return _refuse(candidate, problem, ledger)
     if row is not None and row.source != candidate.url and row.name != candidate.name:  # sent under another name
+        if row.state == "failed" and row.final:  # its bytes were refused: these are too, in its words
+            return _refuse(candidate, f"the same bytes and parameters as {row.name}, refused: {row.error}", ledger)
         return _duplicate(candidate, key, row, ledger)
     if row is None:
-        owner = ledger.owner_of(candidate.name, candidate.url)
+        if (owner := ledger.owner_of(candidate.name, candidate.url)) is not None:
+            # the name's fault, not the bytes': refused under its own key, so the same bytes under a free name are done
+            whose = (f"{owner.source} as it was done earlier" if owner.source == candidate.url else owner.source)
+            return _refuse(candidate, f"output name {candidate.name!r} already belongs to {whose} (other bytes or "
+                           f"parameters): rename the recording or give its sidecar a 'name'", ledger)
         if ledger.supersede(candidate.url):  # before the new row is queued: the new row is the one touched last
             log.info("%s: changed before an earlier attempt at it was done: that attempt is superseded",
                      candidate.name)
         ledger.queue(key, candidate.name, candidate.url, bytes_hash, params)
         log.info("%s: found %s (%s)", candidate.name, candidate.url, candidate.kind)
-        if owner is not None:
-            ledger.start(key, None)
-            whose = (f"{owner.source} as it was done earlier" if owner.source == candidate.url else owner.source)
-            whose += " (other bytes or parameters)"
-            reason = (f"output name {candidate.name!r} already belongs to {whose}: rename the recording or give its "
-                      f"sidecar a 'name'")
-            ledger.fail(key, reason, final=True, retry_in=None, quarantine=False)
-            log.error("%s: failed: %s", candidate.name, reason)
-            return "refused"
         row = ledger.get(key)
     waiting = row.state == "failed" and not row.final and (row.next_try or 0) > now
     if row.state in ("done", "quarantined") or (row.state == "failed" and row.final) or waiting:
