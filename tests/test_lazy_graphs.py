@@ -324,7 +324,7 @@ def test_on_a_cluster_every_block_is_tried_and_the_failed_ones_are_named_by_thei
     assert np.array_equal(stored(out)[0], stored(str(tmp_path / "whole.zarr"))[0])
 
 
-def test_on_a_cluster_tasks_a_scheduler_restart_drops_are_submitted_again(recording, tmp_path, monkeypatch):
+def test_on_a_cluster_tasks_a_scheduler_restart_drops_are_submitted_again(recording, tmp_path):
     """``to_video`` of a reconstruction read from a store runs its blocks on a cluster as the job does
     (``reconstruct_tasks.run_blocks``: the executor's bounded window): the scheduler restarted mid-call (every
     future cancelled, the worker process restarted by its nanny) drops the tasks in flight, which are submitted
@@ -334,7 +334,7 @@ def test_on_a_cluster_tasks_a_scheduler_restart_drops_are_submitted_again(record
     with threaded():
         lazy.to_video(hr, str(tmp_path / "whole.zarr"))
     out = str(tmp_path / "restarted.zarr")
-    counts, restarted = to_video_restarted(hr, out, 3, tmp_path, monkeypatch)
+    counts, restarted = to_video_restarted(hr, out, 3, tmp_path)
     assert restarted and restarted[0] < 8 * 4 and counts["tasks_skipped"] == 0  # restarted with work remaining
     video, frames, attrs = stored(out)
     assert np.array_equal(video, stored(str(tmp_path / "whole.zarr"))[0]) and attrs["state"] == "complete"
@@ -350,7 +350,7 @@ def test_a_scheduler_restart_loses_only_the_round_in_flight_of_any_other_hr(reco
     with threaded():
         lazy.to_video(hr, str(tmp_path / "whole.zarr"))
     out = str(tmp_path / "restarted.zarr")
-    error, restarted = to_video_restarted(hr, out, 12, tmp_path, monkeypatch)
+    error, restarted = to_video_restarted(hr, out, 12, tmp_path)
     assert isinstance(error, RuntimeError) and "cluster fault: the task was cancelled" in str(error)  # in flight
     assert restarted and committed_tiles(out) >= 84 - 8, (restarted, committed_tiles(out))
     with threaded():
@@ -359,15 +359,15 @@ def test_a_scheduler_restart_loses_only_the_round_in_flight_of_any_other_hr(reco
     assert np.array_equal(stored(out)[0], stored(str(tmp_path / "whole.zarr"))[0])
 
 
-def to_video_restarted(hr, out: str, tiles: int, tmp_path, monkeypatch):
+def to_video_restarted(hr, out: str, tiles: int, tmp_path):
     """``lazy.to_video(hr, out)`` on a cluster of one worker process whose scheduler is restarted once ``tiles`` tiles
     are committed (its writes held after them: ``pipeline.compute.hold``) -> (the counts, or the error it raised; the
     tiles committed when it restarted)."""
     from pipeline.compute.hold import hold_environment
 
     release, restarted = tmp_path / "release", []
-    for name, value in hold_environment(tiles, release).items():  # in the worker process's environment
-        monkeypatch.setenv(name, value)
+    held = hold_environment(tiles, release)  # set by the nanny in its worker (forked from a server that started
+    # before this test: the test's own environment would not reach it, and the writes ran through unheld)
 
     def restart_when_held(client):
         try:
@@ -379,7 +379,7 @@ def to_video_restarted(hr, out: str, tiles: int, tmp_path, monkeypatch):
         finally:  # whatever happened, the held writes go on
             release.touch()
 
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0") as local, \
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0", env=held) as local, \
             Client(local) as client:
         restarter = threading.Thread(target=restart_when_held, args=(client,))
         restarter.start()
