@@ -205,12 +205,9 @@ def _measured(client, plan: Plan, part: Part, blocks: TileBlocks, hr_size: tuple
             for _, future in submitted(client, sample(), submit):  # as the job submits them: a bounded window
                 results.append(future.result())
                 finished.append(time.perf_counter())
-        except Exception:  # a task failed: the cause is said, not a failed cleanup after it
-            with contextlib.suppress(Exception):
-                forget()
-            raise
-        except BaseException:  # stopped (SIGTERM, Ctrl-C): on our own cluster (``folder``) its workers go with it, or
-            if folder is None:  # went with the signal (its process group): nothing to ask them; a user's are asked
+        except BaseException as stopped:  # the cause is said, not a failed cleanup after it. Stopped (SIGTERM,
+            # Ctrl-C) on our own cluster (``folder``), its workers go with it or went with the signal: nothing to ask
+            if folder is None or isinstance(stopped, Exception):
                 with contextlib.suppress(Exception):
                     forget()
             raise

@@ -201,7 +201,7 @@ def _scored(name: str, frames, truth, truth_frames, crop: tuple[int, int, int, i
 
     # a frame a core (SSIM's filters let go of the GIL): at 4000x4000 the scores took 97 % of an evaluation, one
     # frame at a time; the same numbers, each frame's its own
-    with ThreadPoolExecutor(min(SCORING_THREADS, len(os.sched_getaffinity(0)))) as pool:
+    with ThreadPoolExecutor(min(SCORING_THREADS, os.cpu_count() or 1)) as pool:
         pairs = list(pool.map(scores, range(len(truth_frames))))
     per_frame = [{"method": name, "frame": int(f), "psnr": p, "ssim": s} for f, (p, s) in zip(truth_frames, pairs)]
     row = {"method": name, "psnr": float(np.mean([p for p, _ in pairs])), "ssim": float(np.mean([s for _, s in pairs])),
